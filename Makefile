@@ -1,0 +1,32 @@
+# Two commands on a fresh machine: `make demo` (the main job) and `make test`.
+# Each creates/refreshes .venv, installs torch==2.13.0 first (a CPU wheel here; a bare
+# `torch` requirement would pull a multi-GB CUDA build), then the project with its extras.
+PY ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+
+.PHONY: venv demo test bench clean
+
+$(STAMP): pyproject.toml Makefile
+	test -x $(BIN)/python || $(PY) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q torch==2.13.0
+	# lpips declares a torchvision dependency; only its weight files are wanted.
+	$(BIN)/python -m pip install -q --no-deps lpips==0.1.4
+	$(BIN)/python -m pip install -q -e '.[eval,test]'
+	touch $(STAMP)
+
+venv: $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/lmgs-eval demo
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q -m "not slow" -p no:cacheprovider
+
+bench: $(STAMP)
+	$(BIN)/lmgs-eval bench all
+
+clean:
+	rm -rf $(VENV) build *.egg-info

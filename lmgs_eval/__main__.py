@@ -1,0 +1,5 @@
+import sys
+
+from lmgs_eval.cli import main
+
+sys.exit(main())

@@ -1,0 +1,81 @@
+"""The ``lmgs-eval`` command line: parse, build a config, call the library, write files.
+
+Each subcommand lives in its own module under :mod:`lmgs_eval.commands` with three names:
+``HELP`` (one line), ``add_arguments(parser)`` and ``run(args) -> int``. Modules keep heavy
+imports (torch, onnxruntime, dlib) inside ``run`` so ``lmgs-eval --help`` stays instant.
+User errors (:class:`lmgs.errors.InputError`) become one line on stderr and exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+# name -> module; order is the order of `lmgs-eval --help`.
+COMMANDS: dict[str, str] = {
+    "subjects": "lmgs_eval.commands.subjects",
+    "prepare": "lmgs_eval.commands.prepare",
+}
+# Optional commands: registered only when their module exists (added by later work).
+_OPTIONAL: dict[str, str] = {
+    "metrics": "lmgs_eval.commands.metrics",
+    "score": "lmgs_eval.commands.score",
+    "weights": "lmgs_eval.commands.weights",
+    "self": "lmgs_eval.commands.self_driven",
+    "cross": "lmgs_eval.commands.cross",
+    "table": "lmgs_eval.commands.table",
+    "stress": "lmgs_eval.commands.stress",
+    "capacity": "lmgs_eval.commands.capacity",
+    "verify": "lmgs_eval.commands.verify",
+    "train": "lmgs_eval.commands.train",
+    "bench": "lmgs_eval.commands.bench",
+    "demo": "lmgs_eval.commands.demo",
+}
+
+
+def _available_commands() -> dict[str, object]:
+    mods: dict[str, object] = {}
+    for name, path in {**COMMANDS, **_OPTIONAL}.items():
+        try:
+            mods[name] = importlib.import_module(path)
+        except ModuleNotFoundError as exc:
+            if name in COMMANDS or exc.name != path:
+                raise
+    return mods
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="lmgs-eval",
+        description="Evaluate audio-driven talking heads; every number says how it was made.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, mod in _available_commands().items():
+        p = sub.add_parser(name, help=mod.HELP, description=mod.HELP)
+        mod.add_arguments(p)
+        p.set_defaults(_run=mod.run)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    from lmgs.errors import InputError
+
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "command", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args._run(args) or 0)
+    except InputError as exc:
+        print(f"lmgs-eval {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"lmgs-eval {args.command}: interrupted; finished work is kept and the run can be resumed", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
