@@ -1,0 +1,84 @@
+"""``lmgs-eval bench TARGET``: speed benchmarks measured side by side in one run.
+
+Each target is a module with ``add_arguments(parser)`` and ``run(args) -> dict``; the dict
+is printed as a table, or as one JSON object on stdout with ``--json``. Ratios are always
+measured in the same run, on this machine, never compared with stored figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+
+HELP = "speed benchmarks (raster, metrics, ...), measured side by side in one run"
+
+TARGETS: dict[str, str] = {
+    "raster": "lmgs.render.bench",
+    "metrics": "lmgs_eval.metrics.bench",
+    "model": "lmgs.bench",
+}
+
+
+def _load(target: str):
+    try:
+        return importlib.import_module(TARGETS[target])
+    except ModuleNotFoundError as exc:
+        if exc.name == TARGETS[target]:
+            return None
+        raise
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    sub = p.add_subparsers(dest="target", metavar="TARGET", required=True)
+    for name in TARGETS:
+        mod = _load(name)
+        if mod is None:
+            continue
+        sp = sub.add_parser(name, help=getattr(mod, "HELP", name))
+        sp.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+        mod.add_arguments(sp)
+        sp.set_defaults(_bench=mod)
+    sp = sub.add_parser("all", help="every available benchmark")
+    sp.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    sp.set_defaults(_bench=None)
+
+
+def _print_table(name: str, result: dict) -> None:
+    rows = result.get("rows", [])
+    print(f"== bench {name} ==")
+    for k, v in result.items():
+        if k != "rows":
+            print(f"{k}: {v}")
+    if rows:
+        cols = list(rows[0])
+        widths = [max(len(str(c)), *(len(_fmt(r.get(c))) for r in rows)) for c in cols]
+        print("  ".join(str(c).ljust(w) for c, w in zip(cols, widths)))
+        for r in rows:
+            print("  ".join(_fmt(r.get(c)).ljust(w) for c, w in zip(cols, widths)))
+
+
+def _fmt(v) -> str:
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    return "" if v is None else str(v)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args._bench is None:
+        results = {}
+        for name in TARGETS:
+            mod = _load(name)
+            if mod is None:
+                continue
+            sp = argparse.ArgumentParser()
+            mod.add_arguments(sp)
+            results[name] = mod.run(sp.parse_args([]))
+    else:
+        results = {args.target: args._bench.run(args)}
+    if args.json:
+        print(json.dumps(results if args._bench is None else results[args.target], indent=2))
+    else:
+        for name, res in results.items():
+            _print_table(name, res)
+    return 0
