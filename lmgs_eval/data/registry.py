@@ -1,0 +1,169 @@
+"""Finding subjects by name or path, and building bundled subjects on first use.
+
+Lookup order for ``--subject X``:
+
+1. ``X`` is an existing folder: read it (``--subject path/to/folder``).
+2. ``X`` names a bundled subject (``astronaut``, ``hopper``, or a sized variant such as
+   ``astronaut-64px-2s``): built under the data root on first use, then read.
+3. ``X`` is a folder under the data root (``obama``, ``may``, ``lieu`` or any other).
+4. Otherwise: a one-line error that says where it looked and what is known.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import re
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+from lmgs_eval.data.subject import Subject
+from lmgs_eval.errors import UserError
+from lmgs_eval.paths import atomic_dir, data_root
+
+BUNDLED = ("astronaut", "hopper")
+DEFAULT_SIZE = 256
+DEFAULT_SECONDS = 60.0
+# The paper's subjects: recognised by name, never shipped.
+PAPER_SUBJECTS = {
+    "obama": "AD-NeRF's Obama video (450x450)",
+    "may": "GeneFace's May video (512x512)",
+    "lieu": "GeneFace's Lieu video (512x512)",
+}
+_VARIANT = re.compile(r"^(?P<name>[a-z]+)(?:-(?P<size>\d+)px)?(?:-(?P<sec>\d+(?:\.\d+)?)s)?(?:-seed(?P<seed>\d+))?$")
+
+
+@dataclass(frozen=True)
+class BundledSpec:
+    """Which bundled subject to build: base face, frame size, duration, seed."""
+
+    name: str
+    size: int = DEFAULT_SIZE
+    seconds: float = DEFAULT_SECONDS
+    seed: int = 0
+
+    @property
+    def folder(self) -> str:
+        """Folder name: the bare name for the defaults, else ``name-64px-2s[-seed1]``."""
+        s = self.name
+        if (self.size, self.seconds) != (DEFAULT_SIZE, DEFAULT_SECONDS):
+            s += f"-{self.size}px-{self.seconds:g}s"
+        if self.seed:
+            s += f"-seed{self.seed}"
+        return s
+
+    @staticmethod
+    def parse(text: str) -> "BundledSpec | None":
+        m = _VARIANT.match(text)
+        if not m or m["name"] not in BUNDLED:
+            return None
+        return BundledSpec(
+            m["name"],
+            int(m["size"]) if m["size"] else DEFAULT_SIZE,
+            float(m["sec"]) if m["sec"] else DEFAULT_SECONDS,
+            int(m["seed"]) if m["seed"] else 0,
+        )
+
+
+def _generator_version() -> str:
+    from lmgs_eval.data import bundled
+
+    return bundled.GENERATOR_VERSION
+
+
+def ensure_bundled(spec: BundledSpec, root: Path | None = None, *, force: bool = False, progress: bool = True) -> Path:
+    """Build a bundled subject if it is missing or was made by another generator version.
+
+    The build runs in a temporary folder renamed at the end, under a lock file, so an
+    interrupted build leaves nothing half-written and two processes never build twice.
+    """
+    import json
+
+    from lmgs_eval.data import bundled
+
+    if spec.size < 32 or spec.size > 2048:
+        raise UserError(f"--size {spec.size}: must be between 32 and 2048 pixels")
+    if not (1.0 <= spec.seconds <= 600.0):
+        raise UserError(f"--seconds {spec.seconds:g}: must be between 1 and 600")
+    root = data_root(root)
+    root.mkdir(parents=True, exist_ok=True)
+    final = root / spec.folder
+    with open(root / f".{spec.folder}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        meta = final / "meta.json"
+        if final.is_dir() and meta.exists() and not force:
+            try:
+                version = json.loads(meta.read_text()).get("generator_version")
+            except json.JSONDecodeError:
+                version = None
+            if version == bundled.GENERATOR_VERSION:
+                return final
+            print(f"{final}: built by generator {version}, rebuilding with {bundled.GENERATOR_VERSION}", file=sys.stderr)
+        with atomic_dir(final) as tmp:
+            bundled.build(spec.name, tmp, size=spec.size, seconds=spec.seconds, seed=spec.seed, progress=progress)
+    return final
+
+
+def resolve_subject_dir(subject: str, root: str | Path | None = None, *, build: bool = True, progress: bool = True) -> Path:
+    """The folder of ``subject`` (a path, a bundled name, or a folder under the data root)."""
+    p = Path(subject).expanduser()
+    if p.is_dir():
+        return p
+    droot = data_root(root)
+    spec = BundledSpec.parse(subject)
+    if spec is not None:
+        if build:
+            return ensure_bundled(spec, droot, progress=progress)
+        return droot / spec.folder
+    cand = droot / subject
+    if cand.is_dir():
+        return cand
+    if subject.lower() in PAPER_SUBJECTS:
+        raise UserError(
+            f"subject '{subject}' not found at {cand}: process {PAPER_SUBJECTS[subject.lower()]} with ER-NeRF's "
+            f"data_utils/process.py and put the folder there (or pass --subject PATH / --data-root DIR / set LMGS_DATA)"
+        )
+    if "/" in subject or subject.startswith("."):
+        raise UserError(f"{p}: subject folder not found")
+    known = ", ".join(list(BUNDLED) + sorted(d.name for d in _found_dirs(droot)))
+    raise UserError(f"unknown subject '{subject}' (looked in {droot}); known: {known}")
+
+
+def find_subject(subject: str, root: str | Path | None = None, *, progress: bool = True) -> Subject:
+    """Read a subject by name or path, building a bundled one on first use."""
+    from lmgs_eval.data.layout import read_subject
+
+    folder = resolve_subject_dir(subject, root, progress=progress)
+    return read_subject(folder, name=folder.name)
+
+
+def _found_dirs(root: Path) -> list[Path]:
+    if not root.is_dir():
+        return []
+    return [d for d in sorted(root.iterdir()) if d.is_dir() and not d.name.startswith(".") and (d / "transforms_train.json").exists()]
+
+
+def list_subjects(root: str | Path | None = None) -> list[dict]:
+    """Every bundled subject (built or not) and every subject folder found under the data root."""
+    from lmgs_eval.data.layout import read_subject
+
+    droot = data_root(root)
+    rows: list[dict] = []
+    seen: set[str] = set()
+    for d in _found_dirs(droot):
+        seen.add(d.name)
+        try:
+            s = read_subject(d, check_images=False)
+            row = {**s.describe(), "built": True, "status": "ok"}
+        except UserError as exc:
+            row = {"name": d.name, "path": str(d), "built": True, "status": f"error: {exc}"}
+        rows.append(row)
+    for name in BUNDLED:
+        if name not in seen:
+            rows.append({"name": name, "path": str(droot / name), "built": False, "bundled": True,
+                         "status": f"not built (lmgs-eval prepare --subject {name})"})
+    for name, what in PAPER_SUBJECTS.items():
+        if name not in seen:
+            rows.append({"name": name, "path": str(droot / name), "built": False, "bundled": False,
+                         "status": f"not found: process {what} with ER-NeRF's data_utils/process.py"})
+    return rows
