@@ -1,0 +1,73 @@
+"""The fast CPU compositor: numba kernels behind a ``torch.autograd.Function``.
+
+Only the per-pixel part is hand-written; the projection stays in torch
+(:mod:`lmgs.render._projection`), so its gradient comes from autograd and the
+hand-written backward only covers ``(means2d, conics, opacities, features)``.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import torch
+
+from lmgs.render import _numba_kernels as K
+from lmgs.render._projection import TILE, tile_rects
+
+
+def _np(t: torch.Tensor) -> np.ndarray:
+    return t.detach().to(device="cpu", dtype=torch.float64).contiguous().numpy()
+
+
+def _tile_order(n_tiles: int) -> np.ndarray:
+    # prange splits its range into one contiguous block per thread; interleaving the
+    # tiles gives every thread a share of the busy centre of the image.
+    p = max(1, numba.get_num_threads())
+    return np.concatenate([np.arange(r, n_tiles, p, dtype=np.int64) for r in range(p)])
+
+
+class _Composite(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, features, radii, depths, width, height):
+        n = means2d.shape[0]
+        tiles_w, tiles_h = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
+        n_tiles = tiles_w * tiles_h
+        rects = tile_rects(means2d, radii, width, height).numpy()
+        vis = (radii > 0).numpy()
+        # stable sort by depth: ties keep index order, like the dense reference
+        d = depths.detach().cpu().numpy()
+        vis_ids = np.flatnonzero(vis)
+        order = vis_ids[np.argsort(d[vis_ids], kind="stable")].astype(np.int64)
+        offsets, ids = K.bin_tiles(rects, order, n_tiles, tiles_w)
+        data = K.gather(ids, _np(means2d), _np(conics), _np(opacities), _np(features))
+        tile_order = _tile_order(n_tiles)
+        out, t_final, last = K.forward(data, offsets, tile_order, tiles_w, width, height)
+        ctx.saved = (data, offsets, ids, tile_order, tiles_w, width, height, t_final, last, n)
+        dtype, dev = means2d.dtype, means2d.device
+        feat = torch.from_numpy(out).to(device=dev, dtype=dtype)
+        alpha = torch.from_numpy(1.0 - t_final).to(device=dev, dtype=dtype)[..., None]
+        return feat, alpha
+
+    @staticmethod
+    def backward(ctx, g_feat, g_alpha):
+        data, offsets, ids, tile_order, tiles_w, width, height, t_final, last, n = ctx.saved
+        dtype, dev = g_feat.dtype, g_feat.device
+        grad = K.backward(
+            data, offsets, tile_order, tiles_w, width, height, t_final, last, _np(g_feat), _np(g_alpha)[..., 0]
+        )
+        per_g = torch.from_numpy(K.reduce_grads(grad, ids, n)).to(device=dev, dtype=dtype)
+        return per_g[:, 0:2], per_g[:, 2:5], per_g[:, 5], per_g[:, 6:13], None, None, None, None
+
+
+def composite(
+    means2d: torch.Tensor,  # [N, 2]
+    conics: torch.Tensor,  # [N, 3]
+    opacities: torch.Tensor,  # [N]
+    features: torch.Tensor,  # [N, 7]
+    radii: torch.Tensor,  # [N] int
+    depths: torch.Tensor,  # [N] sort keys
+    width: int,
+    height: int,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Composite to ``features [H, W, 7]`` and ``alpha [H, W, 1]`` (see :func:`K.forward`)."""
+    return _Composite.apply(means2d, conics, opacities, features, radii.cpu(), depths.cpu(), width, height)

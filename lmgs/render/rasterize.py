@@ -1,0 +1,154 @@
+"""The functional entry point :func:`rasterize` and its typed result."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+
+from lmgs.errors import InputError
+from lmgs.render._projection import check_inputs, project
+from lmgs.types import Camera
+
+Backend = Literal["auto", "numba", "torch", "gsplat"]
+BACKENDS: tuple[str, ...] = ("auto", "numba", "torch", "gsplat")
+
+
+@dataclass(frozen=True)
+class RasterResult:
+    """What :func:`rasterize` returns.
+
+    Images (``H x W`` of the camera), with per-pixel weights
+    :math:`w_i = \\alpha_i T_{i-1}` of the Gaussians composited front to back:
+
+    Attributes:
+        rgb: ``[H, W, 3]`` :math:`\\sum_i w_i c_i + T_n \\cdot bg` (no background term
+            when ``background`` is None).
+        alpha: ``[H, W, 1]`` :math:`\\sum_i w_i = 1 - T_n`.
+        depth: ``[H, W, 1]`` :math:`\\sum_i w_i z_i`, camera z accumulated and **not**
+            normalised by alpha (gsplat's ``"D"``); see :attr:`expected_depth`.
+        normal: ``[H, W, 3]`` :math:`\\sum_i w_i n_i`, camera-space (OpenCV) unit axis of
+            each Gaussian's smallest scale, oriented towards the camera; not normalised.
+        radii: ``[N]`` int32 screen radius in pixels (3 sigma), 0 = culled.
+        visible: ``[N]`` bool, ``radii > 0``.
+        means2d: ``[N, 2]`` pixel positions, a node of the autograd graph with
+            ``retain_grad()`` already called: after ``backward()``, ``means2d.grad`` is
+            the 2D positional gradient used for densification (gsplat's
+            ``absgrad=False``). Zero rows for culled Gaussians.
+    """
+
+    rgb: torch.Tensor  # [H, W, 3]
+    alpha: torch.Tensor  # [H, W, 1]
+    depth: torch.Tensor  # [H, W, 1]
+    normal: torch.Tensor  # [H, W, 3]
+    radii: torch.Tensor  # [N] int32
+    visible: torch.Tensor  # [N] bool
+    means2d: torch.Tensor  # [N, 2]
+
+    @property
+    def expected_depth(self) -> torch.Tensor:
+        """``[H, W, 1]`` :math:`\\sum_i w_i z_i / \\max(\\sum_i w_i, 10^{-10})` (0 where empty)."""
+        return self.depth / self.alpha.clamp_min(1e-10)
+
+
+def rasterize(
+    means: torch.Tensor,  # [N, 3] world positions
+    quats: torch.Tensor,  # [N, 4] rotations, wxyz, any norm (normalised here)
+    log_scales: torch.Tensor,  # [N, 3] log of the standard deviations along the axes
+    opacity_logits: torch.Tensor,  # [N] opacity = sigmoid(logit)
+    colors: torch.Tensor,  # [N, 3] rgb, or [N, K, 3] SH coefficients
+    camera: Camera,
+    background: torch.Tensor | None = None,  # [3]
+    *,
+    sh_degree: int | None = None,
+    backend: Backend = "auto",
+) -> RasterResult:
+    """Render 3D Gaussians (Kerbl et al., 3D Gaussian Splatting, SIGGRAPH 2023).
+
+    Each Gaussian has covariance :math:`\\Sigma = R S S^T R^T` (:math:`R` from the
+    quaternion, :math:`S = \\mathrm{diag}(e^{s})`), is EWA-projected to
+    :math:`\\Sigma' = J W \\Sigma W^T J^T + 0.3 I`, binned into the 16x16 tiles its
+    3-sigma square touches, sorted by camera z and composited front to back:
+
+    .. math::
+        \\alpha_i = \\min\\big(0.99,\\ o_i \\exp(-\\tfrac12 d^T \\Sigma'^{-1}_i d)\\big),\\qquad
+        C = \\sum_i c_i \\alpha_i \\prod_{j<i} (1-\\alpha_j) + T_n\\, bg
+
+    skipping :math:`\\alpha_i < 1/255` and stopping before transmittance drops below
+    :math:`10^{-4}`. Gaussians nearer than z = 0.01 are culled. Differentiable with respect
+    to every Gaussian parameter and the background.
+
+    Args:
+        means, quats, log_scales, opacity_logits, colors: Gaussian parameters (shapes above).
+            Zero-norm quaternions render as the identity rotation; log-scales are clamped
+            to ``[-30, 10]``.
+        camera: pinhole camera (OpenCV world-to-camera).
+        background: ``[3]`` colour composited behind, or None (black, and no gradient).
+        sh_degree: SH degree to evaluate when ``colors`` is ``[N, K, 3]``
+            (default: the largest :math:`d` with :math:`(d+1)^2 = K`); the 3DGS
+            convention :math:`c = \\max(0, \\mathrm{SH}(v) + 0.5)`.
+        backend: ``"numba"`` (fast CPU path), ``"torch"`` (pure-torch tiled compositor,
+            slow), ``"gsplat"`` (CUDA, ``pip install .[cuda]``), or ``"auto"``: gsplat
+            for CUDA tensors when it is installed, else numba.
+
+    Returns:
+        A :class:`RasterResult`.
+
+    Raises:
+        InputError: bad shapes, non-finite parameters (naming the tensor and how many
+            values), or an unavailable backend.
+    """
+    degree = check_inputs(means, quats, log_scales, opacity_logits, colors, camera, background, sh_degree)
+    chosen = _choose_backend(backend, means.device)
+    width, height = int(camera.width), int(camera.height)
+    if chosen == "gsplat":
+        from lmgs.render._gsplat import rasterize_gsplat
+
+        feat, alpha, means2d, radii = rasterize_gsplat(
+            means, quats, log_scales, opacity_logits, colors, degree, camera
+        )
+    else:
+        p = project(means, quats, log_scales, opacity_logits, colors, degree, camera)
+        if chosen == "numba":
+            from lmgs.render._cpu import composite
+        else:
+            from lmgs.render._tiled_torch import composite
+        feat, alpha = composite(p.means2d, p.conics, p.opacities, p.features, p.radii, p.depths, width, height)
+        means2d, radii = p.means2d, p.radii
+    if means2d.requires_grad:
+        means2d.retain_grad()
+    rgb = feat[..., 0:3]
+    if background is not None:
+        rgb = rgb + (1.0 - alpha) * background.to(rgb)
+    return RasterResult(
+        rgb=rgb,
+        alpha=alpha,
+        depth=feat[..., 3:4],
+        normal=feat[..., 4:7],
+        radii=radii,
+        visible=radii > 0,
+        means2d=means2d,
+    )
+
+
+def gsplat_available() -> bool:
+    """True when gsplat imports (it is only used on CUDA tensors)."""
+    try:
+        import gsplat  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _choose_backend(backend: str, device: torch.device) -> str:
+    if backend not in BACKENDS:
+        raise InputError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    if backend == "auto":
+        return "gsplat" if device.type == "cuda" and gsplat_available() else "numba"
+    if backend == "gsplat":
+        if device.type != "cuda":
+            raise InputError("backend='gsplat' needs CUDA tensors; use 'numba' (or 'auto') on the CPU")
+        if not gsplat_available():
+            raise InputError("backend='gsplat' needs the gsplat package: pip install 'lmgs[cuda]'")
+    return backend
