@@ -70,3 +70,90 @@ class Camera:
         p = points @ R.T + t
         z = p[..., 2:3].clamp_min(1e-9)
         return torch.cat([self.fx * p[..., 0:1] / z + self.cx, self.fy * p[..., 1:2] / z + self.cy], dim=-1)
+
+
+@dataclass
+class TrainingClip:
+    """What the model trains and renders from: frames, cameras, audio and guidance signals.
+
+    Images are stored compactly (uint8, float16) and turned into float tensors per frame.
+
+    Attributes:
+        frames: ``[T, H, W, 3]`` uint8 ground-truth frames.
+        backgrounds: ``[T, H, W, 3]`` uint8 what lies behind the head in each frame (the
+            subject's torso composited over ``bc.jpg``, the field's protocol), or ``[1, H, W, 3]``
+            for a static background.
+        w2c: ``[T, 4, 4]`` float32 OpenCV world-to-camera per frame.
+        focal, cx, cy: intrinsics in pixels.
+        audio: ``[S]`` float32 16 kHz mono waveform covering the T frames (640 samples each).
+        blink: ``[T]`` float32 AU45 intensity.
+        landmarks2d: ``[T, 68, 2]`` pixels, or None.
+        landmarks3d: ``[T, 68, 3]`` world units (targets of the audio-to-landmark predictor), or None.
+        audio_features: precomputed per-frame features by kind (``"ds"`` ``[T, 16, 29]``...).
+        mouth_masks: ``[T, H, W]`` bool inside-mouth masks, or None.
+        head_masks: ``[T, H, W]`` bool head masks (face parsing), or None.
+        depth: ``[T, H, W]`` float16 camera-z depth (0 = none), or None.
+        normal: ``[T, H, W, 3]`` int8 camera-space normals x127, or None.
+    """
+
+    frames: np.ndarray
+    backgrounds: np.ndarray
+    w2c: np.ndarray
+    focal: float
+    cx: float
+    cy: float
+    audio: np.ndarray
+    blink: np.ndarray
+    landmarks2d: np.ndarray | None = None
+    landmarks3d: np.ndarray | None = None
+    audio_features: dict | None = None
+    mouth_masks: np.ndarray | None = None
+    head_masks: np.ndarray | None = None
+    depth: np.ndarray | None = None
+    normal: np.ndarray | None = None
+    fps: int = 25
+    sample_rate: int = 16000
+
+    def __len__(self) -> int:
+        return int(self.frames.shape[0])
+
+    @property
+    def height(self) -> int:
+        return int(self.frames.shape[1])
+
+    @property
+    def width(self) -> int:
+        return int(self.frames.shape[2])
+
+    def camera(self, i: int) -> Camera:
+        return Camera(torch.from_numpy(np.asarray(self.w2c[i], np.float32)), self.focal, self.focal, self.cx, self.cy, self.width, self.height)
+
+    def background(self, i: int) -> np.ndarray:
+        return self.backgrounds[i if self.backgrounds.shape[0] > 1 else 0]
+
+
+@dataclass
+class DrivingAudio:
+    """What drives a trained model at inference: audio (and optional extra signals).
+
+    Attributes:
+        audio: ``[S]`` float32 16 kHz mono waveform; the clip has ``S // 640`` frames.
+        w2c: ``[T, 4, 4]`` camera per frame, or None to reuse the training poses cyclically.
+        backgrounds: ``[T, H, W, 3]`` uint8 backgrounds, or None for the model's own.
+        blink: ``[T]`` AU45, or None (eyes open).
+        audio_features: precomputed features by kind, or None.
+    """
+
+    audio: np.ndarray
+    w2c: np.ndarray | None = None
+    backgrounds: np.ndarray | None = None
+    blink: np.ndarray | None = None
+    audio_features: dict | None = None
+    fps: int = 25
+    sample_rate: int = 16000
+
+    @property
+    def n_frames(self) -> int:
+        if self.w2c is not None:
+            return int(self.w2c.shape[0])
+        return int(len(self.audio) // (self.sample_rate // self.fps))
