@@ -1,0 +1,160 @@
+"""Frozen configs of the neural parts of the model, with CPU (``quick``) and paper presets.
+
+Each section is a frozen dataclass; the full model config embeds them. Presets are
+classmethods (``quick()``, ``paper()``) so a caller names a preset instead of copying numbers.
+Sizes follow ER-NeRF / TalkingGaussian where they are known; the ``quick`` presets shrink them
+so that the per-frame deformation of 10k Gaussians stays well under 20 ms on 2 CPU cores
+(measured by ``lmgs-eval bench model``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+AudioKind = Literal["logmel", "mfcc", "ds", "hu", "wavlm"]
+
+
+@dataclass(frozen=True)
+class AudioConfig:
+    """Audio front end, Audio Encoder and attention smoother.
+
+    Attributes:
+        frontend: which per-frame features: ``logmel`` (computed here, the default), ``mfcc``,
+            or precomputed ``ds`` (``aud_ds.npy`` [N,16,29]), ``hu`` (``aud_hu.npy`` [N,2,1024]),
+            ``wavlm`` (a user array [N,T,C] or [N,C]).
+        n_mels: mel bands of ``logmel`` (and the filterbank under ``mfcc``).
+        n_mfcc: cepstral coefficients kept by ``mfcc``.
+        win_ms, hop_ms: STFT window and hop in milliseconds (25 ms / 10 ms: 100 steps/s).
+        n_fft: FFT size (>= window length in samples).
+        window_steps: spectrogram steps per video frame window (16 steps = 160 ms, centred).
+        encoder_channels: channels of the four 1D convolutions of the Audio Encoder.
+        dim: size of the compact audio feature :math:`F_a`.
+        smooth_frames: frames seen by the attention smoother (8: features[i-4:i+4]).
+        use_encoder: ``False`` is the paper's "w/o Audio Encoder" ablation (mean over the
+            window, then one linear projection).
+        use_smoother: apply the attention smoother over neighbouring frames.
+    """
+
+    frontend: AudioKind = "logmel"
+    n_mels: int = 80
+    n_mfcc: int = 20
+    win_ms: float = 25.0
+    hop_ms: float = 10.0
+    n_fft: int = 512
+    window_steps: int = 16
+    encoder_channels: tuple[int, int, int, int] = (32, 32, 64, 64)
+    dim: int = 32
+    smooth_frames: int = 8
+    use_encoder: bool = True
+    use_smoother: bool = True
+
+    @classmethod
+    def quick(cls) -> "AudioConfig":
+        return cls()
+
+    @classmethod
+    def paper(cls) -> "AudioConfig":
+        return cls(frontend="wavlm", dim=64, encoder_channels=(64, 64, 64, 64))
+
+
+@dataclass(frozen=True)
+class TriplaneConfig:
+    """Tri-plane hash encoder (three 2D multiresolution hash grids, ER-NeRF).
+
+    Attributes:
+        n_levels: resolution levels per plane.
+        n_features: features per level.
+        log2_table_size: :math:`\\log_2 T`, the hash table size per level.
+        base_resolution: coarsest grid resolution :math:`N_{min}`.
+        finest_resolution: finest grid resolution :math:`N_{max}`.
+        bound: half-size of the cube ``[-bound, bound]^3`` mapped onto ``[0,1]^3`` when no box is given.
+    """
+
+    n_levels: int = 8
+    n_features: int = 2
+    log2_table_size: int = 14
+    base_resolution: int = 16
+    finest_resolution: int = 256
+    bound: float = 1.0
+
+    @property
+    def out_dim(self) -> int:
+        return 3 * self.n_levels * self.n_features
+
+    @classmethod
+    def quick(cls) -> "TriplaneConfig":
+        return cls()
+
+    @classmethod
+    def paper(cls) -> "TriplaneConfig":
+        # ER-NeRF / TalkingGaussian: 16 levels x 2 features, finest 512 (about), table 2^17 on GPU.
+        return cls(n_levels=16, n_features=2, log2_table_size=17, base_resolution=16, finest_resolution=512)
+
+
+@dataclass(frozen=True)
+class GuidanceConfig:
+    """Spatial Enhancement (SE) and Landmark Compensation (LC), from the paper.
+
+    Attributes:
+        se: enable Spatial Enhancement.
+        lc: enable Landmark Compensation.
+        theta: cosine-similarity threshold :math:`\\theta` of SE (paper: 0.6).
+        n_landmarks: keypoints per frame (68).
+        cond_dim: size of the global landmark condition :math:`c_{lms}`.
+        hidden: hidden width of :math:`\\psi`, :math:`MLP_{offset}` and :math:`MLP_\\tau`.
+        tau_activation: activation giving :math:`\\tau_i` (``sigmoid``: in (0, 1)).
+    """
+
+    se: bool = True
+    lc: bool = True
+    theta: float = 0.6
+    n_landmarks: int = 68
+    cond_dim: int = 32
+    hidden: int = 32
+    tau_activation: Literal["sigmoid", "tanh"] = "sigmoid"
+
+    @classmethod
+    def quick(cls) -> "GuidanceConfig":
+        return cls()
+
+    @classmethod
+    def paper(cls) -> "GuidanceConfig":
+        return cls(cond_dim=64, hidden=64)
+
+
+@dataclass(frozen=True)
+class DeformConfig:
+    """Region-attention deformation network (TalkingGaussian / ER-NeRF style).
+
+    Attributes:
+        hidden: width of the offset MLP.
+        n_layers: hidden layers of the offset MLP.
+        att_hidden: width of the attention MLPs.
+        attention: ``sigmoid`` (channel gates in (0, 1)) or ``softmax`` (over the channels of a modality).
+        exp_dim: size of the extra expression vector (0: blink AU45 only).
+        blink: use the blink (AU45) scalar.
+        position_only: predict only position offsets (TalkingGaussian's mouth branch).
+        position_scale: position offsets are the MLP output times this (TalkingGaussian: 1e-2).
+    """
+
+    hidden: int = 64
+    n_layers: int = 2
+    att_hidden: int = 32
+    attention: Literal["sigmoid", "softmax"] = "sigmoid"
+    exp_dim: int = 0
+    blink: bool = True
+    position_only: bool = False
+    position_scale: float = 1e-2
+
+    @classmethod
+    def quick(cls) -> "DeformConfig":
+        return cls()
+
+    @classmethod
+    def mouth(cls) -> "DeformConfig":
+        return cls(blink=False, exp_dim=0, position_only=True)
+
+    @classmethod
+    def paper(cls) -> "DeformConfig":
+        return cls(hidden=64, n_layers=3, att_hidden=64)
