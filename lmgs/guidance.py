@@ -1,0 +1,141 @@
+"""Landmark guidance of the deformation: Spatial Enhancement and Landmark Compensation.
+
+Both from the paper implemented here (landmark-guided 3DGS talking heads, sections
+"Spatial Enhancement" and "Landmark Compensation"). The 68 keypoints :math:`k_j` of a frame
+come from the audio-to-landmark predictor (:mod:`lmgs.landmarks`); points and keypoints are
+encoded by the same tri-plane hash encoder :math:`\\phi`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from lmgs.config import GuidanceConfig
+from lmgs.errors import InputError
+
+
+@dataclass(frozen=True)
+class EnhanceResult:
+    """Output of :func:`spatial_enhance`.
+
+    Attributes:
+        features: ``[N, D]`` :math:`F_i` (enhanced where selected, else :math:`f_i`).
+        selected: ``[N]`` bool, :math:`i \\in \\mathcal{M}`.
+        match: ``[N]`` int64, :math:`j^*_i` (defined for every point; used only where selected).
+        max_similarity: ``[N]`` :math:`\\max_j S_{ij}`.
+        fraction: share of points selected, a float (log it: the paper reports about 0.2 at 0.6).
+    """
+
+    features: torch.Tensor
+    selected: torch.Tensor
+    match: torch.Tensor
+    max_similarity: torch.Tensor
+    fraction: float
+
+
+def cosine_similarity_matrix(f: torch.Tensor, g: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
+    """:math:`S_{ij} = f_i^\\top g_j / (\\|f_i\\| \\|g_j\\|)`, ``[N, D] x [K, D] -> [N, K]`` (norms floored at eps)."""
+    fn = f / f.norm(dim=-1, keepdim=True).clamp_min(eps)
+    gn = g / g.norm(dim=-1, keepdim=True).clamp_min(eps)
+    return fn @ gn.T
+
+
+def spatial_enhance(f: torch.Tensor, g: torch.Tensor, theta: float = 0.6) -> EnhanceResult:
+    """Spatial Enhancement: add the most similar keypoint's feature to points similar enough.
+
+    .. math::
+
+        \\mathcal{M} = \\{ i \\mid \\max_j S_{ij} \\ge \\theta \\}, \\quad
+        j^*_i = \\arg\\max_j S_{ij}, \\quad
+        F_i = \\begin{cases} f_i + g_{j^*_i} & i \\in \\mathcal{M} \\\\ f_i & \\text{otherwise} \\end{cases}
+
+    The selection (mask and argmax) is a hard, non-differentiable choice; the added
+    features are differentiable in both :math:`f` and :math:`g`.
+
+    Args:
+        f: ``[N, D]`` point features :math:`\\phi(x_i)`.
+        g: ``[K, D]`` keypoint features :math:`\\phi(k_j)` of one frame (K = 68).
+        theta: threshold :math:`\\theta` (paper: 0.6).
+    """
+    if f.ndim != 2 or g.ndim != 2 or f.shape[1] != g.shape[1]:
+        raise InputError(f"spatial_enhance expects f [N, D] and g [K, D], got {tuple(f.shape)} and {tuple(g.shape)}")
+    if g.shape[0] == 0:
+        raise InputError("spatial_enhance needs at least one keypoint")
+    with torch.no_grad():
+        s = cosine_similarity_matrix(f, g)
+        best, match = s.max(dim=1)
+        selected = best >= theta
+    features = f + selected.unsqueeze(-1).to(f.dtype) * g[match]
+    fraction = float(selected.float().mean()) if f.shape[0] else 0.0
+    return EnhanceResult(features, selected, match, best, fraction)
+
+
+def _mlp(d_in: int, hidden: int, d_out: int) -> nn.Sequential:
+    return nn.Sequential(nn.Linear(d_in, hidden), nn.ReLU(), nn.Linear(hidden, d_out))
+
+
+class LandmarkCompensation(nn.Module):
+    """Landmark Compensation: a global landmark condition and gated per-point offsets.
+
+    .. math::
+
+        c_{lms} = \\psi\\big(\\textstyle\\bigoplus_{j=1}^{68} g_j\\big), \\quad
+        h_i = [F_i \\,\\|\\, c_{lms}], \\quad
+        [\\hat d_x^i, \\hat d_r^i, \\hat d_s^i] = \\mathrm{MLP}_{offset}(h_i)\\, \\tau_i, \\quad
+        \\tau_i = \\sigma\\big(\\mathrm{MLP}_\\tau(h_i)\\big)
+
+    :math:`\\tau_i` goes through a sigmoid (``tau_activation="sigmoid"``, default), so the
+    compensation strength is a per-point gate in (0, 1) that can shut the branch off but never
+    flips its sign; ``"tanh"`` allows (-1, 1). The last layer of :math:`\\mathrm{MLP}_{offset}`
+    is initialised to exactly zero, so training starts from the backbone's offsets alone
+    (the gradient of that layer is not zero, so it learns from the first step).
+
+    Args:
+        feat_dim: D of :math:`F_i` and :math:`g_j`.
+        cfg: ``n_landmarks``, ``cond_dim``, ``hidden``, ``tau_activation``.
+
+    Shapes:
+        ``forward(F [N, D], g [K, D]) -> (d_xyz [N, 3], d_rot [N, 4], d_scale [N, 3], tau [N, 1])``.
+    """
+
+    def __init__(self, feat_dim: int, cfg: GuidanceConfig = GuidanceConfig()):
+        super().__init__()
+        if cfg.tau_activation not in ("sigmoid", "tanh"):
+            raise InputError(f"tau_activation must be 'sigmoid' or 'tanh', got {cfg.tau_activation!r}")
+        self.cfg = cfg
+        self.feat_dim = int(feat_dim)
+        self.psi = _mlp(cfg.n_landmarks * feat_dim, cfg.hidden, cfg.cond_dim)
+        self.offset = _mlp(feat_dim + cfg.cond_dim, cfg.hidden, 10)
+        self.tau = _mlp(feat_dim + cfg.cond_dim, cfg.hidden, 1)
+        nn.init.zeros_(self.offset[-1].weight)
+        nn.init.zeros_(self.offset[-1].bias)
+
+    def condition(self, g: torch.Tensor) -> torch.Tensor:
+        """:math:`c_{lms}` ``[cond_dim]`` from the keypoint features ``[K, D]``."""
+        if g.shape != (self.cfg.n_landmarks, self.feat_dim):
+            raise InputError(f"landmark features must be [{self.cfg.n_landmarks}, {self.feat_dim}], got {tuple(g.shape)}")
+        return self.psi(g.reshape(-1))
+
+    def forward(self, F: torch.Tensor, g: torch.Tensor):
+        c = self.condition(g)
+        # Linear on a concat = sum of two Linears: avoids materialising [N, D + cond] and lets
+        # the condition's share be computed once per frame instead of once per point.
+        h_off = _split_first_layer(self.offset, F, c)
+        h_tau = _split_first_layer(self.tau, F, c)
+        act = torch.sigmoid if self.cfg.tau_activation == "sigmoid" else torch.tanh
+        tau = act(h_tau)
+        out = h_off * tau
+        return out[:, :3], out[:, 3:7], out[:, 7:10], tau
+
+
+def _split_first_layer(mlp: nn.Sequential, F: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+    """``mlp(cat([F, c broadcast]))`` without building the concatenation."""
+    first = mlp[0]
+    d = F.shape[1]
+    h = F @ first.weight[:, :d].T + (first.weight[:, d:] @ c + first.bias)
+    for layer in list(mlp)[1:]:
+        h = layer(h)
+    return h

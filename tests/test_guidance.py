@@ -1,0 +1,117 @@
+"""Spatial Enhancement, Landmark Compensation and the deformation network on hand-made cases."""
+
+import math
+
+import pytest
+import torch
+
+from lmgs.config import DeformConfig, GuidanceConfig, TriplaneConfig
+from lmgs.deform import DeformNet
+from lmgs.errors import InputError
+from lmgs.guidance import LandmarkCompensation, spatial_enhance
+
+
+def _unit(deg):
+    a = math.radians(deg)
+    return [math.cos(a), math.sin(a)]
+
+
+def test_spatial_enhance_hand_case():
+    # keypoints along the x and y axes; points at known angles from them
+    g = torch.tensor([[2.0, 0.0], [0.0, 3.0]])
+    f = torch.tensor(
+        [
+            _unit(10),  # cos 10 deg = 0.985 to k0: selected, matches 0
+            _unit(80),  # cos 10 deg to k1: selected, matches 1
+            _unit(45),  # cos 45 = 0.707 to both: selected (argmax: first of equals or either)
+            _unit(-60),  # cos 60 = 0.5 to k0, negative to k1: not selected
+            _unit(180),  # opposite of k0: not selected
+        ]
+    )
+    f = f * torch.tensor([[1.0], [2.0], [0.5], [1.0], [4.0]])  # norms must not matter
+    r = spatial_enhance(f, g, theta=0.6)
+    assert r.selected.tolist() == [True, True, True, False, False]
+    assert r.match[:2].tolist() == [0, 1]
+    assert r.fraction == pytest.approx(3 / 5)
+    torch.testing.assert_close(r.max_similarity[3], torch.tensor(0.5))
+    torch.testing.assert_close(r.features[0], f[0] + g[0])
+    torch.testing.assert_close(r.features[1], f[1] + g[1])
+    torch.testing.assert_close(r.features[3:], f[3:])
+    # a stricter threshold keeps only the two close ones
+    assert spatial_enhance(f, g, theta=0.8).selected.tolist() == [True, True, False, False, False]
+
+
+def test_spatial_enhance_gradients_flow_through_added_features():
+    f = torch.tensor([_unit(5), _unit(200)], requires_grad=True)  # the second matches nothing
+    g = torch.tensor([[1.0, 0.0], [0.0, 1.0]], requires_grad=True)
+    r = spatial_enhance(f, g, 0.6)
+    r.features.sum().backward()
+    assert torch.equal(f.grad, torch.ones(2, 2))  # identity in f (the selection is not differentiated)
+    assert g.grad[0].tolist() == [1.0, 1.0] and g.grad[1].tolist() == [0.0, 0.0]  # only k0 was used
+
+
+def test_landmark_compensation_starts_at_zero_and_learns():
+    torch.manual_seed(0)
+    cfg = GuidanceConfig(n_landmarks=68, cond_dim=8, hidden=16)
+    lc = LandmarkCompensation(6, cfg)
+    F, g = torch.randn(50, 6), torch.randn(68, 6)
+    dx, dr, ds, tau = lc(F, g)
+    assert dx.shape == (50, 3) and dr.shape == (50, 4) and ds.shape == (50, 3) and tau.shape == (50, 1)
+    assert torch.count_nonzero(dx) + torch.count_nonzero(dr) + torch.count_nonzero(ds) == 0
+    assert bool(((tau > 0) & (tau < 1)).all())  # sigmoid gate
+    # the zero-initialised head still receives a gradient, so one step moves it off zero
+    (dx.sum() + dr.sum() + ds.sum()).backward()
+    assert lc.offset[-1].weight.grad.abs().sum() > 0
+    # the concatenation h = [F || c_lms] computed explicitly gives the same MLP outputs
+    with torch.no_grad():
+        for p in lc.offset[-1].parameters():
+            p.normal_()
+        c = lc.psi(g.reshape(-1))
+        h = torch.cat([F, c.expand(50, -1)], dim=1)
+        expect = lc.offset(h) * torch.sigmoid(lc.tau(h))
+        dx, dr, ds, _ = lc(F, g)
+        torch.testing.assert_close(torch.cat([dx, dr, ds], 1), expect, rtol=1e-5, atol=1e-6)
+    with pytest.raises(InputError):
+        lc(F, torch.randn(10, 6))
+
+
+def _small_tri():
+    return TriplaneConfig(n_levels=4, log2_table_size=10, finest_resolution=64)
+
+
+def test_deform_face_branch_shapes_and_switches():
+    torch.manual_seed(0)
+    xyz, lms, aud = torch.rand(200, 3) * 2 - 1, torch.rand(68, 3) * 2 - 1, torch.randn(16)
+    net = DeformNet(16, DeformConfig(exp_dim=3), _small_tri(), GuidanceConfig())
+    out = net(xyz, aud, lms, blink=0.4, exp=torch.zeros(3))
+    assert out.d_xyz.shape == (200, 3) and out.d_rot.shape == (200, 4) and out.d_scale.shape == (200, 3)
+    assert 0.0 <= out.se_fraction <= 1.0
+    assert out.audio_attention.shape == (200, 16) and bool(((out.audio_attention > 0) & (out.audio_attention < 1)).all())
+    # LC's head starts at zero: switching LC off leaves the offsets unchanged at init
+    plain = DeformNet(16, DeformConfig(exp_dim=3), _small_tri(), GuidanceConfig(lc=False))
+    plain.load_state_dict({k: v for k, v in net.state_dict().items() if not k.startswith("lc.")})
+    out2 = plain(xyz, aud, lms, blink=0.4, exp=torch.zeros(3))
+    torch.testing.assert_close(out2.d_xyz, out.d_xyz)
+    # without SE or LC no landmarks are needed and no fraction is reported
+    bare = DeformNet(16, DeformConfig(), _small_tri(), GuidanceConfig(se=False, lc=False))
+    assert bare(xyz, aud, blink=0.0).se_fraction is None
+    with pytest.raises(InputError):
+        net(xyz, aud, None, blink=0.4, exp=torch.zeros(3))
+    with pytest.raises(InputError):
+        net(xyz, aud, lms, blink=None, exp=torch.zeros(3))
+
+
+def test_deform_mouth_branch_position_only_and_audio_dependence():
+    torch.manual_seed(0)
+    net = DeformNet(8, DeformConfig.mouth(), _small_tri(), GuidanceConfig(se=False, lc=False))
+    with torch.no_grad():
+        for p in net.encoder.parameters():
+            p.normal_()
+    xyz = torch.rand(100, 3) * 2 - 1
+    a = net(xyz, torch.zeros(8))
+    b = net(xyz, torch.ones(8) * 3)
+    assert torch.count_nonzero(a.d_rot) == 0 and torch.count_nonzero(a.d_scale) == 0
+    assert not torch.allclose(a.d_xyz, b.d_xyz)
+    # cached point features give the same result
+    f = net.encode_points(xyz)
+    torch.testing.assert_close(net(xyz, torch.ones(8) * 3, point_features=f).d_xyz, b.d_xyz)
