@@ -20,10 +20,17 @@ def _np(t: torch.Tensor) -> np.ndarray:
 
 
 def _tile_order(n_tiles: int) -> np.ndarray:
-    # prange splits its range into one contiguous block per thread; interleaving the
-    # tiles gives every thread a share of the busy centre of the image.
+    """Tiles per parallel chunk ``[P, ceil(n_tiles / P)]``, padded with -1.
+
+    One chunk per numba thread, tiles interleaved (chunk ``r`` takes tiles ``r, r+P, ...``)
+    so every thread gets a share of the busy centre of the image; each chunk allocates
+    its per-pixel scratch once.
+    """
     p = max(1, numba.get_num_threads())
-    return np.concatenate([np.arange(r, n_tiles, p, dtype=np.int64) for r in range(p)])
+    m = (n_tiles + p - 1) // p
+    order = np.full(p * m, -1, dtype=np.int64)
+    order[:n_tiles] = np.arange(n_tiles, dtype=np.int64)
+    return order.reshape(m, p).T.copy()
 
 
 class _Composite(torch.autograd.Function):
@@ -39,10 +46,10 @@ class _Composite(torch.autograd.Function):
         vis_ids = np.flatnonzero(vis)
         order = vis_ids[np.argsort(d[vis_ids], kind="stable")].astype(np.int64)
         offsets, ids = K.bin_tiles(rects, order, n_tiles, tiles_w)
-        data = K.gather(ids, _np(means2d), _np(conics), _np(opacities), _np(features))
+        rows = K.gaussian_rows(_np(means2d), _np(conics), _np(opacities), _np(features))
         tile_order = _tile_order(n_tiles)
-        out, t_final, last = K.forward(data, offsets, tile_order, tiles_w, width, height)
-        ctx.saved = (data, offsets, ids, tile_order, tiles_w, width, height, t_final, last, n)
+        out, t_final, last = K.forward(rows, ids, offsets, tile_order, tiles_w, width, height)
+        ctx.saved = (rows, offsets, ids, tile_order, tiles_w, width, height, t_final, last, n)
         dtype, dev = means2d.dtype, means2d.device
         feat = torch.from_numpy(out).to(device=dev, dtype=dtype)
         alpha = torch.from_numpy(1.0 - t_final).to(device=dev, dtype=dtype)[..., None]
@@ -50,10 +57,10 @@ class _Composite(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_feat, g_alpha):
-        data, offsets, ids, tile_order, tiles_w, width, height, t_final, last, n = ctx.saved
+        rows, offsets, ids, tile_order, tiles_w, width, height, t_final, last, n = ctx.saved
         dtype, dev = g_feat.dtype, g_feat.device
         grad = K.backward(
-            data, offsets, tile_order, tiles_w, width, height, t_final, last, _np(g_feat), _np(g_alpha)[..., 0]
+            rows, ids, offsets, tile_order, tiles_w, width, height, t_final, last, _np(g_feat), _np(g_alpha)[..., 0]
         )
         per_g = torch.from_numpy(K.reduce_grads(grad, ids, n)).to(device=dev, dtype=dtype)
         return per_g[:, 0:2], per_g[:, 2:5], per_g[:, 5], per_g[:, 6:13], None, None, None, None

@@ -1,0 +1,170 @@
+"""``lmgs-eval bench raster``: the fast CPU rasterizer and the pure-torch anchor side by side.
+
+Each row is measured in a fresh worker process (``python -m lmgs.render.bench --worker``)
+so that its peak memory is its own: ``peak_mb`` is the growth of the process's peak
+resident set (``resource.getrusage(RUSAGE_SELF).ru_maxrss``) during the first
+forward+backward of the row's scene, over the level after building the scene and a tiny
+warm-up render (which loads the numba cache). Times are medians of repeated runs after
+that; ``fwd_bwd_ms`` is forward plus ``backward()`` of a sum over every output image.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import resource
+import subprocess
+import sys
+import time
+
+HELP = "Gaussian rasterizer: numba fast path vs the pure-torch tiled anchor (fwd, fwd+bwd, peak memory)"
+
+FAST = "numba"
+ANCHOR = "torch"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--quick", action="store_true", help="256x256 with 10k Gaussians only, fewer repeats")
+    p.add_argument("--sizes", type=int, nargs="+", default=[256, 512], help="square image sizes (default 256 512)")
+    p.add_argument("--counts", type=int, nargs="+", default=[10_000, 50_000], help="Gaussian counts (default 10k 50k)")
+    p.add_argument("--repeats", type=int, default=7, help="timed repeats of the fast path (anchor: 2)")
+    p.add_argument("--no-anchor", action="store_true", help="skip the (slow) pure-torch anchor")
+
+
+def head_scene(n: int, res: int, seed: int = 0, requires_grad: bool = True):
+    """A head-sized blob of ``n`` Gaussians 0.6 m in front of a camera, ``res x res`` image.
+
+    Centres lie near the surface of an ellipsoid of semi-axes 9 x 12 x 10 cm (a head) and
+    inside it; the focal length is 1.5 x ``res``, so the head spans about 60 % of the
+    image height; scales are log-normal around 1.5 pixels at 256 px (a 3-sigma radius of
+    a few pixels), anisotropic, random rotations, opacities mostly 0.3-0.9.
+
+    Returns ``(params, camera)`` with params ``(means, quats, log_scales, opacity_logits, colors)``.
+    """
+    import torch
+
+    from lmgs.types import Camera
+
+    g = torch.Generator().manual_seed(seed)
+    d = torch.randn(n, 3, generator=g)
+    d = d / d.norm(dim=1, keepdim=True)
+    shell = 1.0 - 0.15 * torch.rand(n, 1, generator=g) ** 2
+    means = d * shell * torch.tensor([0.09, 0.12, 0.10]) + torch.tensor([0.0, 0.0, 0.6])
+    quats = torch.randn(n, 4, generator=g)
+    sigma_world = 1.5 * 0.6 / (1.5 * 256)  # 1.5 px at 256 px
+    log_scales = math.log(sigma_world) + 0.4 * torch.randn(n, 3, generator=g)
+    opacity_logits = 0.5 + torch.randn(n, generator=g)
+    colors = torch.rand(n, 3, generator=g)
+    cam = Camera(torch.eye(4), 1.5 * res, 1.5 * res, res / 2, res / 2, res, res)
+    params = [means, quats, log_scales, opacity_logits, colors]
+    for t in params:
+        t.requires_grad_(requires_grad)
+    return params, cam
+
+
+def _measure(backend: str, res: int, n: int, repeats: int) -> dict:
+    """One row, in this process (called in the worker)."""
+    import torch
+
+    from lmgs.render import rasterize
+
+    params, cam = head_scene(n, res)
+    bg = torch.tensor([0.2, 0.3, 0.4])
+    tiny, tiny_cam = head_scene(64, 32, seed=1)
+
+    def fwd(p, c):
+        return rasterize(*p, c, bg, backend=backend)
+
+    def fwd_bwd(p, c):
+        r = fwd(p, c)
+        (r.rgb.sum() + r.alpha.sum() + r.depth.sum() + r.normal.sum()).backward()
+        for t in p:
+            t.grad = None
+
+    fwd_bwd(tiny, tiny_cam)  # loads the compiled kernels
+    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    fwd_bwd(params, cam)
+    peak_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - base
+    with torch.no_grad():
+        n_visible = int(fwd(params, cam).visible.sum())
+
+    def timed(fn) -> float:
+        ts = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            fn()
+            ts.append(time.perf_counter() - t0)
+        ts.sort()
+        return 1e3 * ts[len(ts) // 2]
+
+    fwd_ms = timed(lambda: fwd(params, cam))
+    fwd_bwd_ms = timed(lambda: fwd_bwd(params, cam))
+    return {
+        "backend": backend,
+        "res": f"{res}x{res}",
+        "n_gaussians": n,
+        "n_visible": n_visible,
+        "fwd_ms": fwd_ms,
+        "fwd_bwd_ms": fwd_bwd_ms,
+        "peak_mb": peak_kb / 1024.0,
+        "repeats": repeats,
+    }
+
+
+def _worker_row(backend: str, res: int, n: int, repeats: int) -> dict:
+    cmd = [sys.executable, "-m", "lmgs.render.bench", "--worker", json.dumps([backend, res, n, repeats])]
+    proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    if proc.returncode != 0:
+        raise RuntimeError(f"benchmark worker {backend} {res} {n} failed:\n{proc.stderr[-2000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def first_call_seconds() -> dict:
+    """Seconds of the first render in a fresh process (numba cache load, or compile if cold)."""
+    code = (
+        "import time; t=time.perf_counter(); import torch; from lmgs.render.bench import head_scene;"
+        "from lmgs.render import rasterize; p,c=head_scene(64,32); t0=time.perf_counter();"
+        "r=rasterize(*p,c,backend='numba'); r.rgb.sum().backward(); print(time.perf_counter()-t0)"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
+    return {"first_render_s": float(proc.stdout.strip() or "nan")}
+
+
+def run(args: argparse.Namespace) -> dict:
+    import numba
+    import torch
+
+    sizes = [256] if args.quick else list(args.sizes)
+    counts = [10_000] if args.quick else list(args.counts)
+    repeats = 3 if args.quick else int(args.repeats)
+    rows = []
+    for res in sizes:
+        for n in counts:
+            fast = _worker_row(FAST, res, n, repeats)
+            anchor = None if args.no_anchor else _worker_row(ANCHOR, res, n, 2 if not args.quick else 1)
+            for row in (fast, anchor):
+                if row is None:
+                    continue
+                row["fwd_ratio_vs_anchor"] = anchor["fwd_ms"] / row["fwd_ms"] if anchor else None
+                row["fwd_bwd_ratio_vs_anchor"] = anchor["fwd_bwd_ms"] / row["fwd_bwd_ms"] if anchor else None
+                rows.append(row)
+    return {
+        "rows": rows,
+        "peak_mb": "growth of ru_maxrss over the warmed-up worker during one fwd+bwd (fresh process per row)",
+        "ratio": "anchor time / this backend's time, same run, same scene",
+        "scene": "head-sized blob 0.6 m away, fx = 1.5 x res, ~1.5 px sigma at 256 px",
+        "threads": {"torch": torch.get_num_threads(), "numba": numba.get_num_threads(), "cpus": os.cpu_count()},
+        "machine": f"{platform.machine()} {platform.processor() or ''}".strip(),
+        "first_call": first_call_seconds(),
+    }
+
+
+if __name__ == "__main__":
+    if len(sys.argv) == 3 and sys.argv[1] == "--worker":
+        b, r, n_, rep = json.loads(sys.argv[2])
+        print(json.dumps(_measure(b, int(r), int(n_), int(rep))))
+    else:
+        raise SystemExit("usage: lmgs-eval bench raster (this module's main is the per-row worker)")
