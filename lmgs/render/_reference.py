@@ -96,7 +96,8 @@ def _rasterize(
         y1 = torch.ceil((vd + rr) / 16).clamp(0, th)
         in_tile = (tx >= x0) & (tx < x1) & (ty >= y0) & (ty < y1) & vis  # [P, N]
 
-    d = torch.stack([u, v], -1)[None, :, :] - pix[:, None, :]  # [P, N, 2]
+    means2d = torch.stack([u, v], -1)  # [N, 2]
+    d = means2d[None, :, :] - pix[:, None, :]  # [P, N, 2]
     power = 0.5 * torch.einsum("pni,nij,pnj->pn", d, prec, d)
     raw = torch.sigmoid(opacity_logits)[None, :] * torch.exp(-power)
     alpha = raw.clamp(max=0.99)
@@ -131,4 +132,4 @@ def _rasterize(
     if background is not None:
         t_fin = t_excl[:, -1:] * (1 - alpha[:, -1:]) if n else torch.ones_like(a.reshape(-1, 1))
         out_rgb = out_rgb + t_fin.reshape(height, width, 1) * background
-    return RasterResult(out_rgb, a, img[..., 3:4], img[..., 4:7], radii, vis, torch.stack([u, v], -1))
+    return RasterResult(out_rgb, a, img[..., 3:4], img[..., 4:7], radii, vis, means2d)

@@ -1,0 +1,242 @@
+"""The rasterizer against its dense reference twin, hand-computed values and gradcheck."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from lmgs.errors import InputError
+from lmgs.render import rasterize
+from lmgs.render._reference import _rasterize
+from lmgs.types import Camera
+
+OUTS = ("rgb", "alpha", "depth", "normal")
+CPU_BACKENDS = ("numba", "torch")
+
+
+def _camera(w=40, h=32, dtype=torch.float32, w2c=None) -> Camera:
+    return Camera(torch.eye(4, dtype=dtype) if w2c is None else w2c, 40.0, 42.0, w / 2 + 0.3, h / 2 - 0.2, w, h)
+
+
+def _scene(n, seed=0, dtype=torch.float32, spread=0.5, log_scale=-3.0, z=3.0):
+    g = torch.Generator().manual_seed(seed)
+    means = torch.randn(n, 3, generator=g, dtype=dtype) * spread + torch.tensor([0, 0, z], dtype=dtype)
+    quats = torch.randn(n, 4, generator=g, dtype=dtype)
+    log_scales = torch.randn(n, 3, generator=g, dtype=dtype) * 0.5 + log_scale
+    opacity_logits = torch.randn(n, generator=g, dtype=dtype)
+    colors = torch.rand(n, 3, generator=g, dtype=dtype)
+    return [means, quats, log_scales, opacity_logits, colors]
+
+
+def _assert_forward_equal(params, cam, bg=None, backend="numba", **kw):
+    out = rasterize(*params, cam, bg, backend=backend, **kw)
+    ref = _rasterize(*params, cam, bg, **kw)
+    for k in OUTS:
+        torch.testing.assert_close(getattr(out, k), getattr(ref, k), atol=1e-5, rtol=0, msg=lambda m: f"{k}: {m}")
+    assert torch.equal(out.radii, ref.radii)
+    assert torch.equal(out.visible, ref.visible)
+    return out, ref
+
+
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+@pytest.mark.parametrize("n,w,h,seed", [(1, 16, 16, 0), (30, 40, 32, 1), (200, 40, 32, 2), (300, 37, 29, 3)])
+def test_forward_matches_reference(backend, n, w, h, seed):
+    out, _ = _assert_forward_equal(_scene(n, seed), _camera(w, h), torch.tensor([0.1, 0.5, 0.9]), backend=backend)
+    assert out.rgb.shape == (h, w, 3) and out.alpha.shape == (h, w, 1)
+    assert out.depth.shape == (h, w, 1) and out.normal.shape == (h, w, 3)
+
+
+def test_forward_dense_scene_hits_early_stop():
+    # many opaque, large Gaussians: transmittance reaches the 1e-4 stop in most pixels
+    p = _scene(150, seed=5, spread=0.2, log_scale=-1.5)
+    p[3] = torch.full_like(p[3], 4.0)
+    out, _ = _assert_forward_equal(p, _camera())
+    assert (out.alpha > 0.999).float().mean() > 0.2
+    assert out.alpha.max() <= 1 - 1e-4  # the stop keeps T >= 1e-4
+
+
+def test_forward_sh_colors():
+    p = _scene(80, seed=6)
+    g = torch.Generator().manual_seed(7)
+    p[4] = 0.3 * torch.randn(80, 16, 3, generator=g)
+    _assert_forward_equal(p, _camera(), sh_degree=3)
+    _assert_forward_equal(p, _camera(), sh_degree=1)
+
+
+def test_edge_cases_behind_border_huge_tiny_transparent():
+    p = _scene(60, seed=8)
+    p[0][0:5, 2] = -2.0  # behind the camera
+    p[0][5:8, 2] = 0.005  # nearer than the 0.01 plane
+    p[0][8:12, 0] = torch.tensor([1.6, -1.5, 1.55, -1.6])  # near the left/right border
+    p[2][12:14] = 1.5  # huge
+    p[2][14:20] = -12.0  # tiny
+    p[3][20:25] = -30.0  # fully transparent
+    out, _ = _assert_forward_equal(p, _camera(), torch.tensor([0.2, 0.2, 0.2]))
+    assert not out.visible[:8].any()
+    assert out.visible[12:14].all()
+
+
+def test_rotated_camera():
+    rot = torch.tensor([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])  # looks along world -x
+    w2c = torch.eye(4)
+    w2c[:3, :3] = rot
+    w2c[:3, 3] = torch.tensor([0.1, -0.2, 0.0])
+    p = _scene(100, seed=9, z=0.0)
+    p[0] = p[0] + torch.tensor([-3.0, 0.0, 0.0])
+    _assert_forward_equal(p, _camera(w2c=w2c))
+
+
+def test_empty_scene_and_nothing_in_view_render_background():
+    bg = torch.tensor([0.25, 0.5, 0.75])
+    cam = _camera()
+    empty = [torch.zeros(0, 3), torch.zeros(0, 4), torch.zeros(0, 3), torch.zeros(0), torch.zeros(0, 3)]
+    p = _scene(20, seed=10)
+    p[0] = p[0] * torch.tensor([1.0, 1.0, -1.0])  # all behind
+    for params in (empty, p):
+        out = rasterize(*params, cam, bg)
+        assert torch.equal(out.rgb, bg.expand(32, 40, 3))
+        assert torch.equal(out.alpha, torch.zeros(32, 40, 1))
+        assert not out.visible.any()
+
+
+def test_single_gaussian_hand_computed():
+    # isotropic sigma s at depth z straight ahead: 2D variance (f s / z)^2 + 0.3
+    fx = 40.0
+    cam = Camera(torch.eye(4), fx, fx, 8.0, 8.0, 16, 16)
+    s, z, op = 0.05, 2.0, 0.5
+    means = torch.tensor([[0.0, 0.0, z]])
+    out = rasterize(means, torch.tensor([[1.0, 0, 0, 0]]), torch.full((1, 3), math.log(s)), torch.zeros(1), torch.ones(1, 3), cam)
+    var = (fx * s / z) ** 2 + 0.3
+    for px, py in [(8, 8), (9, 8), (9, 9), (10, 11)]:
+        d2 = (px + 0.5 - 8.0) ** 2 + (py + 0.5 - 8.0) ** 2
+        alpha = op * math.exp(-0.5 * d2 / var)
+        alpha = 0.0 if alpha < 1 / 255 else alpha  # (10, 11) is below the 1/255 cut
+        assert out.alpha[py, px, 0].item() == pytest.approx(alpha, abs=1e-6)
+        assert out.depth[py, px, 0].item() == pytest.approx(alpha * z, abs=1e-5)
+    assert out.radii[0].item() == math.ceil(3 * math.sqrt(var + math.sqrt(0.1)))
+    # the shortest axis of an isotropic Gaussian is the first; it faces the camera: -z
+    n = out.normal[8, 8] / out.alpha[8, 8]
+    assert n[2].item() < 0 and abs(abs(n).max().item() - 1) < 1e-5
+
+
+def _cotangent_loss(out, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return sum((getattr(out, k) * torch.randn(getattr(out, k).shape, generator=g, dtype=out.rgb.dtype)).sum() for k in OUTS)
+
+
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_gradients_match_reference(backend, dtype):
+    p = _scene(80, seed=11, dtype=dtype)
+    p[4] = 0.3 * torch.randn(80, 4, 3, generator=torch.Generator().manual_seed(1), dtype=dtype)
+    bg = torch.tensor([0.3, 0.6, 0.1], dtype=dtype)
+    grads = []
+    for fn, kw in ((rasterize, {"backend": backend}), (_rasterize, {})):
+        params = [t.clone().requires_grad_() for t in p] + [bg.clone().requires_grad_()]
+        out = fn(*params[:5], _camera(dtype=dtype), params[5], **kw)
+        grads.append(torch.autograd.grad(_cotangent_loss(out), params))
+    tol = {"atol": 1e-4, "rtol": 1e-4} if dtype == torch.float32 else {"atol": 1e-10, "rtol": 1e-10}
+    for name, a, b in zip(("means", "quats", "log_scales", "opacity_logits", "colors", "background"), *grads):
+        assert b.abs().max() > 0, name
+        torch.testing.assert_close(a, b, **tol, msg=lambda m: f"{name}: {m}")
+
+
+def test_means2d_gradient_is_retained():
+    p = [t.requires_grad_() for t in _scene(40, seed=12)]
+    out = rasterize(*p, _camera())
+    ref = _rasterize(*p, _camera())
+    ref.means2d.retain_grad()
+    _cotangent_loss(out).backward()
+    _cotangent_loss(ref).backward()
+    assert out.means2d.grad is not None
+    torch.testing.assert_close(out.means2d.grad, ref.means2d.grad, atol=1e-4, rtol=1e-4)
+    assert torch.all(out.means2d.grad[~out.visible] == 0)
+
+
+def test_gradcheck_fast_path():
+    p = _scene(6, seed=13, dtype=torch.float64, spread=0.3, log_scale=-2.0)
+    p[3] = torch.full_like(p[3], -0.5)  # keep alphas off the 0.99 cap
+    cam = Camera(torch.eye(4, dtype=torch.float64), 20.0, 20.0, 8.0, 8.0, 16, 16)
+    bg = torch.tensor([0.2, 0.4, 0.6], dtype=torch.float64)
+    params = [t.requires_grad_() for t in p] + [bg.requires_grad_()]
+
+    def f(*ps):
+        out = rasterize(*ps[:5], cam, ps[5], backend="numba")
+        return out.rgb, out.alpha, out.depth, out.normal
+
+    assert torch.autograd.gradcheck(f, params, eps=1e-6, atol=1e-6)
+
+
+def test_deterministic_across_calls():
+    p = [t.requires_grad_() for t in _scene(300, seed=14)]
+    results = []
+    for _ in range(2):
+        out = rasterize(*p, _camera())
+        grads = torch.autograd.grad(_cotangent_loss(out), p)
+        results.append((out.rgb, *grads))
+    for a, b in zip(*results):
+        assert torch.equal(a, b)
+
+
+def test_nan_inf_inputs_name_tensor_and_count():
+    p = _scene(10, seed=15)
+    p[2][3, 1] = float("nan")
+    p[2][7, 0] = float("inf")
+    with pytest.raises(InputError, match=r"log_scales has 2 non-finite.*rows: \[3, 7\]"):
+        rasterize(*p, _camera())
+    p = _scene(10, seed=15)
+    p[0][0, 0] = float("-inf")
+    with pytest.raises(InputError, match="means has 1 non-finite"):
+        rasterize(*p, _camera())
+
+
+def test_bad_shapes_and_backend():
+    p = _scene(10)
+    with pytest.raises(InputError, match="quats"):
+        rasterize(p[0], p[1][:, :3], *p[2:], _camera())
+    with pytest.raises(InputError, match="backend"):
+        rasterize(*p, _camera(), backend="opengl")
+    with pytest.raises(InputError, match="CUDA"):
+        rasterize(*p, _camera(), backend="gsplat")
+
+
+def test_zero_quaternion_is_identity_and_scales_are_clamped():
+    p = _scene(20, seed=16)
+    p[1][:4] = 0.0
+    q_ident = p[1].clone()
+    q_ident[:4] = torch.tensor([1.0, 0.0, 0.0, 0.0])
+    a = rasterize(*p, _camera())
+    b = rasterize(p[0], q_ident, *p[2:], _camera())
+    assert torch.equal(a.rgb, b.rgb) and torch.equal(a.normal, b.normal)
+    # log-scales beyond [-30, 10] render exactly as the clamp bounds
+    p[2][:3] = -1000.0
+    c = rasterize(*p, _camera())
+    p[2][:3] = -30.0
+    d = rasterize(*p, _camera())
+    assert torch.equal(c.rgb, d.rgb)
+    # and their gradient through the clamped side is zero and finite
+    p = [t.requires_grad_() for t in (p[0], p[1], p[2], p[3], p[4])]
+    with torch.no_grad():
+        p[2][:3] = -1000.0
+    _cotangent_loss(rasterize(*p, _camera())).backward()
+    assert torch.isfinite(p[1].grad).all() and torch.all(p[1].grad[:4] == 0)
+    assert torch.all(p[2].grad[:3] == 0)
+
+
+def test_expected_depth():
+    out = rasterize(*_scene(50, seed=17), _camera())
+    m = out.alpha > 0.5
+    torch.testing.assert_close(out.expected_depth[m], (out.depth / out.alpha)[m])
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_gsplat_matches_cpu():  # pragma: no cover - CUDA only
+    pytest.importorskip("gsplat")
+    p = _scene(200, seed=18)
+    cam = _camera()
+    cpu = rasterize(*p, cam, backend="numba")
+    gpu = rasterize(*[t.to("cuda") for t in p], cam.to("cuda"), backend="gsplat")
+    torch.testing.assert_close(gpu.rgb.cpu(), cpu.rgb, atol=2e-3, rtol=0)
