@@ -1,0 +1,139 @@
+"""The full model configuration and its named presets (``quick`` for a CPU, ``paper``).
+
+Every component of the paper is a switch, so the ablations of Tables III and IV are
+configurations, not code forks: ``se`` / ``lc`` / ``theta`` live in
+:class:`~lmgs.config.GuidanceConfig`, ``gr`` here, the audio front end in
+:class:`~lmgs.config.AudioConfig`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from dataclasses import dataclass, field
+
+from lmgs.config import AudioConfig, DeformConfig, GuidanceConfig, TriplaneConfig
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Schedule and optimisation.
+
+    Attributes:
+        static_steps: steps of the static stage (canonical fields, L1 + D-SSIM).
+        dynamic_steps: steps of the dynamic stage (deformation on, + geometry loss).
+        landmark_steps: steps of the per-subject audio-to-landmark predictor.
+        lr_means, lr_scales, lr_quats, lr_opacity, lr_colors: Adam rates of the Gaussians.
+        lr_nets: AdamW rate of the networks (audio encoder, tri-planes, deformation, guidance).
+        lambda_dssim: weight of D-SSIM (3DGS: 0.2).
+        lambda_depth, lambda_normal: Geometry Regularizer weights (paper: 1e-4 each).
+        lambda_mouth: weight keeping the face transparent inside the mouth mask.
+        budget_density: Gaussians per pixel of face area (the scene-derived budget).
+        mouth_fraction: mouth-branch budget as a fraction of the face budget.
+        checkpoint_every: steps between checkpoints.
+    """
+
+    static_steps: int = 800
+    dynamic_steps: int = 2400
+    landmark_steps: int = 400
+    lr_means: float = 1.6e-4
+    lr_scales: float = 5e-3
+    lr_quats: float = 1e-3
+    lr_opacity: float = 5e-2
+    lr_colors: float = 2.5e-2
+    lr_nets: float = 2e-3
+    lambda_dssim: float = 0.2
+    lambda_depth: float = 1e-4
+    lambda_normal: float = 1e-4
+    lambda_mouth: float = 0.1
+    budget_density: float = 0.12
+    mouth_fraction: float = 0.25
+    densify_every: int = 100
+    densify_until: float = 0.6
+    checkpoint_every: int = 500
+
+
+@dataclass(frozen=True)
+class LMGSConfig:
+    """Everything that defines a trained ``lmgs`` model; its hash names the checkpoint."""
+
+    preset: str = "quick"
+    audio: AudioConfig = field(default_factory=AudioConfig.quick)
+    triplane: TriplaneConfig = field(default_factory=TriplaneConfig.quick)
+    guidance: GuidanceConfig = field(default_factory=GuidanceConfig.quick)
+    deform_face: DeformConfig = field(default_factory=DeformConfig.quick)
+    deform_mouth: DeformConfig = field(default_factory=DeformConfig.mouth)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    gr: bool = True
+    size: int = 256
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def hash(self) -> str:
+        blob = json.dumps(self.to_dict(), sort_keys=True, default=str).encode()
+        return hashlib.sha256(blob).hexdigest()[:16]
+
+    def replace(self, **changes) -> "LMGSConfig":
+        """A copy with top-level or dotted changes: ``cfg.replace(**{"guidance.se": False})``."""
+        cfg = self
+        for key, value in changes.items():
+            parts = key.split(".")
+            if len(parts) == 1:
+                cfg = dataclasses.replace(cfg, **{key: value})
+            else:
+                sub = getattr(cfg, parts[0])
+                cfg = dataclasses.replace(cfg, **{parts[0]: dataclasses.replace(sub, **{parts[1]: value})})
+        return cfg
+
+
+def quick() -> LMGSConfig:
+    """CPU preset: 256x256, a few thousand steps, a scene-derived Gaussian budget."""
+    return LMGSConfig()
+
+
+def paper() -> LMGSConfig:
+    """The paper's schedule (50,000 iterations per branch, full resolution): meant for a GPU."""
+    return LMGSConfig(
+        preset="paper",
+        audio=AudioConfig.paper(),
+        triplane=TriplaneConfig.paper(),
+        guidance=GuidanceConfig.paper(),
+        deform_face=DeformConfig.paper(),
+        deform_mouth=dataclasses.replace(DeformConfig.paper(), blink=False, position_only=True),
+        train=TrainConfig(static_steps=10000, dynamic_steps=50000, landmark_steps=5000, budget_density=0.5),
+        size=512,
+    )
+
+
+PRESETS = {"quick": quick, "paper": paper}
+
+
+def preset(name: str) -> LMGSConfig:
+    from lmgs.errors import InputError
+
+    if name not in PRESETS:
+        raise InputError(f"unknown preset '{name}'; known: {', '.join(PRESETS)}")
+    return PRESETS[name]()
+
+
+def config_from_dict(d: dict) -> LMGSConfig:
+    """Rebuild a config from :meth:`LMGSConfig.to_dict` (checkpoints, results files)."""
+    from lmgs.config import AudioConfig, DeformConfig, GuidanceConfig, TriplaneConfig
+
+    def make(cls, v):
+        fields = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: tuple(x) if isinstance(x, list) else x for k, x in v.items() if k in fields})
+
+    return LMGSConfig(
+        preset=d.get("preset", "quick"),
+        audio=make(AudioConfig, d["audio"]),
+        triplane=make(TriplaneConfig, d["triplane"]),
+        guidance=make(GuidanceConfig, d["guidance"]),
+        deform_face=make(DeformConfig, d["deform_face"]),
+        deform_mouth=make(DeformConfig, d["deform_mouth"]),
+        train=make(TrainConfig, d["train"]),
+        gr=d.get("gr", True),
+        size=d.get("size", 256),
+    )

@@ -1,0 +1,138 @@
+"""The reference model end to end on a tiny synthetic clip made with a known Gaussian scene."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from lmgs.errors import InputError
+from lmgs.presets import config_from_dict, quick
+from lmgs.train import TrainingDiverged, fit, load_model, save_model
+from lmgs.types import DrivingAudio
+from model_fixtures import synthetic_clip
+
+
+def _tiny_cfg(**changes):
+    cfg = quick()
+    cfg = cfg.replace(train=dataclasses.replace(cfg.train, static_steps=60, dynamic_steps=40, landmark_steps=20, densify_every=20,
+                                                checkpoint_every=30))
+    return cfg.replace(**changes) if changes else cfg
+
+
+@pytest.fixture(scope="module")
+def clip():
+    return synthetic_clip()
+
+
+@pytest.fixture(scope="module")
+def trained(clip):
+    return fit(clip, _tiny_cfg(), seed=0, progress=False)
+
+
+def _psnr(a, b):
+    return float(np.mean([10 * np.log10(1 / np.mean((a[i] / 255.0 - b[i] / 255.0) ** 2)) for i in range(len(a))]))
+
+
+def test_fit_reconstructs_training_frames(clip, trained):
+    model, report = trained
+    frames = model.render(DrivingAudio(audio=clip.audio, w2c=clip.w2c))
+    assert frames.shape == clip.frames.shape and frames.dtype == np.uint8
+    # The mean background alone scores about 14 dB on this clip; a fitted head far more.
+    bg_only = np.broadcast_to(clip.backgrounds[0], clip.frames.shape)
+    assert _psnr(bg_only, clip.frames) < 18
+    assert _psnr(frames, clip.frames) > 28
+    assert report.n_gaussians <= report.budget + 64 and report.steps == 100
+
+
+def test_save_load_renders_identically(tmp_path, clip, trained):
+    model, _ = trained
+    save_model(model, tmp_path / "m.pt")
+    again = load_model(tmp_path / "m.pt", cfg=model.cfg)
+    d = DrivingAudio(audio=clip.audio[: 10 * 640], w2c=clip.w2c[:10])
+    np.testing.assert_array_equal(model.render(d), again.render(d))
+
+
+def test_checkpoint_errors_name_the_file(tmp_path, trained):
+    model, _ = trained
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a checkpoint")
+    with pytest.raises(InputError, match="bad.pt"):
+        load_model(bad)
+    save_model(model, tmp_path / "m.pt")
+    other = model.cfg.replace(**{"guidance.theta": 0.4})
+    with pytest.raises(InputError, match="config"):
+        load_model(tmp_path / "m.pt", cfg=other)
+    with pytest.raises(InputError, match="not found"):
+        load_model(tmp_path / "missing.pt")
+
+
+@pytest.mark.parametrize("seconds", [0.05, 0.2, 3.0])
+def test_any_audio_length_and_silence(trained, seconds):
+    model, _ = trained
+    n = max(1, int(seconds * 25))
+    silence = np.zeros(int(seconds * 16000), np.float32)
+    out = model.render(DrivingAudio(audio=silence, w2c=np.tile(model.train_w2c[0].numpy(), (n, 1, 1))))
+    assert out.shape[0] == n and np.isfinite(out).all()
+
+
+def test_clipped_audio_is_finite(trained, clip):
+    model, _ = trained
+    loud = np.clip(clip.audio * 50, -1, 1)
+    out = model.render(DrivingAudio(audio=loud))
+    assert out.shape[0] == len(loud) // 640
+
+
+def test_non_finite_loss_stops_with_message(clip, monkeypatch, tmp_path):
+    import lmgs.train as tr
+
+    real = tr.losses.photometric
+    calls = {"n": 0}
+
+    def poisoned(a, b, lam):
+        calls["n"] += 1
+        out = real(a, b, lam)
+        return out * float("nan") if calls["n"] > 45 else out
+
+    monkeypatch.setattr(tr.losses, "photometric", poisoned)
+    with pytest.raises(TrainingDiverged, match=r"non-finite at step 45.*checkpoint"):
+        fit(clip, _tiny_cfg(), seed=0, progress=False, workdir=tmp_path)
+    assert (tmp_path / "checkpoint.pt").exists()  # the last good one (step 30) is kept
+
+
+def test_resume_after_interruption(clip, monkeypatch, tmp_path):
+    import lmgs.train as tr
+
+    real = tr.losses.photometric
+    calls = {"n": 0}
+
+    def interrupt(a, b, lam):
+        calls["n"] += 1
+        if calls["n"] == 50:
+            raise KeyboardInterrupt
+        return real(a, b, lam)
+
+    monkeypatch.setattr(tr.losses, "photometric", interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        fit(clip, _tiny_cfg(), seed=0, progress=False, workdir=tmp_path)
+    monkeypatch.setattr(tr.losses, "photometric", real)
+    model, report = fit(clip, _tiny_cfg(), seed=0, progress=False, workdir=tmp_path)
+    assert report.resumed_from == 30 and report.steps == 70
+    assert (tmp_path / "curve.csv").exists() and (tmp_path / "curve.png").exists()
+    assert not (tmp_path / "checkpoint.pt").exists()
+
+
+def test_same_seed_same_model(clip, trained):
+    model, _ = trained
+    again, _ = fit(clip, _tiny_cfg(), seed=0, progress=False)
+    torch.testing.assert_close(again.face.means, model.face.means, rtol=0, atol=0)
+
+
+def test_ablation_switches_are_configs(clip):
+    cfg = _tiny_cfg(**{"guidance.se": False, "guidance.lc": False, "gr": False})
+    model, report = fit(clip, cfg, seed=0, progress=False)
+    assert model.predictor is None and np.isnan(report.se_fraction)
+    assert model.face_deform.lc is None
+    assert config_from_dict(cfg.to_dict()) == cfg and cfg.hash() != _tiny_cfg().hash()
