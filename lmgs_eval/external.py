@@ -1,0 +1,101 @@
+"""``external:NAME``: score frames rendered by any other code in the same protocol.
+
+``--method external:ernerf --renders PATH`` points at a video (``.mp4``...) or a folder of
+images (sorted by the number in their names: ``0.jpg, 1.jpg, ...`` or ``frame_0001.png``).
+An optional sidecar JSON beside it (``PATH.json`` for a video, ``PATH/cost.json`` for a
+folder) gives cost figures: ``fps``, ``train_hours``, ``device``, ``n_gaussians``,
+``model_mb``. Missing figures stay empty; they are never guessed.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+
+from lmgs_eval.errors import UserError
+from lmgs_eval.methods import MethodInfo
+
+IMAGE_EXT = {".jpg", ".jpeg", ".png", ".bmp", ".webp"}
+SIDECAR_KEYS = ("fps", "train_hours", "device", "n_gaussians", "model_mb", "notes")
+
+
+def _number_key(p: Path):
+    nums = re.findall(r"\d+", p.stem)
+    return (int(nums[-1]) if nums else -1, p.name)
+
+
+def list_frames(folder: Path) -> list[Path]:
+    files = [p for p in Path(folder).iterdir() if p.suffix.lower() in IMAGE_EXT]
+    if not files:
+        raise UserError(f"{folder}: no image files (.jpg/.png) found")
+    return sorted(files, key=_number_key)
+
+
+def read_frames(path: Path) -> np.ndarray:
+    """A video or a folder of images as uint8 ``[T, H, W, 3]``."""
+    from lmgs_eval.data import io
+
+    path = Path(path)
+    if path.is_dir():
+        return np.stack([io.read_rgb_u8(p) for p in list_frames(path)])
+    frames, _, _, _ = io.read_video(path)
+    return io.to_u8(frames)
+
+
+def read_sidecar(path: Path) -> dict:
+    path = Path(path)
+    side = path / "cost.json" if path.is_dir() else path.with_name(path.name + ".json")
+    if not side.exists():
+        return {}
+    try:
+        d = json.loads(side.read_text())
+    except json.JSONDecodeError as exc:
+        raise UserError(f"{side}: not valid JSON ({exc.msg})") from None
+    unknown = sorted(set(d) - set(SIDECAR_KEYS))
+    if unknown:
+        raise UserError(f"{side}: unknown keys {unknown}; allowed: {', '.join(SIDECAR_KEYS)}")
+    return d
+
+
+class ExternalRenders:
+    """A method whose frames were rendered elsewhere (e.g. the official ER-NeRF on a GPU)."""
+
+    def __init__(self, name: str, renders: str | Path | None = None, **_):
+        if not name:
+            raise UserError("external method needs a name: --method external:NAME")
+        if renders is None:
+            raise UserError(f"--method external:{name} needs --renders PATH (a video or a folder of frames)")
+        self.name = name
+        self.path = Path(renders)
+        if not self.path.exists():
+            raise UserError(f"{self.path}: renders not found")
+        self.sidecar = read_sidecar(self.path)
+
+    def fit(self, clip, *, seed: int, workdir: Path, progress: bool = True) -> None:
+        """Nothing to train: the renders exist already."""
+
+    def render(self, driving) -> np.ndarray:
+        frames = read_frames(self.path)
+        n = driving.n_frames
+        if len(frames) != n:
+            raise UserError(f"{self.path}: {len(frames)} frames, but the protocol's clip has {n} (same split, same frames expected)")
+        return frames
+
+    def describe(self) -> MethodInfo:
+        return MethodInfo(
+            name=f"external:{self.name}",
+            display_name=self.name,
+            family="external",
+            description=f"frames rendered outside this toolkit, read from {self.path}; scored with the same split, frames and metrics",
+            config={"renders": str(self.path), "sidecar": self.sidecar},
+            config_hash="external",
+        )
+
+    def cost(self) -> dict:
+        out = {k: self.sidecar.get(k) for k in ("n_gaussians", "model_mb", "device")}
+        out["fps"] = self.sidecar.get("fps")
+        out["train_seconds"] = None if self.sidecar.get("train_hours") is None else float(self.sidecar["train_hours"]) * 3600
+        return out
