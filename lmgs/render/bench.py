@@ -98,10 +98,10 @@ def _measure(backend: str, res: int, n: int, repeats: int) -> dict:
             fn()
             ts.append(time.perf_counter() - t0)
         ts.sort()
-        return 1e3 * ts[len(ts) // 2]
+        return 1e3 * ts[len(ts) // 2], 1e3 * ts[0]
 
-    fwd_ms = timed(lambda: fwd(params, cam))
-    fwd_bwd_ms = timed(lambda: fwd_bwd(params, cam))
+    fwd_ms, fwd_min = timed(lambda: fwd(params, cam))
+    fwd_bwd_ms, fwd_bwd_min = timed(lambda: fwd_bwd(params, cam))
     return {
         "backend": backend,
         "res": f"{res}x{res}",
@@ -109,6 +109,8 @@ def _measure(backend: str, res: int, n: int, repeats: int) -> dict:
         "n_visible": n_visible,
         "fwd_ms": fwd_ms,
         "fwd_bwd_ms": fwd_bwd_ms,
+        "fwd_min_ms": fwd_min,
+        "fwd_bwd_min_ms": fwd_bwd_min,
         "peak_mb": peak_kb / 1024.0,
         "repeats": repeats,
     }
@@ -154,7 +156,8 @@ def run(args: argparse.Namespace) -> dict:
     return {
         "rows": rows,
         "peak_mb": "growth of ru_maxrss over the warmed-up worker during one fwd+bwd (fresh process per row)",
-        "ratio": "anchor time / this backend's time, same run, same scene",
+        "ratio": "anchor median time / this backend's median time, same run, same scene",
+        "times": "fwd_ms/fwd_bwd_ms are medians, *_min_ms minima of the repeats (the 2 cores are shared)",
         "scene": "head-sized blob 0.6 m away, fx = 1.5 x res, ~1.5 px sigma at 256 px",
         "threads": {"torch": torch.get_num_threads(), "numba": numba.get_num_threads(), "cpus": os.cpu_count()},
         "machine": f"{platform.machine()} {platform.processor() or ''}".strip(),
