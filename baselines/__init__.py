@@ -1,0 +1,6 @@
+"""Simplified, CPU-trainable versions of the nine compared methods (see ``design.md``).
+
+Importing this package registers every adapter with :func:`lmgs_eval.methods.register`.
+"""
+
+from baselines import nerf  # noqa: F401  (registers adnerf, radnerf, ernerf, geneface)

@@ -1,0 +1,264 @@
+"""Shared plumbing of the baseline adapters: budgets, hashes, checkpoints, audio, driving inputs.
+
+Every adapter in :mod:`baselines` follows the same pattern as ``lmgs_eval.method_lmgs``:
+a frozen budget dataclass with named presets (``tiny`` for tests, ``quick`` for the
+benchmark), its hash as ``config_hash``, ``workdir/model.pt`` reused when its hash matches,
+and the device from :func:`lmgs.device.choose_device`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from lmgs.config import AudioConfig
+from lmgs.errors import InputError
+from lmgs.types import DrivingAudio, TrainingClip
+
+CHECKPOINT_VERSION = 1
+LOGMEL = AudioConfig()  # the project's audio front end (log-mel, 16 x 80 windows per frame)
+
+
+def config_hash(cfg) -> str:
+    """Short sha256 of a (frozen dataclass) config's JSON form."""
+    blob = json.dumps(dataclasses.asdict(cfg), sort_keys=True, default=str).encode()
+    return hashlib.sha256(blob).hexdigest()[:16]
+
+
+def preset_of(cls, name: str):
+    """``cls.tiny()`` / ``cls.quick()``...; a clear error for an unknown preset name."""
+    maker = getattr(cls, name, None)
+    if name.startswith("_") or not callable(maker):
+        raise InputError(f"unknown preset '{name}' for {cls.__name__}; known: tiny, quick")
+    return maker()
+
+
+def audio_windows(audio: np.ndarray, n_frames: int) -> torch.Tensor:
+    """Log-mel windows ``[T, 16, 80]`` for ``n_frames`` frames (silence-padded, never truncated)."""
+    from lmgs.audio import compute_features
+
+    return torch.from_numpy(np.ascontiguousarray(compute_features(audio, 16000, LOGMEL, n_frames=n_frames), np.float32))
+
+
+def seed_all(seed: int) -> np.random.Generator:
+    torch.manual_seed(seed)
+    return np.random.default_rng(seed)
+
+
+def to_u8(img: torch.Tensor) -> np.ndarray:
+    """Float ``[..., 3]`` in [0, 1] -> uint8 (NaN become 0, so output is always finite)."""
+    x = torch.nan_to_num(img.detach().float(), nan=0.0).clamp(0, 1)
+    return (x * 255 + 0.5).to(torch.uint8).cpu().numpy()
+
+
+def atomic_save(obj: Any, path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.tmp-", dir=path.parent)
+    os.close(fd)
+    try:
+        torch.save(obj, tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def load_checkpoint(path: Path, name: str, chash: str, device) -> dict:
+    """Read ``model.pt`` written by :func:`atomic_save`; errors name the file and the mismatch."""
+    try:
+        blob = torch.load(path, map_location=device, weights_only=False)
+    except (RuntimeError, EOFError, OSError, ValueError) as exc:
+        raise InputError(f"{path}: not a readable checkpoint ({exc.__class__.__name__})") from None
+    if not isinstance(blob, dict) or blob.get("version") != CHECKPOINT_VERSION or blob.get("method") != name:
+        raise InputError(f"{path}: not a '{name}' checkpoint of version {CHECKPOINT_VERSION}")
+    if blob.get("config_hash") != chash:
+        raise InputError(f"{path}: made with config {blob.get('config_hash')}, asked for {chash}; delete it to retrain")
+    return blob
+
+
+def n_frames_of(driving: DrivingAudio) -> int:
+    n = driving.n_frames
+    if driving.backgrounds is not None and driving.backgrounds.shape[0] not in (1, n):
+        raise InputError(f"driving backgrounds have {driving.backgrounds.shape[0]} frames, the audio/cameras {n}")
+    return n
+
+
+def driving_w2c(driving: DrivingAudio, train_w2c: np.ndarray, t: int) -> np.ndarray:
+    """Camera of frame ``t``: the driving one, else the training poses replayed cyclically."""
+    if driving.w2c is not None:
+        return np.asarray(driving.w2c[t], np.float32)
+    return np.asarray(train_w2c[t % len(train_w2c)], np.float32)
+
+
+def driving_background(driving: DrivingAudio, default: np.ndarray, t: int) -> np.ndarray:
+    """uint8 ``[H, W, 3]`` background of frame ``t``: the driving one, else the model's mean."""
+    if driving.backgrounds is not None:
+        b = driving.backgrounds
+        return b[t if b.shape[0] > 1 else 0]
+    return default
+
+
+def mean_background(clip: TrainingClip) -> np.ndarray:
+    return (clip.backgrounds.astype(np.float32).mean(0) + 0.5).astype(np.uint8)
+
+
+def head_box(clip: TrainingClip, pad: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
+    """World-space box around the head: depth back-projection and/or 3D landmarks, padded.
+
+    Falls back to a cube of half-size 0.3 x camera distance around the world origin (where
+    ER-NeRF / TalkingGaussian track the head) when the clip has neither.
+    """
+    pts = []
+    if clip.depth is not None:
+        step = max(1, len(clip) // 8)
+        for i in range(0, len(clip), step):
+            d = clip.depth[i].astype(np.float32)
+            m = d > 0
+            if clip.head_masks is not None:
+                m &= clip.head_masks[i]
+            ys, xs = np.nonzero(m)
+            if len(ys) == 0:
+                continue
+            z = d[ys, xs]
+            cam = np.stack([(xs + 0.5 - clip.cx) / clip.focal * z, (ys + 0.5 - clip.cy) / clip.focal * z, z, np.ones_like(z)], 1)
+            pts.append((cam @ np.linalg.inv(clip.w2c[i]).T)[:, :3])
+    if clip.landmarks3d is not None:
+        pts.append(np.asarray(clip.landmarks3d, np.float32).reshape(-1, 3))
+    if not pts:
+        dist = float(np.linalg.norm(np.linalg.inv(clip.w2c[0])[:3, 3]))
+        h = 0.3 * max(dist, 1e-3)
+        return np.full(3, -h, np.float32), np.full(3, h, np.float32)
+    p = np.concatenate(pts)
+    lo, hi = np.percentile(p, 0.5, axis=0), np.percentile(p, 99.5, axis=0)
+    size = hi - lo
+    m = pad * np.maximum(size, size.max() * 0.3)
+    return (lo - m).astype(np.float32), (hi + m).astype(np.float32)
+
+
+def cost_of(module: torch.nn.Module | None, n_gaussians: int | None = None) -> dict:
+    """``n_params``, ``n_gaussians`` (None outside the 3DGS family) and ``model_mb`` (float32)."""
+    if module is None:
+        return {}
+    n = sum(p.numel() for p in module.parameters()) + sum(b.numel() for b in module.buffers() if b.is_floating_point())
+    return {"n_params": int(n), "n_gaussians": n_gaussians, "model_mb": n * 4 / 2**20}
+
+
+def landmark_targets(clip: TrainingClip) -> np.ndarray:
+    """3D landmark targets ``[T, 68, 3]``: the clip's own, else its 2D tracks lifted (as lmgs does)."""
+    if clip.landmarks3d is not None:
+        return np.asarray(clip.landmarks3d, np.float32)
+    if clip.landmarks2d is None:
+        raise InputError("this method needs landmarks: the training clip has neither 3D nor 2D landmarks")
+    from lmgs.landmarks import lift_2d_landmarks
+
+    c2w = np.linalg.inv(clip.w2c) @ np.diag([1.0, -1.0, -1.0, 1.0])
+    return lift_2d_landmarks(clip.landmarks2d, c2w, clip.focal, clip.cx, clip.cy).numpy()
+
+
+def project(points: np.ndarray, w2c: np.ndarray, focal: float, cx: float, cy: float) -> np.ndarray:
+    """World points ``[..., 3]`` -> pixels ``[..., 2]`` (OpenCV camera)."""
+    p = points @ w2c[:3, :3].T + w2c[:3, 3]
+    z = np.maximum(p[..., 2:3], 1e-6)
+    return np.concatenate([focal * p[..., 0:1] / z + cx, focal * p[..., 1:2] / z + cy], -1)
+
+
+class Adapter:
+    """Base of the torch-module baselines: checkpoint reuse, device, describe/cost plumbing.
+
+    Subclasses set ``name``, ``display_name``, ``family``, ``description``, ``standins`` and
+    implement ``_train(clip, seed, progress) -> (module, build)`` (``build``: the JSON-able
+    constructor arguments) and ``_build(build) -> module``, plus :meth:`render`.
+    """
+
+    name = ""
+    display_name = ""
+    family = ""
+    description = ""
+    standins: tuple[str, ...] = ()
+
+    def __init__(self, preset: str = "quick", device: str | None = None, **overrides):
+        budget = preset_of(self.budget_cls, preset)
+        self.cfg = dataclasses.replace(budget, **overrides) if overrides else budget
+        self.preset = preset
+        self.device = device
+        self.model = None
+        self.fit_seconds: float | None = None
+
+    budget_cls: type = object
+
+    @property
+    def dev(self) -> torch.device:
+        from lmgs.device import choose_device
+
+        return choose_device(self.device)
+
+    def config(self) -> dict:
+        return {"method": self.name, "preset": self.preset, **dataclasses.asdict(self.cfg)}
+
+    def config_hash(self) -> str:
+        return hashlib.sha256(json.dumps(self.config(), sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+    def fit(self, clip: TrainingClip, *, seed: int, workdir: Path, progress: bool = True) -> None:
+        import time
+
+        if len(clip) < 4:
+            raise InputError(f"training clip has {len(clip)} frames; {self.name} needs at least 4")
+        final = Path(workdir) / "model.pt"
+        if final.exists():
+            blob = load_checkpoint(final, self.name, self.config_hash(), self.dev)
+            self.model = self._build(blob["build"]).to(self.dev)
+            self.model.load_state_dict(blob["state"])
+            self.model.eval()
+            self.fit_seconds = blob.get("fit_seconds")
+            return
+        t0 = time.perf_counter()
+        with torch.random.fork_rng(devices=[]):
+            model, build = self._train(clip, seed, progress)
+        self.model = model.eval()
+        self.fit_seconds = time.perf_counter() - t0
+        atomic_save({"version": CHECKPOINT_VERSION, "method": self.name, "config_hash": self.config_hash(),
+                     "config": self.config(), "build": build, "state": model.state_dict(),
+                     "fit_seconds": self.fit_seconds}, final)
+
+    def _train(self, clip: TrainingClip, seed: int, progress: bool):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _build(self, build: dict):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _check_fitted(self) -> None:
+        if self.model is None:
+            raise RuntimeError(f"{self.name}: render() before fit()")
+
+    def describe(self):
+        from lmgs_eval.methods import MethodInfo
+
+        return MethodInfo(name=self.name, display_name=self.display_name, family=self.family,
+                          description=f"{self.description} Budget '{self.preset}': {self.budget_text()}.",
+                          standins=self.standins, config=self.config(), config_hash=self.config_hash())
+
+    def budget_text(self) -> str:
+        return ", ".join(f"{k}={v}" for k, v in dataclasses.asdict(self.cfg).items())
+
+    def cost(self) -> dict:
+        c = cost_of(self.model, None)
+        if c and self.fit_seconds is not None:
+            c["fit_seconds"] = float(self.fit_seconds)
+        return c
+
+
+def progress_bar(total: int, desc: str, enabled: bool):
+    if not enabled:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit="step", leave=False)
