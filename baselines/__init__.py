@@ -4,3 +4,4 @@ Importing this package registers every adapter with :func:`lmgs_eval.methods.reg
 """
 
 from baselines import nerf  # noqa: F401  (registers adnerf, radnerf, ernerf, geneface)
+from baselines import gaussian  # noqa: F401  (registers talkinggaussian, degstalk, gaussiantalker)

@@ -148,7 +148,7 @@ def cost_of(module: torch.nn.Module | None, n_gaussians: int | None = None) -> d
     """``n_params``, ``n_gaussians`` (None outside the 3DGS family) and ``model_mb`` (float32)."""
     if module is None:
         return {}
-    n = sum(p.numel() for p in module.parameters()) + sum(b.numel() for b in module.buffers() if b.is_floating_point())
+    n = sum(p.numel() for p in module.parameters())
     return {"n_params": int(n), "n_gaussians": n_gaussians, "model_mb": n * 4 / 2**20}
 
 
