@@ -1,0 +1,32 @@
+"""``lmgs-eval score``: score a rendered clip against ground truth with every available metric."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+HELP = "score a rendered video / frame folder against ground truth (PSNR, SSIM, LPIPS, LMD, LSE)"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--pred", required=True, help="rendered video (mp4) or folder of frames")
+    p.add_argument("--gt", help="ground-truth video or folder (omit for no-reference metrics only)")
+    p.add_argument("--audio", help="driving audio (default: the pred video's audio track)")
+    p.add_argument("--json", action="store_true", help="print the result record as JSON on stdout")
+    p.add_argument("--truncate", action="store_true", help="score the common prefix when lengths differ (recorded)")
+    p.add_argument("--alexnet", help="torchvision alexnet-owt-7be5be79.pth: enables the official LPIPS")
+    p.add_argument("--lpips", choices=["lpips-alex", "stlpips-alex"], help="force one LPIPS network")
+    p.add_argument("--landmarks", default="dlib", choices=["dlib", "fan"], help="LMD landmark backend")
+    p.add_argument("--metrics", help="comma-separated subset: psnr,ssim,lpips,lmd,lse")
+
+
+def run(args: argparse.Namespace) -> int:
+    from lmgs_eval.metrics.suite import format_record, score
+
+    rec = score(args.pred, args.gt, args.audio, truncate=args.truncate, alexnet=args.alexnet, lpips=args.lpips,
+                landmarks=args.landmarks, metrics=args.metrics.split(",") if args.metrics else None)
+    if args.json:
+        print(json.dumps(rec, indent=2))
+    else:
+        print(format_record(rec))
+    return 0

@@ -1,0 +1,461 @@
+"""LSE-D / LSE-C and the AV offset: the syncnet_python procedure, scorer networks in ONNX Runtime.
+
+Procedure (joonson/syncnet_python ``SyncNetInstance.evaluate``, as used by Wav2Lip's
+``evaluation/scores_LSE``; REFERENCE.md section 2):
+
+* audio: 16 kHz mono at int16 scale, ``python_speech_features.mfcc`` defaults -> 13 x 100 Hz;
+* video: 25 fps face crops, windows of 5 frames; audio windows of 20 MFCC steps at ``4 * i``;
+* ``min_length = min(n_frames, floor(n_samples / 640))``, ``lastframe = min_length - 5``,
+  windows ``i = 0 .. lastframe - 1``;
+* ``calc_pdist(vshift=15)``: the audio embeddings zero-padded by 15 on both ends, for
+  window ``i`` the distances ``|v_i - a_{i+k-15} + 1e-6|_2`` for ``k = 0..30`` (torch's
+  ``pairwise_distance`` adds ``eps = 1e-6`` to the difference);
+* ``mdist[k]`` = mean over windows; **LSE-D** = ``min mdist``, **LSE-C** =
+  ``median(mdist) - min(mdist)``, **offset** = ``15 - argmin mdist``.
+
+Face crops (deterministic, documented): dlib HOG face boxes (detected on a downscaled
+frame every ``detect_every`` frames, held in between, missing boxes filled from the
+nearest detected frame and counted), centre and size each smoothed over time by a median
+filter of 9 frames (syncnet_python smooths its S3FD track the same way), then
+syncnet_python's ``crop_video`` geometry: half-size ``bs = size / 2``, crop scale
+``cs = 0.4``, frame padded with value 110, rows ``[cy - bs, cy + bs (1 + 2 cs)]``,
+columns ``[cx - bs (1 + cs), cx + bs (1 + cs)]``, resized to 224 x 224, BGR, raw 0-255
+floats.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from lmgs_eval.errors import UserError
+from lmgs_eval.metrics.base import MetricResult, MetricSpec, unavailable
+
+VSHIFT = 15
+SAMPLES_PER_FRAME = 640  # 16 kHz / 25 fps
+CROP_SIZE = 224
+CROP_SCALE = 0.4
+PAD_VALUE = 110
+SMOOTH_KERNEL = 9
+BUNDLED_DIR = Path(__file__).resolve().parent / "weights"
+
+LSE_SPEC = MetricSpec(
+    name="lse",
+    higher_is_better=False,
+    unit="",
+    backend="onnxruntime",
+    version="1",
+    definition=(
+        "syncnet_python evaluate(): MFCC (python_speech_features defaults, int16-scale 16 kHz) windows of 20 "
+        "steps at 4*i vs 5-frame 224x224 BGR 0-255 face-crop windows; calc_pdist(vshift=15); mdist = mean over "
+        "windows per offset; LSE-D = min(mdist) (lower is better), LSE-C = median(mdist) - min(mdist) (higher is "
+        "better), AV offset = 15 - argmin. per_item = each window's distance at the best offset."
+    ),
+    reference="Chung & Zisserman, 'Out of time', ACCV 2016 workshops; joonson/syncnet_python; Wav2Lip scores_LSE",
+    per="window",
+)
+
+
+# ----------------------------------------------------------------------------- audio
+def mfcc_13(audio16k: np.ndarray) -> np.ndarray:
+    """``[13, T]`` MFCCs at 100 Hz of float [-1, 1] 16 kHz mono audio, at int16 scale.
+
+    syncnet_python reads the wav with ``scipy.io.wavfile`` (int16 values) and calls
+    ``python_speech_features.mfcc(audio, 16000)`` with every default.
+    """
+    import python_speech_features
+
+    x = np.clip(np.rint(np.asarray(audio16k, np.float64) * 32768.0), -32768, 32767)
+    return np.asarray(python_speech_features.mfcc(x, 16000), np.float64).T
+
+
+def is_silent(audio16k: np.ndarray, rms_floor: float = 1e-4) -> bool:
+    x = np.asarray(audio16k, np.float64)
+    return x.size == 0 or float(np.sqrt(np.mean(x * x))) < rms_floor
+
+
+def windows(crops: np.ndarray, mfcc: np.ndarray, n_samples: int) -> tuple[np.ndarray, np.ndarray]:
+    """Video ``[N, 3, 5, H, W]`` and audio ``[N, 1, 13, 20]`` windows, syncnet_python's indexing.
+
+    Args:
+        crops: ``[T, H, W, 3]`` face crops in the scorer's pixel convention.
+        mfcc: ``[13, M]`` from :func:`mfcc_13`.
+        n_samples: number of 16 kHz audio samples.
+    """
+    min_length = min(crops.shape[0], int(math.floor(n_samples / SAMPLES_PER_FRAME)))
+    last = min_length - 5
+    if last <= 0:
+        raise UserError(f"sync: clip too short for 5-frame windows ({crops.shape[0]} frames, {n_samples} samples)")
+    v = np.stack([crops[i:i + 5] for i in range(last)])  # [N, 5, H, W, 3]
+    v = np.ascontiguousarray(v.transpose(0, 4, 1, 2, 3), np.float32)
+    a = np.zeros((last, 1, 13, 20), np.float32)
+    for i in range(last):
+        seg = mfcc[:, 4 * i:4 * i + 20]
+        a[i, 0, :, :seg.shape[1]] = seg  # syncnet_python would fail on a short tail; zero-fill is flagged below
+    return v, a
+
+
+def lse_from_embeddings(v_emb: np.ndarray, a_emb: np.ndarray, vshift: int = VSHIFT) -> dict:
+    """LSE-D, LSE-C and the offset from per-window embeddings (``calc_pdist`` + ``evaluate``).
+
+    .. math::
+        \\mathrm{mdist}_k = \\frac{1}{N}\\sum_i \\| v_i - a_{i+k-s} + \\epsilon \\|_2,\\quad
+        \\text{LSE-D} = \\min_k \\mathrm{mdist}_k,\\quad
+        \\text{LSE-C} = \\operatorname{median}_k \\mathrm{mdist}_k - \\min_k \\mathrm{mdist}_k
+    """
+    v = np.asarray(v_emb, np.float64)
+    a = np.asarray(a_emb, np.float64)
+    n = v.shape[0]
+    win = 2 * vshift + 1
+    ap = np.concatenate([np.zeros((vshift, a.shape[1])), a, np.zeros((vshift, a.shape[1]))])
+    idx = np.arange(n)[:, None] + np.arange(win)[None, :]
+    dists = np.linalg.norm(v[:, None, :] - ap[idx] + 1e-6, axis=-1)  # [N, 31]
+    mdist = dists.mean(axis=0)
+    k = int(np.argmin(mdist))
+    return {
+        "lse_d": float(mdist[k]),
+        "lse_c": float(np.median(mdist) - mdist[k]),
+        "offset": int(vshift - k),
+        "mdist": mdist,
+        "per_window": dists[:, k],
+    }
+
+
+# ----------------------------------------------------------------------------- crops
+def face_boxes(frames: np.ndarray, detect_every: int = 1, detect_side: int = 320) -> tuple[np.ndarray, int]:
+    """Per-frame face boxes ``[T, 3]`` = (cx, cy, size), smoothed; and the count of frames without a detection.
+
+    Raises:
+        UserError: no face in any frame.
+    """
+    from scipy.signal import medfilt
+
+    from lmgs_eval.data.io import to_u8
+    from lmgs_eval.metrics.landmarks import DlibBackend
+
+    det = DlibBackend(redetect=1, detect_side=detect_side)
+    t = frames.shape[0]
+    raw = np.full((t, 3), np.nan)
+    every = max(1, int(detect_every))
+    for i in range(0, t, every):
+        b = det.detect(np.ascontiguousarray(to_u8(frames[i])))
+        if b is not None:
+            raw[i] = ((b.left() + b.right()) / 2, (b.top() + b.bottom()) / 2, max(b.width(), b.height()))
+    found = np.isfinite(raw[:, 0])
+    detected_at = np.arange(0, t, every)
+    n_missing = int((~found[detected_at]).sum())
+    if not found.any():
+        raise UserError("sync: no face detected in any frame")
+    idx = np.flatnonzero(found)
+    # hold: every frame takes the box of the nearest detected frame (ties -> earlier)
+    nearest = idx[np.clip(np.searchsorted(idx, np.arange(t)), 0, len(idx) - 1)]
+    prev = idx[np.clip(np.searchsorted(idx, np.arange(t)) - 1, 0, len(idx) - 1)]
+    use = np.where(np.abs(prev - np.arange(t)) <= np.abs(nearest - np.arange(t)), prev, nearest)
+    boxes = raw[use]
+    if t >= SMOOTH_KERNEL:
+        boxes = np.stack([medfilt(boxes[:, j], kernel_size=SMOOTH_KERNEL) for j in range(3)], axis=1)
+    return boxes, n_missing
+
+
+def crop_faces(frames: np.ndarray, boxes: np.ndarray, size: int = CROP_SIZE) -> np.ndarray:
+    """syncnet_python ``crop_video`` geometry -> ``[T, size, size, 3]`` BGR float32 in 0..255."""
+    import cv2
+
+    from lmgs_eval.data.io import to_u8
+
+    out = np.empty((frames.shape[0], size, size, 3), np.float32)
+    cs = CROP_SCALE
+    for t in range(frames.shape[0]):
+        cx, cy, s = boxes[t]
+        bs = s / 2
+        bsi = int(bs * (1 + 2 * cs))
+        img = to_u8(frames[t])[:, :, ::-1]
+        pad = np.pad(img, ((bsi, bsi), (bsi, bsi), (0, 0)), mode="constant", constant_values=PAD_VALUE)
+        my, mx = cy + bsi, cx + bsi
+        face = pad[int(my - bs):int(my + bs * (1 + 2 * cs)), int(mx - bs * (1 + cs)):int(mx + bs * (1 + cs))]
+        out[t] = cv2.resize(face, (size, size), interpolation=cv2.INTER_LINEAR)
+    return out
+
+
+# ----------------------------------------------------------------------------- networks
+def _build_nets():
+    import torch
+    from torch import nn
+
+    class SyncNetS(nn.Module):
+        """syncnet_python's ``S`` (REFERENCE.md section 2), state-dict compatible.
+
+        ``forward(audio [N,1,13,20], video [N,3,5,224,224]) -> (a_emb, v_emb)`` (1024-d each).
+        """
+
+        def __init__(self):
+            super().__init__()
+            bn2, bn3 = nn.BatchNorm2d, nn.BatchNorm3d
+            self.netcnnaud = nn.Sequential(
+                nn.Conv2d(1, 64, 3, 1, 1), bn2(64), nn.ReLU(), nn.MaxPool2d(1, 1),
+                nn.Conv2d(64, 192, 3, 1, 1), bn2(192), nn.ReLU(), nn.MaxPool2d(3, (1, 2)),
+                nn.Conv2d(192, 384, 3, padding=1), bn2(384), nn.ReLU(),
+                nn.Conv2d(384, 256, 3, padding=1), bn2(256), nn.ReLU(),
+                nn.Conv2d(256, 256, 3, padding=1), bn2(256), nn.ReLU(), nn.MaxPool2d(3, 2),
+                nn.Conv2d(256, 512, (5, 4)), bn2(512), nn.ReLU(),
+            )
+            self.netfcaud = nn.Sequential(nn.Linear(512, 512), nn.BatchNorm1d(512), nn.ReLU(), nn.Linear(512, 1024))
+            self.netfclip = nn.Sequential(nn.Linear(512, 512), nn.BatchNorm1d(512), nn.ReLU(), nn.Linear(512, 1024))
+            self.netcnnlip = nn.Sequential(
+                nn.Conv3d(3, 96, (5, 7, 7), (1, 2, 2), 0), bn3(96), nn.ReLU(), nn.MaxPool3d((1, 3, 3), (1, 2, 2)),
+                nn.Conv3d(96, 256, (1, 5, 5), (1, 2, 2), (0, 1, 1)), bn3(256), nn.ReLU(),
+                nn.MaxPool3d((1, 3, 3), (1, 2, 2), (0, 1, 1)),
+                nn.Conv3d(256, 256, (1, 3, 3), padding=(0, 1, 1)), bn3(256), nn.ReLU(),
+                nn.Conv3d(256, 256, (1, 3, 3), padding=(0, 1, 1)), bn3(256), nn.ReLU(),
+                nn.Conv3d(256, 256, (1, 3, 3), padding=(0, 1, 1)), bn3(256), nn.ReLU(),
+                nn.MaxPool3d((1, 3, 3), (1, 2, 2)),
+                nn.Conv3d(256, 512, (1, 6, 6)), bn3(512), nn.ReLU(),
+            )
+
+        def forward(self, audio, video):
+            a = self.netfcaud(self.netcnnaud(audio).flatten(1))
+            v = self.netfclip(self.netcnnlip(video).flatten(1))
+            return a, v
+
+    class BundledSyncNet(nn.Module):
+        """A small SyncNet-style scorer for the bundled subjects (same interface, fewer FLOPs).
+
+        audio ``[N,1,13,20]``: 3 conv-BN-ReLU (32, 64, 128; strides 1, (1,2), 2), global mean, Linear 128.
+        video ``[N,3,5,H,W]`` (lower half of the face crop, 0..1): Conv3d 3-32 k(5,5,5) s(1,2,2) p(0,2,2)
+        collapsing time, then 3 conv-BN-ReLU (64, 128, 128; stride 2), global mean, Linear 128.
+        The embeddings are compared by L2 distance exactly as SyncNet's.
+        """
+
+        def __init__(self, dim: int = 128):
+            super().__init__()
+
+            def cbr(i, o, s):
+                return [nn.Conv2d(i, o, 3, s, 1), nn.BatchNorm2d(o), nn.ReLU()]
+
+            self.aud = nn.Sequential(*cbr(1, 32, 1), *cbr(32, 64, (1, 2)), *cbr(64, 128, 2))
+            self.aud_fc = nn.Linear(128, dim)
+            self.lip3d = nn.Sequential(nn.Conv3d(3, 32, (5, 5, 5), (1, 2, 2), (0, 2, 2)), nn.BatchNorm3d(32), nn.ReLU())
+            self.lip = nn.Sequential(*cbr(32, 64, 2), *cbr(64, 128, 2), *cbr(128, 128, 2))
+            self.lip_fc = nn.Linear(128, dim)
+
+        def forward(self, audio, video):
+            a = self.aud_fc(self.aud(audio).mean(dim=(2, 3)))
+            v = self.lip(self.lip3d(video)[:, :, 0])
+            v = self.lip_fc(v.mean(dim=(2, 3)))
+            return a, v
+
+    return SyncNetS, BundledSyncNet
+
+
+_NETS = None
+
+
+def nets():
+    """``(SyncNetS, BundledSyncNet)`` torch classes (built on first use)."""
+    global _NETS
+    if _NETS is None:
+        _NETS = _build_nets()
+    return _NETS
+
+
+def _export_sync(net, path: Path, hw: tuple[int, int]) -> None:
+    import torch
+
+    from lmgs_eval.metrics.ort import export_onnx
+
+    a = torch.randn(2, 1, 13, 20)
+    v = torch.rand(2, 3, 5, *hw)
+    export_onnx(net.eval(), (a, v), path, ["audio", "video"], ["a_emb", "v_emb"],
+                {"audio": {0: "n"}, "video": {0: "n"}, "a_emb": {0: "n"}, "v_emb": {0: "n"}})
+
+
+def syncnet_manifest_path() -> Path:
+    from lmgs_eval.paths import cache_root
+
+    return cache_root() / "weights" / "syncnet_v2.json"
+
+
+def import_syncnet(state_dict_path: Path) -> dict:
+    """Convert the official ``syncnet_v2.model`` state dict to ONNX in the cache; return the manifest.
+
+    Raises:
+        UserError: unreadable file, or keys/shapes not those of syncnet_python's ``S``.
+    """
+    from lmgs_eval.metrics.ort import load_torch_state, onnx_cache_dir, sha256_file
+    from lmgs_eval.paths import atomic_write_text
+
+    src = Path(state_dict_path)
+    sd = load_torch_state(src, "SyncNet state dict")
+    S, _ = nets()
+    net = S()
+    own = net.state_dict()
+    missing = [k for k in own if k not in sd]
+    if missing:
+        raise UserError(f"{src}: not syncnet_python's S layout, missing {len(missing)} key(s) e.g. {missing[0]!r}")
+    for k, v in own.items():
+        if tuple(sd[k].shape) != tuple(v.shape):
+            raise UserError(f"{src}: key {k!r} has shape {tuple(sd[k].shape)}, expected {tuple(v.shape)}")
+    net.load_state_dict({k: sd[k] for k in own})
+    sha = sha256_file(src)
+    out = onnx_cache_dir() / f"{sha}-syncnet-v2.onnx"
+    _export_sync(net, out, (CROP_SIZE, CROP_SIZE))
+    manifest = {"name": "syncnet-v2", "source": str(src), "source_sha256": sha, "onnx": str(out),
+                "onnx_sha256": sha256_file(out), "input_hw": [CROP_SIZE, CROP_SIZE], "region": "full",
+                "pixel": "bgr_0_255"}
+    atomic_write_text(syncnet_manifest_path(), json.dumps(manifest, indent=2))
+    return manifest
+
+
+def export_bundled(net, out_dir: Path, meta: dict) -> dict:
+    """Write a trained :class:`BundledSyncNet` as ``bundled_sync.onnx`` + ``bundled_sync.json``.
+
+    ``meta`` must hold the training ``recipe`` and ``seed``; the sha256 of the graph is
+    added. For the engineer training the bundled scorer.
+    """
+    from lmgs_eval.metrics.ort import sha256_file
+    from lmgs_eval.paths import atomic_write_text
+
+    for k in ("recipe", "seed"):
+        if k not in meta:
+            raise UserError(f"bundled sync meta must include {k!r}")
+    out_dir = Path(out_dir)
+    hw = tuple(meta.get("input_hw", (48, 96)))
+    _export_sync(net, out_dir / "bundled_sync.onnx", hw)
+    m = {"name": "bundled-sync", "input_hw": list(hw), "region": meta.get("region", "lower_half"),
+         "pixel": meta.get("pixel", "bgr_0_1"), **meta, "sha256": sha256_file(out_dir / "bundled_sync.onnx")}
+    atomic_write_text(out_dir / "bundled_sync.json", json.dumps(m, indent=2))
+    return m
+
+
+# ----------------------------------------------------------------------------- scorer
+@dataclass
+class SyncScorer:
+    """A loaded scorer: ONNX session + how to shape its inputs + what to record."""
+
+    name: str
+    session: object
+    sha256: str
+    input_hw: tuple[int, int]
+    region: str  # "full" or "lower_half" of the 224 crop
+    pixel: str  # "bgr_0_255" or "bgr_0_1"
+    standin: str = ""
+
+    def prepare(self, crops224: np.ndarray) -> np.ndarray:
+        import cv2
+
+        x = crops224
+        if self.region == "lower_half":
+            x = x[:, CROP_SIZE // 2:]
+        h, w = self.input_hw
+        if x.shape[1:3] != (h, w):
+            x = np.stack([cv2.resize(f, (w, h), interpolation=cv2.INTER_AREA) for f in x])
+        if self.pixel == "bgr_0_1":
+            x = x / 255.0
+        return x.astype(np.float32)
+
+    def embed(self, audio_win: np.ndarray, video_win: np.ndarray, batch: int = 16) -> tuple[np.ndarray, np.ndarray]:
+        a_out, v_out = [], []
+        for s in range(0, audio_win.shape[0], batch):
+            a, v = self.session.run(["a_emb", "v_emb"], {"audio": audio_win[s:s + batch], "video": video_win[s:s + batch]})
+            a_out.append(a)
+            v_out.append(v)
+        return np.concatenate(a_out), np.concatenate(v_out)
+
+
+def find_scorer(prefer: str | None = None) -> tuple[SyncScorer | None, str]:
+    """The official SyncNet if imported, else the bundled scorer; ``(None, reason)`` if neither."""
+    from lmgs_eval.metrics.ort import load_session, sha256_file
+
+    reasons = []
+    if prefer in (None, "syncnet-v2"):
+        mp = syncnet_manifest_path()
+        if mp.is_file():
+            m = json.loads(mp.read_text())
+            p = Path(m["onnx"])
+            if not p.is_file():
+                reasons.append(f"syncnet-v2: {p} listed in {mp} is missing (re-run lmgs-eval weights import-syncnet)")
+            else:
+                sha = sha256_file(p)
+                if sha != m.get("onnx_sha256"):
+                    raise UserError(f"{p}: sha256 {sha[:12]}... does not match {mp}; re-run lmgs-eval weights import-syncnet")
+                return SyncScorer("syncnet-v2", load_session(p), m["source_sha256"], tuple(m["input_hw"]),
+                                  m.get("region", "full"), m.get("pixel", "bgr_0_255")), ""
+        else:
+            reasons.append("syncnet-v2 not imported (lmgs-eval weights import-syncnet syncnet_v2.model)")
+    if prefer in (None, "bundled-sync"):
+        p, j = BUNDLED_DIR / "bundled_sync.onnx", BUNDLED_DIR / "bundled_sync.json"
+        if p.is_file() and j.is_file():
+            m = json.loads(j.read_text())
+            sha = sha256_file(p)
+            if m.get("sha256") and sha != m["sha256"]:
+                raise UserError(f"{p}: sha256 {sha[:12]}... does not match {j} (corrupt or replaced weights)")
+            return SyncScorer("bundled-sync", load_session(p), sha, tuple(m.get("input_hw", (48, 96))),
+                              m.get("region", "lower_half"), m.get("pixel", "bgr_0_1"),
+                              standin="bundled-sync is trained by this project on synthetic clips; its LSE values are "
+                                      "not comparable with SyncNet LSE in papers"), ""
+        reasons.append(f"bundled-sync weights not present ({p.name} + {j.name} in {BUNDLED_DIR})")
+    return None, "; ".join(reasons)
+
+
+def lse(frames: np.ndarray, audio16k: np.ndarray | None, fps: float = 25.0, scorer: SyncScorer | None = None,
+        crops: np.ndarray | None = None, detect_every: int = 1, audio_reason: str = "") -> MetricResult:
+    """LSE-D / LSE-C / offset of one clip (no reference needed).
+
+    Args:
+        frames: ``[T, H, W, 3]`` float RGB in [0, 1] (ignored when ``crops`` is given).
+        audio16k: 16 kHz mono float audio, or None (then unavailable with ``audio_reason``).
+        fps: frame rate; SyncNet windows assume 25 fps.
+        scorer: a loaded scorer (default: :func:`find_scorer`).
+        crops: precomputed ``[T, 224, 224, 3]`` BGR 0-255 crops (skips face detection).
+        detect_every: run the face detector every k frames.
+    """
+    n = int(crops.shape[0] if crops is not None else frames.shape[0])
+    if scorer is None:
+        scorer, why = find_scorer()
+        if scorer is None:
+            return unavailable(LSE_SPEC, f"no SyncNet weights: {why}", n)
+    spec = LSE_SPEC.with_weights(scorer.sha256, backend=f"onnxruntime:{scorer.name}")
+    if scorer.standin:
+        spec = MetricSpec(**{**spec.to_dict(), "standin": scorer.standin})
+    if audio16k is None:
+        return unavailable(spec, audio_reason or "no audio (the video has no audio track and --audio was not given)", n)
+    if abs(float(fps) - 25.0) > 0.01:
+        return unavailable(spec, f"SyncNet windows assume 25 fps, the clip is {fps:g} fps", n)
+    flags, notes = [], []
+    if is_silent(audio16k):
+        flags.append("silent_audio: RMS below 1e-4, LSE is meaningless on silence")
+    if crops is None:
+        try:
+            boxes, n_missing = face_boxes(frames, detect_every)
+        except UserError as exc:
+            return unavailable(spec, str(exc), n)
+        if n_missing:
+            flags.append(f"no_face: {n_missing} detection(s) without a face, box held from the nearest frame")
+        crops = crop_faces(frames, boxes)
+        notes.append(f"crops: dlib HOG every {detect_every} frame(s), median-9 box smoothing, syncnet_python crop_video geometry, 224x224 BGR 0-255")
+    mf = mfcc_13(audio16k)
+    v, a = windows(crops, mf, len(audio16k))
+    if 4 * (v.shape[0] - 1) + 20 > mf.shape[1]:
+        flags.append("audio_tail_padded: last MFCC window zero-filled")
+    v = np.stack([scorer.prepare(w.transpose(1, 2, 3, 0)) for w in v]).transpose(0, 4, 1, 2, 3)
+    a_emb, v_emb = scorer.embed(a, np.ascontiguousarray(v))
+    r = lse_from_embeddings(v_emb, a_emb)
+    values = {"lse_d": r["lse_d"], "lse_c": r["lse_c"], "offset": r["offset"]}
+    if scorer.standin:
+        notes.append("standin: " + scorer.standin)
+    notes.append("mdist per offset -15..15: " + " ".join(f"{d:.3f}" for d in r["mdist"][::-1]))
+    return MetricResult(spec, r["lse_d"], values, r["per_window"], max(0, n - 5), int(v.shape[0]), flags, notes)
+
+
+def find_scorer_status() -> tuple[bool, str]:
+    """Which sync scorer would be used, without loading it (for ``lmgs-eval metrics``)."""
+    mp = syncnet_manifest_path()
+    if mp.is_file():
+        return True, f"syncnet-v2 ({mp})"
+    if (BUNDLED_DIR / "bundled_sync.onnx").is_file() and (BUNDLED_DIR / "bundled_sync.json").is_file():
+        return True, "bundled-sync (stand-in, trained on synthetic clips)"
+    return False, "no scorer: import syncnet_v2.model with `lmgs-eval weights import-syncnet`, bundled-sync not trained yet"
