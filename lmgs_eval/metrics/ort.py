@@ -51,9 +51,13 @@ def load_session(path: Path, threads: int | None = None):
     so.intra_op_num_threads = int(threads or n_threads())
     so.inter_op_num_threads = 1
     so.log_severity_level = 3
+    from onnxruntime.capi import onnxruntime_pybind11_state as st
+
+    errors = tuple(getattr(st, n) for n in ("Fail", "InvalidProtobuf", "InvalidGraph", "NoSuchFile", "InvalidArgument",
+                                            "NotImplemented", "RuntimeException") if hasattr(st, n))
     try:
         return ort.InferenceSession(str(path), sess_options=so, providers=providers())
-    except (RuntimeError, ValueError) as exc:  # onnxruntime raises its own subclasses of these
+    except (RuntimeError, ValueError, *errors) as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else exc.__class__.__name__
         raise UserError(f"{path}: not a loadable ONNX graph ({first[:160]})") from None
 

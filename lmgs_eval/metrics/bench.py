@@ -1,0 +1,86 @@
+"""``lmgs-eval bench metrics``: frames/s per metric at 256 and 512, ONNX Runtime vs eager torch LPIPS.
+
+All figures are measured in this run on this machine; the ORT/eager ratio compares the
+same network (same weights) on the same frames.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+HELP = "frames/s per metric (256, 512) and LPIPS ONNX Runtime vs eager torch, same run"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--frames", type=int, default=8, help="frames per measurement")
+    p.add_argument("--sizes", default="256,512", help="comma-separated square sizes")
+
+
+def _clip(n: int, size: int) -> tuple[np.ndarray, np.ndarray]:
+    import cv2
+    from skimage import data
+
+    face = cv2.resize(data.astronaut(), (size, size), interpolation=cv2.INTER_AREA).astype(np.float32) / 255
+    rng = np.random.default_rng(0)
+    gt = np.stack([np.roll(face, i % 4, axis=1) for i in range(n)])
+    pred = np.clip(gt + rng.normal(0, 0.03, gt.shape), 0, 1).astype(np.float32)
+    return pred, gt
+
+
+def _best(fn, reps: int = 2) -> float:
+    out = []
+    for _ in range(reps):
+        t = time.perf_counter()
+        fn()
+        out.append(time.perf_counter() - t)
+    return min(out)
+
+
+def run(args: argparse.Namespace) -> dict:
+    import torch
+
+    from lmgs_eval.metrics.image import psnr_per_frame, ssim_per_frame
+    from lmgs_eval.metrics.landmarks import DlibBackend
+    from lmgs_eval.metrics.lpips import LPIPS, build_stlpips_torch
+    from lmgs_eval.metrics.ort import n_threads
+
+    torch.set_num_threads(n_threads())
+    n = int(args.frames)
+    rows = []
+    lp = LPIPS(batch=4)
+    plain, _ = build_stlpips_torch(fold=False)
+    dl = DlibBackend()
+    per_frame_512 = {}
+    for size in [int(s) for s in str(args.sizes).split(",")]:
+        pred, gt = _clip(n, size)
+        tp = torch.from_numpy(pred.transpose(0, 3, 1, 2).copy())
+        tg = torch.from_numpy(gt.transpose(0, 3, 1, 2).copy())
+
+        def eager(net):
+            with torch.no_grad():
+                for s in range(0, n, 4):
+                    net(tp[s:s + 4], tg[s:s + 4])
+
+        lp.distances(pred[:2], gt[:2])  # warm-up
+        timings = {
+            "psnr": _best(lambda: psnr_per_frame(pred, gt)),
+            "ssim": _best(lambda: ssim_per_frame(pred, gt)),
+            f"{lp.spec.name} onnxruntime": _best(lambda: lp.distances(pred, gt)),
+            f"{lp.spec.name} eager torch (folded)": _best(lambda: eager(lp.backend.net), 1),
+            f"{lp.spec.name} eager torch (reference)": _best(lambda: eager(plain), 1),
+            "lmd landmarks (dlib, pred+gt)": _best(lambda: (dl.landmarks(pred), dl.landmarks(gt)), 1),
+        }
+        ort_t = timings[f"{lp.spec.name} onnxruntime"]
+        for name, t in timings.items():
+            rows.append({"size": size, "metric": name, "frames_per_s": n / t, "ms_per_frame": 1000 * t / n,
+                         "ort_speedup": (t / ort_t) if "eager" in name else None})
+        if size == 512:
+            per_frame_512 = {k: v / n for k, v in timings.items() if "eager" not in k}
+    out = {"threads": n_threads(), "frames": n, "lpips_network": lp.spec.name, "rows": rows}
+    if per_frame_512:
+        out["suite_500x512_estimate_s"] = round(500 * sum(per_frame_512.values()), 1)
+        out["suite_estimate_note"] = "PSNR+SSIM+LPIPS(ORT)+LMD per-frame times x 500, extrapolated (LSE excluded: no scorer weights here)"
+    return out
