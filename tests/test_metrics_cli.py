@@ -1,0 +1,35 @@
+"""``lmgs-eval metrics`` and ``lmgs-eval score`` on frame folders (lengths, truncation recorded)."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+
+from lmgs_eval.cli import main
+
+
+def _folder(path, n, seed):
+    path.mkdir()
+    rng = np.random.default_rng(seed)
+    for i in range(n):
+        cv2.imwrite(str(path / f"{i}.png"), rng.integers(0, 256, (40, 40, 3), dtype=np.uint8))
+
+
+def test_metrics_lists_backends(capsys):
+    assert main(["metrics", "--json"]) == 0
+    rows = {r["name"]: r for r in json.loads(capsys.readouterr().out)}
+    assert rows["psnr"]["available"] and rows["lse"]["name"] == "lse"
+
+
+def test_score_folders_length_mismatch(tmp_path, capsys):
+    _folder(tmp_path / "p", 11, 0)
+    _folder(tmp_path / "g", 10, 1)
+    args = ["score", "--pred", str(tmp_path / "p"), "--gt", str(tmp_path / "g"), "--metrics", "psnr,ssim"]
+    assert main(args) == 2
+    assert "pred has 11 frames but gt has 10" in capsys.readouterr().err
+    assert main(args + ["--truncate", "--json"]) == 0
+    rec = json.loads(capsys.readouterr().out)
+    assert rec["n_frames"] == 10 and "truncated" in rec["flags"][0]
+    assert rec["results"]["psnr"]["n_effective"] == 10 and any("truncated" in f for f in rec["results"]["ssim"]["flags"])
