@@ -14,6 +14,9 @@ $(STAMP): pyproject.toml Makefile
 	$(BIN)/python -m pip install -q torch==2.13.0
 	# lpips declares a torchvision dependency; only its weight files are wanted.
 	$(BIN)/python -m pip install -q --no-deps lpips==0.1.4
+	# syncnet-python: the official SyncNet scoring code, an outside reference for the LSE tests
+	# (installed without its declared dependencies, which would bring a broken torchvision).
+	$(BIN)/python -m pip install -q --no-deps syncnet-python==0.2.3
 	$(BIN)/python -m pip install -q -e '.[eval,test]'
 	touch $(STAMP)
 

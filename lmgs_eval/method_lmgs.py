@@ -50,10 +50,10 @@ class LMGSMethod:
         save_model(self.model, final, extra={"fit": {"seconds": self.report.seconds, "steps": self.report.steps,
                                                      "se_fraction": self.report.se_fraction}})
 
-    def render(self, driving) -> np.ndarray:
+    def render(self, driving, timings: dict | None = None) -> np.ndarray:
         if self.model is None:
             raise RuntimeError("render() before fit()")
-        return self.model.render(driving)
+        return self.model.render(driving, timings=timings)
 
     def describe(self) -> MethodInfo:
         g = self.cfg.guidance

@@ -1,0 +1,71 @@
+"""Arguments shared by the protocol commands (self, cross, stress)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def add_run_arguments(p: argparse.ArgumentParser, default_methods: tuple[str, ...] = ("lmgs",)) -> None:
+    p.add_argument("--subject", default="astronaut", help="bundled name, folder name under the data root, or a path (default astronaut)")
+    p.add_argument("--method", dest="methods", action="append", metavar="M",
+                   help=f"method to run (repeatable; default {', '.join(default_methods)}; `lmgs-eval methods` lists them)")
+    p.add_argument("--preset", default="quick", choices=["quick", "paper"], help="training preset (quick: CPU minutes)")
+    p.add_argument("--seed", dest="seeds", type=int, action="append", metavar="N", help="seed (repeatable; default 0)")
+    p.add_argument("--results", default="results", help="results store folder (default ./results)")
+    p.add_argument("--data-root", help="folder of subjects (default: $LMGS_DATA or ~/.cache/lmgs/data)")
+    p.add_argument("--device", help="cpu, cuda, cuda:1 (default: CUDA when present)")
+    p.add_argument("--renders", help="for --method external:NAME: the video or frame folder it rendered")
+    p.add_argument("--force", action="store_true", help="redo runs already in the results store")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.set_defaults(_default_methods=default_methods)
+
+
+def run_config(args: argparse.Namespace):
+    from lmgs_eval.methods import list_methods
+    from lmgs_eval.protocols import RunConfig
+
+    methods = tuple(args.methods or args._default_methods)
+    known = list_methods()
+    for m in methods:
+        if not m.startswith("external:") and m not in known:
+            from lmgs_eval.errors import UserError
+
+            raise UserError(f"unknown method '{m}'; known: {', '.join(known)}")
+    return RunConfig(
+        subject=args.subject,
+        methods=methods,
+        preset=args.preset,
+        seeds=tuple(args.seeds or (0,)),
+        results=Path(args.results),
+        data_root=args.data_root,
+        device=args.device,
+        progress=not args.no_progress,
+        renders=args.renders,
+        force=args.force,
+    )
+
+
+def print_rows(records: list[dict]) -> None:
+    """The records just made, as a small table on stdout."""
+    cols = [("psnr", "PSNR↑", "{:.2f}"), ("lpips", "LPIPS↓", "{:.4f}"), ("lmd", "LMD↓", "{:.2f}"),
+            ("lse_d", "LSE-D↓", "{:.3f}"), ("lse_c", "LSE-C↑", "{:.3f}")]
+    head = f"{'method':<26} {'clip':<6} {'seed':>4} " + " ".join(f"{h:>8}" for _, h, _ in cols) + f" {'FPS':>7} {'train s':>8} {'Gauss.':>7} {'MB':>6}"
+    print(head)
+    for r in records:
+        m = r["metrics"]
+        vals = []
+        for key, _, fmt in cols:
+            v = m.get(key, {}).get("value")
+            vals.append(f"{fmt.format(v):>8}" if isinstance(v, (int, float)) and v == v else f"{'n/a':>8}")
+        c = r.get("cost") or {}
+
+        def f(v, fmt):
+            return fmt.format(v) if isinstance(v, (int, float)) else "-"
+
+        print(f"{r['method']['display_name'][:26]:<26} {r['protocol']['clip'][:6]:<6} {r['seed']:>4} " + " ".join(vals)
+              + f" {f(c.get('fps'), '{:.1f}'):>7} {f(c.get('train_seconds'), '{:.0f}'):>8} {f(c.get('n_gaussians'), '{:d}'):>7} {f(c.get('model_mb'), '{:.2f}'):>6}")
+    backends = sorted({f"{k}: {v['backend']}" + (f" (stand-in: {v['standin']})" if v.get("standin") else "")
+                       for r in records for k, v in r["metrics"].items() if k in ("lpips", "lse_d", "lmd")})
+    for b in backends:
+        print(f"  {b}")

@@ -1,0 +1,437 @@
+"""The self-driven and cross-driven protocols: fit, render, score, measure, record.
+
+``self`` (paper, "Comparison Settings"): each method is trained on the subject's training
+split (the first 10/11 of the frames) and driven by the test split's own audio; the frames
+are scored against the test split's ground truth (full frame: the rendered head composited
+on the ground-truth torso and background, as ER-NeRF / TalkingGaussian do).
+
+``cross``: trained models are driven by other audio; only LSE-D / LSE-C apply, plus LMD
+where the clip comes with ground-truth articulation (the bundled A / B clips).
+
+Every record says how it was made (see :mod:`lmgs_eval.results`). A record whose method,
+subject, protocol, clip, seed and config hash are already in the store is not redone.
+"""
+
+from __future__ import annotations
+
+import resource
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from lmgs.types import DrivingAudio
+from lmgs_eval.errors import UserError
+
+PROTOCOL_VERSIONS = {"self": "1", "cross": "1", "stress": "1"}
+WARMUP_FRAMES = 3
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """What a protocol run needs from the command line."""
+
+    subject: str = "astronaut"
+    methods: tuple[str, ...] = ("lmgs",)
+    preset: str = "quick"
+    seeds: tuple[int, ...] = (0,)
+    results: Path = Path("results")
+    data_root: str | None = None
+    device: str | None = None
+    progress: bool = True
+    renders: str | None = None  # for external:NAME
+    force: bool = False
+    method_options: dict = field(default_factory=dict)
+
+
+def log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process so far (MB; Linux reports kB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def model_dir(subject, method_name: str, config_hash: str, seed: int) -> Path:
+    from lmgs_eval.paths import cache_root
+
+    tag = subject.meta.get("manifest_sha256", "")[:12] if subject.bundled else ""
+    return cache_root() / "models" / f"{subject.name}{('-' + tag) if tag else ''}" / method_name / f"{config_hash}-seed{seed}"
+
+
+def timed_render(method, driving: DrivingAudio, timings: dict | None = None) -> tuple[np.ndarray, dict]:
+    """Render after a short warm-up; FPS is audio in to frames out, I/O outside the timer.
+
+    A method whose ``render`` takes ``timings=`` fills in seconds per stage (audio,
+    network, raster) of the timed run.
+    """
+    import inspect
+
+    kw = {"timings": timings} if timings is not None and "timings" in inspect.signature(method.render).parameters else {}
+    n = driving.n_frames
+    k = min(WARMUP_FRAMES, n)
+    spf = driving.sample_rate // driving.fps
+    warm = DrivingAudio(
+        audio=driving.audio[: k * spf],
+        w2c=None if driving.w2c is None else driving.w2c[:k],
+        backgrounds=None if driving.backgrounds is None else driving.backgrounds[:k],
+        blink=None if driving.blink is None else driving.blink[:k],
+        audio_features=None if not driving.audio_features else {a: v[:k] for a, v in driving.audio_features.items()},
+    )
+    t0 = time.perf_counter()
+    method.render(warm)
+    first = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    frames = method.render(driving, **kw)
+    secs = time.perf_counter() - t0
+    if frames.shape[0] != n or frames.dtype != np.uint8:
+        raise RuntimeError(f"{method.describe().name} rendered {frames.shape} {frames.dtype}, expected {n} uint8 frames")
+    return frames, {"fps": n / secs if secs > 0 else None, "render_seconds": secs, "first_frame_ms": 1000 * first / max(k, 1),
+                    "realtime_factor": (n / driving.fps) / secs if secs > 0 else None}
+
+
+def fit_method(method, clip, subject, seed: int, progress: bool) -> dict:
+    """Fit (or reload) a method; returns the cost of training."""
+    info = method.describe()
+    workdir = model_dir(subject, info.name, info.config_hash, seed)
+    reused = (workdir / "model.pt").exists()
+    t0 = time.perf_counter()
+    method.fit(clip, seed=seed, workdir=workdir, progress=progress)
+    secs = time.perf_counter() - t0
+    rec = {"train_seconds": secs, "reused_checkpoint": reused, "workdir": str(workdir)}
+    if reused:
+        rec["train_seconds"] = _recorded_train_seconds(workdir)
+    else:
+        import json
+
+        from lmgs_eval.paths import atomic_write_text
+
+        atomic_write_text(workdir / "fit.json", json.dumps({"train_seconds": secs, "peak_mb": peak_rss_mb()}))
+    return rec
+
+
+def _recorded_train_seconds(workdir: Path) -> float | None:
+    import json
+
+    p = workdir / "fit.json"
+    if p.exists():
+        return json.loads(p.read_text()).get("train_seconds")
+    return None
+
+
+# ----------------------------------------------------------------------------- scoring
+def score_clip(pred: np.ndarray, gt: np.ndarray | None, audio16k: np.ndarray | None, *, reference: bool = True,
+               lmd: bool = True, alexnet: str | None = None) -> dict:
+    """Every applicable metric on uint8 frames: PSNR, SSIM, LPIPS, LMD against ``gt``; LSE on the audio.
+
+    Returns ``{name: MetricResult}``. The LPIPS network is the official one when the AlexNet
+    trunk is on disk, else ST-LPIPS (a named stand-in).
+    """
+    from lmgs_eval.metrics.lpips import find_alexnet
+    from lmgs_eval.metrics.registry import create_metric
+    from lmgs_eval.metrics.sync import lse
+
+    pf = pred.astype(np.float32) / 255.0
+    out = {}
+    if gt is not None and reference:
+        gf = gt.astype(np.float32) / 255.0
+        if gf.shape != pf.shape:
+            raise UserError(f"rendered frames {pf.shape} and ground truth {gf.shape} differ")
+        names = ["psnr", "ssim", "lpips-alex" if find_alexnet(alexnet) else "stlpips-alex"]
+        if lmd:
+            names.append("lmd")
+        for name in names:
+            m = create_metric(name, **({"alexnet": alexnet} if name == "lpips-alex" else {}))
+            out[name] = m.compute(m.update(pf, gf))
+    elif gt is not None and lmd:
+        m = create_metric("lmd")
+        out["lmd"] = m.compute(m.update(pf, gt.astype(np.float32) / 255.0))
+    out["lse"] = lse(pf, audio16k, fps=25.0, audio_reason="" if audio16k is not None else "no audio")
+    return out
+
+
+def metrics_block(results: dict) -> dict:
+    """MetricResults as the results file's ``metrics`` mapping (LSE split into LSE-D and LSE-C)."""
+    block = {}
+    for name, r in results.items():
+        d = r.to_dict(per_item=False)
+        base = {
+            "n_original": r.n_original,
+            "n_effective": r.n_effective,
+            "higher_is_better": r.spec.higher_is_better,
+            "unit": r.spec.unit,
+            "backend": r.spec.backend,
+            "backend_version": r.spec.version,
+            "weights_sha256": r.spec.weights_sha256,
+            "flags": list(r.flags) + ([] if r.available else [f"unavailable: {r.reason}"]),
+            "standin": r.spec.standin or None,
+            "per_item": [None if not np.isfinite(v) else round(float(v), 5) for v in np.asarray(r.per_item, np.float64).ravel()] or None,
+        }
+        if name == "lse":
+            vals = d["values"]
+            block["lse_d"] = {**base, "value": vals.get("lse_d"), "higher_is_better": False}
+            block["lse_c"] = {**base, "value": vals.get("lse_c"), "higher_is_better": True, "per_item": None}
+            block["av_offset"] = {**base, "value": vals.get("offset"), "higher_is_better": False, "unit": "frames", "per_item": None}
+        elif name in ("lpips-alex", "stlpips-alex"):
+            # One LPIPS column; which network made it is in the backend (tables flag mixing).
+            block["lpips"] = {**base, "value": r.value, "backend": f"{name}:{r.spec.backend}"}
+        else:
+            block[name] = {**base, "value": r.value}
+    return block
+
+
+# ----------------------------------------------------------------------------- records
+def _subject_block(subject) -> dict:
+    return {
+        "name": subject.name,
+        "bundled": subject.bundled,
+        "standin": subject.meta.get("standin") if subject.bundled else None,
+        "frames": subject.n_frames,
+        "width": subject.width,
+        "height": subject.height,
+        "path": str(subject.root),
+        "manifest_sha256": _manifest_sha(subject),
+    }
+
+
+def _manifest_sha(subject) -> str | None:
+    from lmgs_eval.results import sha256_file
+
+    p = subject.root / "manifest.json"
+    return sha256_file(p) if p.exists() else None
+
+
+def build_record(*, info, subject, protocol: str, clip: str, split: str, n_frames: int, seed: int, metrics: dict,
+                 cost: dict, artefacts: dict, notes: list[str], method_standins=()) -> dict:
+    """One results-file record (schema in :mod:`lmgs_eval.results`)."""
+    import datetime
+
+    from lmgs_eval.results import SCHEMA_VERSION, git_info, machine_info
+
+    return {
+        "schema_version": SCHEMA_VERSION,
+        "method": {"name": info.name, "display_name": info.display_name, "family": info.family,
+                   "description": info.description, "standins": list(info.standins) + list(method_standins)},
+        "subject": _subject_block(subject),
+        "protocol": {"name": protocol, "version": PROTOCOL_VERSIONS[protocol], "clip": clip, "split": split, "n_frames": int(n_frames)},
+        "metrics": metrics,
+        "cost": cost,
+        "config": info.config,
+        "config_hash": info.config_hash,
+        "seed": int(seed),
+        "code": git_info(),
+        "machine": machine_info(),
+        "artefacts": artefacts,
+        "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "notes": list(notes),
+    }
+
+
+def _cost_block(method, fit_cost: dict | None, render_cost: dict, timings: dict | None = None) -> dict:
+    import torch
+
+    c = dict(method.cost() or {})
+    n = (timings or {}).get("frames") or 0
+    ms = None
+    if timings and n:
+        ms = {k: 1000.0 * timings[k] / n for k in ("audio", "network", "raster") if k in timings}
+        ms["total"] = 1000.0 / render_cost["fps"] if render_cost.get("fps") else None
+    return {
+        "train_seconds": (fit_cost or {}).get("train_seconds", c.get("train_seconds")),
+        "fps": render_cost.get("fps") if render_cost.get("fps") is not None else c.get("fps"),
+        "ms_per_frame": ms,
+        "first_frame_ms": render_cost.get("first_frame_ms"),
+        "realtime_factor": render_cost.get("realtime_factor"),
+        "n_params": c.get("n_params"),
+        "n_gaussians": c.get("n_gaussians"),
+        "model_mb": c.get("model_mb"),
+        "peak_mb": peak_rss_mb(),
+        "device": c.get("device") or ("cuda" if torch.cuda.is_available() else "cpu"),
+    }
+
+
+def _write_render(path: Path, frames: np.ndarray, audio: np.ndarray) -> dict:
+    from lmgs_eval.data.io import write_video
+    from lmgs_eval.results import sha256_file
+
+    write_video(path, frames, 25, audio, 16000)
+    return {"path": str(path), "sha256": sha256_file(path)}
+
+
+# ----------------------------------------------------------------------------- self
+def run_self(cfg: RunConfig) -> list[dict]:
+    """The self-driven protocol for every method and seed; returns the records written."""
+    from lmgs_eval import results as store
+    from lmgs_eval.data.registry import find_subject
+    from lmgs_eval.methods import MethodInfo, create_method, driving_from_subject, subject_to_clip
+
+    subject = find_subject(cfg.subject, cfg.data_root, progress=cfg.progress)
+    log(f"subject {subject.name}: {subject.n_frames} frames {subject.width}x{subject.height}, "
+        f"{len(subject.train_ids)} train / {len(subject.test_ids)} test" + (" (bundled stand-in)" if subject.bundled else ""))
+    train = subject_to_clip(subject, subject.train_ids, progress=cfg.progress)
+    test = subject_to_clip(subject, subject.test_ids, progress=cfg.progress)
+    driving = driving_from_subject(subject, subject.test_ids, test)
+    gt = test.frames
+    renders_dir = Path(cfg.results) / "renders" / subject.name
+    records = []
+
+    # The paper's "Ground Truth" row: the real test video scored like any method.
+    gt_info = MethodInfo("ground-truth", "Ground Truth", "ground-truth", "the test split's own frames and audio", config={}, config_hash="gt")
+    if cfg.force or store.find_record(cfg.results, "ground-truth", subject.name, "self", "test", 0, "gt") is None:
+        log("scoring the ground truth")
+        res = score_clip(gt, gt, test.audio)
+        art = {"render": _write_render(renders_dir / "ground-truth.mp4", gt, test.audio)}
+        rec = build_record(info=gt_info, subject=subject, protocol="self", clip="test", split="test", n_frames=len(gt), seed=0,
+                           metrics=metrics_block(res), cost={}, artefacts=art, notes=list(subject.notes))
+        store.write_record(cfg.results, rec)
+        records.append(rec)
+
+    for name in cfg.methods:
+        for seed in cfg.seeds:
+            opts = dict(cfg.method_options)
+            if name.startswith("external:"):
+                opts["renders"] = cfg.renders
+            else:
+                opts.setdefault("preset", cfg.preset)
+            method = create_method(name, **opts)
+            info = method.describe()
+            if not cfg.force and store.find_record(cfg.results, info.name, subject.name, "self", "test", seed, info.config_hash):
+                log(f"{info.name} seed {seed}: already in {cfg.results} (same config {info.config_hash}); skipped")
+                continue
+            log(f"{info.name} seed {seed}: fitting on {len(train)} frames")
+            fit_cost = fit_method(method, train, subject, seed, cfg.progress)
+            timings: dict = {}
+            frames, rc = timed_render(method, driving, timings)
+            log(f"{info.name}: {len(frames)} frames at {rc['fps']:.1f} FPS; scoring")
+            res = score_clip(frames, gt, test.audio)
+            art = {"render": _write_render(renders_dir / f"{info.name.replace(':', '_')}-seed{seed}.mp4", frames, test.audio)}
+            ck = Path(fit_cost["workdir"]) / "model.pt"
+            if ck.exists():
+                art["checkpoint"] = {"path": str(ck), "sha256": store.sha256_file(ck)}
+            rec = build_record(info=info, subject=subject, protocol="self", clip="test", split="test", n_frames=len(frames),
+                               seed=seed, metrics=metrics_block(res), cost=_cost_block(method, fit_cost, rc, timings or None),
+                               artefacts=art, notes=list(subject.notes))
+            store.write_record(cfg.results, rec)
+            records.append(rec)
+    return records
+
+
+# ----------------------------------------------------------------------------- cross
+@dataclass(frozen=True)
+class CrossClip:
+    """A driving clip of the cross-driven protocol (and its ground truth when it has one)."""
+
+    name: str
+    audio: np.ndarray  # 16 kHz mono
+    source: str
+    w2c: np.ndarray | None = None
+    gt_frames: np.ndarray | None = None
+    notes: tuple[str, ...] = ()
+
+
+def bundled_cross_clips(subject) -> list[CrossClip]:
+    """The bundled subject's clips A and B (voices and texts not used in training, with GT)."""
+    import json
+
+    from lmgs.types import Camera
+    from lmgs_eval.data.io import load_audio, read_rgb_u8
+
+    clips = []
+    for name in ("A", "B"):
+        d = subject.root / "cross" / name
+        if not (d / "aud.wav").exists():
+            continue
+        audio, notes = load_audio(d / "aud.wav")
+        w2c = gt = None
+        tj = d / "transforms.json"
+        if tj.exists():
+            t = json.loads(tj.read_text())
+            frames = sorted(t["frames"], key=lambda f: int(f["img_id"]))
+            w2c = np.stack([Camera.from_nerf_c2w(np.asarray(f["transform_matrix"]), t["focal_len"], subject.width, subject.height,
+                                                 t.get("cx"), t.get("cy")).world_to_camera.numpy() for f in frames])
+            if (d / "gt_imgs").is_dir():
+                gt = np.stack([read_rgb_u8(d / "gt_imgs" / f"{int(f['img_id'])}.jpg") for f in frames])
+        clips.append(CrossClip(name, audio, str(d), w2c, gt, tuple(notes)))
+    return clips
+
+
+def user_cross_clips(paths: list[str]) -> tuple[list[CrossClip], list[str]]:
+    """User audio files (any rate, mono or stereo). Bad files are reported and skipped."""
+    from lmgs_eval.data.io import load_audio
+
+    clips, errors = [], []
+    for p in paths:
+        try:
+            audio, notes = load_audio(Path(p))
+        except UserError as exc:
+            errors.append(str(exc))
+            continue
+        if len(audio) < 5 * 640:
+            errors.append(f"{p}: {len(audio) / 16000:.2f} s of audio is shorter than 5 frames (0.2 s)")
+            continue
+        if float(np.max(np.abs(audio))) == 0.0:
+            notes.append(f"{p}: the audio is digital silence")
+        clips.append(CrossClip(Path(p).stem, audio, str(p), None, None, tuple(notes)))
+    return clips, errors
+
+
+def _cycle(a: np.ndarray, n: int) -> np.ndarray:
+    reps = int(np.ceil(n / len(a)))
+    return np.concatenate([a] * reps)[:n]
+
+
+def run_cross(cfg: RunConfig, audio_paths: list[str] | None = None) -> tuple[list[dict], list[str]]:
+    """Drive trained models with other audio; LSE per clip, and LMD where the clip has GT.
+
+    Returns the records written and the per-file errors (the other clips still run).
+    """
+    from lmgs_eval import results as store
+    from lmgs_eval.data.registry import find_subject
+    from lmgs_eval.methods import create_method, subject_to_clip
+
+    subject = find_subject(cfg.subject, cfg.data_root, progress=cfg.progress)
+    if audio_paths:
+        clips, errors = user_cross_clips(audio_paths)
+    else:
+        clips, errors = bundled_cross_clips(subject), []
+        if not clips:
+            raise UserError(f"{subject.root}: no bundled cross-driven clips (cross/A, cross/B); pass --audio A.wav B.wav")
+    if not clips:
+        return [], errors
+    train = None
+    test = subject_to_clip(subject, subject.test_ids)
+    renders_dir = Path(cfg.results) / "renders" / subject.name
+    records = []
+    for name in cfg.methods:
+        if name.startswith("external:"):
+            errors.append(f"{name}: cross-driven renders of external methods are scored with `lmgs-eval score --pred`")
+            continue
+        for seed in cfg.seeds:
+            method = create_method(name, **{"preset": cfg.preset, **cfg.method_options})
+            info = method.describe()
+            todo = [c for c in clips if cfg.force or not store.find_record(cfg.results, info.name, subject.name, "cross", c.name, seed, info.config_hash)]
+            if not todo:
+                log(f"{info.name} seed {seed}: cross clips already in {cfg.results}; skipped")
+                continue
+            if train is None:
+                train = subject_to_clip(subject, subject.train_ids, progress=cfg.progress)
+            fit_cost = fit_method(method, train, subject, seed, cfg.progress)
+            for c in todo:
+                n = len(c.audio) // 640
+                w2c = c.w2c[:n] if c.w2c is not None and len(c.w2c) >= n else _cycle(test.w2c, n)
+                backs = _cycle(test.backgrounds, n)
+                driving = DrivingAudio(audio=c.audio[: n * 640], w2c=w2c, backgrounds=backs)
+                frames, rc = timed_render(method, driving)
+                log(f"{info.name} on clip {c.name}: {n} frames at {rc['fps']:.1f} FPS; scoring")
+                gt = c.gt_frames[:n] if c.gt_frames is not None and len(c.gt_frames) >= n else None
+                res = score_clip(frames, gt, driving.audio, reference=False, lmd=gt is not None)
+                art = {"render": _write_render(renders_dir / f"{info.name}-seed{seed}-cross-{c.name}.mp4", frames, driving.audio)}
+                rec = build_record(info=info, subject=subject, protocol="cross", clip=c.name, split=c.source, n_frames=n, seed=seed,
+                                   metrics=metrics_block(res), cost=_cost_block(method, fit_cost, rc), artefacts=art,
+                                   notes=list(c.notes))
+                store.write_record(cfg.results, rec)
+                records.append(rec)
+    return records, errors
