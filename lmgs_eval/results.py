@@ -1,0 +1,541 @@
+"""The results store: one JSON record per (method, subject, protocol, clip, seed, config).
+
+Every number in a table is read from a record, and every record says how it was made
+(the lm-evaluation-harness results file; nerfbaselines' results that carry what produced
+them). Tables and charts (:mod:`lmgs_eval.tables`, :mod:`lmgs_eval.charts`) are pure
+functions of these files; ``lmgs-eval verify`` re-hashes the artefacts they reference.
+
+Schema version ``1`` (``SCHEMA_VERSION``); :data:`SCHEMA` is the machine-checked form used
+by :func:`validate`. ``?`` marks an optional field; ``|null`` a field that may be null.
+
+=================  ======================================================================
+Field              Meaning
+=================  ======================================================================
+schema_version     ``"1"``
+method             ``name`` (registry name), ``display_name`` (as printed), ``family``
+                   (``2D``/``NeRF``/``3DGS``/``external``/``ground-truth``/``control``),
+                   ``description`` (what was kept / simplified), ``standins`` [str],
+                   ``variant``? (str|null: ablation / sweep variant of a base method,
+                   e.g. ``theta0.4``; such rows go to Tables III/IV, not Table I),
+                   ``control``? ({kind, targets [metric keys]}: a calibration control and
+                   the metrics it is a negative control for)
+subject            ``name``, ``bundled`` (bool), ``standin`` (str|null: what it stands in
+                   for, e.g. "synthetic head"), ``frames``, ``width``, ``height``
+                   (int|null), ``path`` (str|null), ``sha256`` (subject manifest, str|null)
+protocol           ``name`` (``self``/``cross``/``stress``/``calibration``/``capacity``),
+                   ``version``, ``clip`` (test split, driving clip "A"/"B", or the stress
+                   condition), ``split`` (str|null), ``n_frames`` (int|null)
+metrics            ``{key: entry}``; keys are canonical (``psnr``, ``ssim``, ``lpips``,
+                   ``lmd``, ``lse_d``, ``lse_c``...); entry: ``value`` (float|null),
+                   ``n_original``, ``n_effective``, ``higher_is_better``, ``unit``,
+                   ``backend`` (what made the number: ``stlpips-alex``, ``lpips-alex``,
+                   ``onnxruntime:bundled-sync``...; numbers of different backends never
+                   share a column silently), ``backend_version``, ``weights_sha256``
+                   (str|null), ``flags`` [str], ``standin`` (str|null), ``per_item``
+                   ([float|null] per frame / window, rounded to 6 significant digits, or
+                   null), ``values``? (every number the metric reported)
+cost               ``train_seconds``, ``fps``, ``ms_per_frame`` {audio, network, raster,
+                   total}, ``first_frame_ms``, ``realtime_factor``, ``n_params``,
+                   ``n_gaussians``, ``model_mb``, ``peak_mb`` (all number|null),
+                   ``device`` (str|null)
+config             the method's full configuration (object)
+config_hash        short hash of ``config`` (the method's own, or :func:`config_hash`)
+seed               int
+code               ``version``, ``git_commit`` (str|null), ``dirty`` (bool|null)
+machine            ``cpu``, ``threads``, ``torch`` (str|null), ``cuda_device`` (str|null),
+                   ``platform``
+artefacts          ``{role: {path, sha256}}`` (renders, gt, checkpoint, metric weights);
+                   a relative path is relative to the store root
+status?            ``{state: "ok"|"failed", reason: str|null}`` (absent means ok)
+created            ISO 8601 time of writing
+notes              [str]
+=================  ======================================================================
+"""
+
+from __future__ import annotations
+
+import datetime
+import hashlib
+import json
+import math
+import os
+import platform
+import re
+import subprocess
+import sys
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+from lmgs_eval.errors import UserError
+from lmgs_eval.paths import atomic_write_text
+
+SCHEMA_VERSION = "1"
+FAMILIES = ("2D", "NeRF", "3DGS", "external", "ground-truth", "control")
+PROTOCOLS = ("self", "cross", "stress", "calibration", "capacity")
+
+_STR = {"type": "string"}
+_OSTR = {"type": ["string", "null"]}
+_ONUM = {"type": ["number", "null"]}
+_OINT = {"type": ["integer", "null"]}
+_STRS = {"type": "array", "items": _STR}
+
+METRIC_SCHEMA: dict[str, Any] = {
+    "type": "object",
+    "required": ["value", "n_original", "n_effective", "higher_is_better", "unit", "backend",
+                 "backend_version", "weights_sha256", "flags", "standin", "per_item"],
+    "properties": {
+        "value": _ONUM,
+        "n_original": {"type": "integer", "minimum": 0},
+        "n_effective": {"type": "integer", "minimum": 0},
+        "higher_is_better": {"type": "boolean"},
+        "unit": _STR,
+        "backend": {"type": "string", "minLength": 1},
+        "backend_version": _STR,
+        "weights_sha256": _OSTR,
+        "flags": _STRS,
+        "standin": _OSTR,
+        "per_item": {"type": ["array", "null"], "items": _ONUM},
+        "values": {"type": "object"},
+    },
+}
+
+SCHEMA: dict[str, Any] = {
+    "type": "object",
+    "required": ["schema_version", "method", "subject", "protocol", "metrics", "cost", "config", "config_hash",
+                 "seed", "code", "machine", "artefacts", "created", "notes"],
+    "properties": {
+        "schema_version": {"type": "string", "enum": [SCHEMA_VERSION]},
+        "method": {
+            "type": "object",
+            "required": ["name", "display_name", "family", "description", "standins"],
+            "properties": {
+                "name": {"type": "string", "minLength": 1},
+                "display_name": _STR,
+                "family": {"type": "string", "enum": list(FAMILIES)},
+                "description": _STR,
+                "standins": _STRS,
+                "variant": _OSTR,
+                "control": {"type": "object", "required": ["kind"],
+                            "properties": {"kind": _STR, "targets": _STRS}},
+            },
+        },
+        "subject": {
+            "type": "object",
+            "required": ["name", "bundled", "standin", "frames", "width", "height", "path", "sha256"],
+            "properties": {
+                "name": {"type": "string", "minLength": 1},
+                "bundled": {"type": "boolean"},
+                "standin": _OSTR,
+                "frames": _OINT,
+                "width": _OINT,
+                "height": _OINT,
+                "path": _OSTR,
+                "sha256": _OSTR,
+            },
+        },
+        "protocol": {
+            "type": "object",
+            "required": ["name", "version", "clip", "split", "n_frames"],
+            "properties": {
+                "name": {"type": "string", "enum": list(PROTOCOLS)},
+                "version": _STR,
+                "clip": {"type": "string", "minLength": 1},
+                "split": _OSTR,
+                "n_frames": _OINT,
+            },
+        },
+        "metrics": {"type": "object", "additionalProperties": METRIC_SCHEMA},
+        "cost": {
+            "type": "object",
+            "required": ["train_seconds", "fps", "ms_per_frame", "first_frame_ms", "realtime_factor", "n_params",
+                         "n_gaussians", "model_mb", "peak_mb", "device"],
+            "properties": {
+                "train_seconds": _ONUM,
+                "fps": _ONUM,
+                "ms_per_frame": {"type": ["object", "null"],
+                                 "properties": {k: _ONUM for k in ("audio", "network", "raster", "total")}},
+                "first_frame_ms": _ONUM,
+                "realtime_factor": _ONUM,
+                "n_params": _OINT,
+                "n_gaussians": _OINT,
+                "model_mb": _ONUM,
+                "peak_mb": _ONUM,
+                "device": _OSTR,
+            },
+        },
+        "config": {"type": "object"},
+        "config_hash": {"type": "string", "minLength": 1},
+        "seed": {"type": "integer"},
+        "code": {"type": "object", "required": ["version", "git_commit", "dirty"],
+                 "properties": {"version": _STR, "git_commit": _OSTR, "dirty": {"type": ["boolean", "null"]}}},
+        "machine": {"type": "object", "required": ["cpu", "threads", "torch", "cuda_device", "platform"],
+                    "properties": {"cpu": _STR, "threads": _OINT, "torch": _OSTR, "cuda_device": _OSTR,
+                                   "platform": _STR}},
+        "artefacts": {"type": "object", "additionalProperties": {
+            "type": "object", "required": ["path", "sha256"],
+            "properties": {"path": {"type": "string", "minLength": 1},
+                           "sha256": {"type": "string", "pattern": "^[0-9a-f]{64}$"}}}},
+        "status": {"type": "object", "required": ["state"],
+                   "properties": {"state": {"type": "string", "enum": ["ok", "failed"]}, "reason": _OSTR}},
+        "created": {"type": "string", "pattern": r"^\d{4}-\d\d-\d\dT\d\d:\d\d"},
+        "notes": _STRS,
+    },
+}
+
+_TYPES: dict[str, tuple[type, ...]] = {
+    "string": (str,), "number": (int, float), "integer": (int,), "boolean": (bool,),
+    "object": (dict,), "array": (list,), "null": (type(None),),
+}
+
+
+def _is_type(v: Any, t: str) -> bool:
+    if t in ("number", "integer") and isinstance(v, bool):
+        return False
+    if t == "number" and isinstance(v, float) and not math.isfinite(v):
+        return False  # JSON has no NaN/inf: a missing number is null
+    return isinstance(v, _TYPES[t])
+
+
+def _check(v: Any, schema: Mapping[str, Any], where: str, out: list[str]) -> None:
+    types = schema.get("type")
+    if types is not None:
+        tl = [types] if isinstance(types, str) else list(types)
+        if not any(_is_type(v, t) for t in tl):
+            out.append(f"{where}: expected {'|'.join(tl)}, got {type(v).__name__} {v!r:.60}")
+            return
+    if "enum" in schema and v not in schema["enum"]:
+        out.append(f"{where}: {v!r} is not one of {', '.join(map(str, schema['enum']))}")
+    if isinstance(v, str):
+        if len(v) < schema.get("minLength", 0):
+            out.append(f"{where}: empty string")
+        if "pattern" in schema and not re.search(schema["pattern"], v):
+            out.append(f"{where}: {v!r:.60} does not match {schema['pattern']}")
+    if isinstance(v, (int, float)) and not isinstance(v, bool) and "minimum" in schema and v < schema["minimum"]:
+        out.append(f"{where}: {v} < {schema['minimum']}")
+    if isinstance(v, dict):
+        for k in schema.get("required", ()):
+            if k not in v:
+                out.append(f"{where}.{k}: missing")
+        props = schema.get("properties", {})
+        extra = schema.get("additionalProperties")
+        for k, sub in v.items():
+            if k in props:
+                _check(sub, props[k], f"{where}.{k}", out)
+            elif isinstance(extra, Mapping):
+                _check(sub, extra, f"{where}.{k}", out)
+    if isinstance(v, list) and "items" in schema:
+        for i, item in enumerate(v):
+            _check(item, schema["items"], f"{where}[{i}]", out)
+
+
+def validate(record: Any) -> list[str]:
+    """Check a record against :data:`SCHEMA` (and a few cross-field rules).
+
+    Args:
+        record: a decoded JSON object.
+
+    Returns:
+        Problems, one line each naming the field (``record.metrics.psnr.value: ...``);
+        empty when the record is valid.
+    """
+    out: list[str] = []
+    _check(record, SCHEMA, "record", out)
+    if out or not isinstance(record, dict):
+        return out
+    for key, m in record["metrics"].items():
+        if m["n_effective"] > m["n_original"]:
+            out.append(f"record.metrics.{key}: n_effective {m['n_effective']} > n_original {m['n_original']}")
+    status = record.get("status") or {}
+    if status.get("state") == "failed" and not status.get("reason"):
+        out.append("record.status.reason: a failed run must say why")
+    return out
+
+
+# ----------------------------------------------------------------------------- helpers
+def config_hash(config: Mapping[str, Any]) -> str:
+    """16 hex digits of the sha256 of ``config`` as canonical JSON (sorted keys)."""
+    blob = json.dumps(config, sort_keys=True, separators=(",", ":"), default=str).encode()
+    return hashlib.sha256(blob).hexdigest()[:16]
+
+
+def sha256_file(path: str | os.PathLike) -> str:
+    """sha256 (hex) of a file's bytes, read in 1 MB blocks."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def compact(values: Iterable[float | None] | None, digits: int = 6) -> list[float | None] | None:
+    """Per-item values for a record: floats rounded to ``digits`` significant digits, NaN -> null."""
+    if values is None:
+        return None
+    out: list[float | None] = []
+    for v in values:
+        f = None if v is None else float(v)
+        out.append(float(f"{f:.{digits}g}") if f is not None and math.isfinite(f) else None)
+    return out
+
+
+def git_info() -> dict[str, Any]:
+    """``{version, git_commit, dirty}`` of the code that made a record (commit None outside git)."""
+    from lmgs_eval import __version__
+
+    here = Path(__file__).resolve().parent
+    commit: str | None = None
+    dirty: bool | None = None
+    try:
+        r = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=10)
+        if r.returncode == 0:
+            commit = r.stdout.strip() or None
+            s = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here,
+                               capture_output=True, text=True, timeout=10)
+            dirty = bool(s.stdout.strip()) if s.returncode == 0 else None
+    except (OSError, subprocess.SubprocessError):
+        pass
+    return {"version": __version__, "git_commit": commit, "dirty": dirty}
+
+
+def _cpu_name() -> str:
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine() or "unknown"
+
+
+def machine_info() -> dict[str, Any]:
+    """Hardware fingerprint: CPU model, threads, torch version, CUDA device (if torch is loaded), platform.
+
+    torch is not imported here (it is slow); its version comes from the package metadata and
+    the CUDA device is only read when the caller has already imported torch.
+    """
+    from importlib import metadata
+
+    try:
+        torch_version: str | None = metadata.version("torch")
+    except metadata.PackageNotFoundError:
+        torch_version = None
+    threads = os.cpu_count()
+    cuda = None
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        threads = int(torch.get_num_threads())
+        if torch.cuda.is_available():
+            cuda = str(torch.cuda.get_device_name(0))
+    return {"cpu": _cpu_name(), "threads": threads, "torch": torch_version, "cuda_device": cuda,
+            "platform": platform.platform()}
+
+
+def now_iso() -> str:
+    """Current UTC time, ISO 8601, seconds."""
+    return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+
+
+EMPTY_COST: dict[str, Any] = {
+    "train_seconds": None, "fps": None, "ms_per_frame": None, "first_frame_ms": None, "realtime_factor": None,
+    "n_params": None, "n_gaussians": None, "model_mb": None, "peak_mb": None, "device": None,
+}
+
+
+def make_record(*, method: Mapping, subject: Mapping, protocol: Mapping, metrics: Mapping, seed: int,
+                config: Mapping | None = None, config_hash_: str | None = None, cost: Mapping | None = None,
+                artefacts: Mapping | None = None, notes: Iterable[str] = (), status: Mapping | None = None,
+                code: Mapping | None = None, machine: Mapping | None = None) -> dict[str, Any]:
+    """Assemble a record, filling ``schema_version``, ``code``, ``machine``, ``created`` and defaults.
+
+    Args:
+        method, subject, protocol, metrics: the sections of the schema (see module docstring).
+        seed: the run's seed.
+        config: the method's full config (default ``{}``).
+        config_hash_: the method's own config hash; default :func:`config_hash` of ``config``.
+        cost: cost figures; missing keys are null.
+        artefacts: ``{role: {path, sha256}}``.
+        notes, status, code, machine: as in the schema; ``code``/``machine`` default to
+            :func:`git_info` / :func:`machine_info`.
+
+    Returns:
+        The record (not yet validated; :func:`write_record` validates).
+    """
+    config = dict(config or {})
+    rec: dict[str, Any] = {
+        "schema_version": SCHEMA_VERSION,
+        "method": dict(method),
+        "subject": dict(subject),
+        "protocol": dict(protocol),
+        "metrics": {k: dict(v) for k, v in metrics.items()},
+        "cost": {**EMPTY_COST, **dict(cost or {})},
+        "config": config,
+        "config_hash": config_hash_ or config_hash(config),
+        "seed": int(seed),
+        "code": dict(code) if code is not None else git_info(),
+        "machine": dict(machine) if machine is not None else machine_info(),
+        "artefacts": {k: dict(v) for k, v in (artefacts or {}).items()},
+        "created": now_iso(),
+        "notes": list(notes),
+    }
+    if status is not None:
+        rec["status"] = dict(status)
+    return rec
+
+
+_CANONICAL = {"psnr": "psnr", "ssim": "ssim", "lpips-alex": "lpips", "stlpips-alex": "lpips", "lmd": "lmd"}
+
+
+def metric_entries(result: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
+    """Schema entries from a metric result dict (:meth:`MetricResult.to_dict` of :mod:`lmgs_eval.metrics`).
+
+    ``lpips-alex`` and ``stlpips-alex`` both go under key ``lpips`` with their own name as
+    ``backend`` (so a column mixing them is flagged); ``lse`` becomes ``lse_d`` and ``lse_c``
+    (``per_item`` on ``lse_d`` only: the per-window distances at the chosen offset).
+
+    Returns:
+        ``{key: entry}``; an unavailable metric gives an entry with ``value`` null and
+        its reason in ``flags``.
+    """
+    spec = result["spec"]
+    name = spec["name"]
+    flags = list(result.get("flags", []))
+    if not result.get("available", True):
+        flags.append(f"unavailable: {result.get('reason', '')}")
+    base = {
+        "n_original": int(result["n_original"]), "n_effective": int(result["n_effective"]),
+        "unit": spec.get("unit", ""), "backend_version": str(spec.get("version", "")),
+        "weights_sha256": spec.get("weights_sha256"), "flags": flags, "standin": spec.get("standin") or None,
+    }
+    values = result.get("values", {})
+    if name == "lse":
+        return {
+            "lse_d": {**base, "value": values.get("lse_d"), "higher_is_better": False, "backend": spec["backend"],
+                      "per_item": compact(result.get("per_item")), "values": dict(values)},
+            "lse_c": {**base, "value": values.get("lse_c"), "higher_is_better": True, "backend": spec["backend"],
+                      "per_item": None},
+        }
+    key = _CANONICAL.get(name, name)
+    backend = name if key == "lpips" else spec["backend"]
+    return {key: {**base, "value": result.get("value"), "higher_is_better": bool(spec["higher_is_better"]),
+                  "backend": backend, "per_item": compact(result.get("per_item")), "values": dict(values)}}
+
+
+# ----------------------------------------------------------------------------- the store
+def _slug(s: str) -> str:
+    slug = re.sub(r"[^A-Za-z0-9._+-]+", "_", s).strip("._") or "x"
+    if slug != s:  # keep distinct names distinct after cleaning ("a:b" vs "a_b")
+        slug += "-" + hashlib.sha256(s.encode()).hexdigest()[:6]
+    return slug
+
+
+def record_path(root: str | os.PathLike, record: Mapping[str, Any]) -> Path:
+    """Stable file of a record: ``root/<subject>/<protocol>/<method>--<clip>--seed<N>--<config_hash>.json``."""
+    name = (f"{_slug(record['method']['name'])}--{_slug(record['protocol']['clip'])}--seed{int(record['seed'])}"
+            f"--{_slug(record['config_hash'])}.json")
+    return Path(root) / _slug(record["subject"]["name"]) / _slug(record["protocol"]["name"]) / name
+
+
+def write_record(root: str | os.PathLike, record: Mapping[str, Any]) -> Path:
+    """Validate and write a record atomically (temp file + rename); returns its path.
+
+    A record that does not validate writes nothing and raises :class:`UserError`. Two
+    writers at once never leave a partial file: each writes its own temporary file and
+    the rename is atomic (the last one wins for the same record).
+    """
+    problems = validate(record)
+    if problems:
+        who = (f"{record.get('method', {}).get('name', '?')}/{record.get('subject', {}).get('name', '?')}"
+               if isinstance(record, Mapping) else "?")
+        raise UserError(f"result record {who} is invalid: {'; '.join(problems[:5])}"
+                        + (f" (+{len(problems) - 5} more)" if len(problems) > 5 else ""))
+    text = json.dumps(record, indent=1, sort_keys=True, allow_nan=False, ensure_ascii=False) + "\n"
+    path = record_path(root, record)
+    atomic_write_text(path, text)
+    return path
+
+
+def iter_store(root: str | os.PathLike) -> tuple[list[tuple[Path, dict[str, Any]]], list[str]]:
+    """Every valid record of a store with its file, and a warning per skipped file.
+
+    Files are read in sorted order; hidden files and folders (temporary files of writers in
+    progress) are ignored. A file that is not JSON, not a record of this schema (foreign),
+    of another schema version or invalid is skipped with a warning naming it.
+    """
+    root = Path(root)
+    if not root.exists():
+        return [], []
+    if not root.is_dir():
+        raise UserError(f"{root}: results store is not a folder")
+    out: list[tuple[Path, dict[str, Any]]] = []
+    warnings: list[str] = []
+    for path in sorted(root.rglob("*.json")):
+        if any(part.startswith(".") for part in path.relative_to(root).parts):
+            continue
+        try:
+            rec = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            warnings.append(f"{path}: skipped, not readable JSON ({exc})")
+            continue
+        if not isinstance(rec, dict) or "schema_version" not in rec:
+            warnings.append(f"{path}: skipped, not a result record (no schema_version)")
+            continue
+        if rec["schema_version"] != SCHEMA_VERSION:
+            warnings.append(f"{path}: skipped, schema_version {rec['schema_version']!r} (this code reads {SCHEMA_VERSION!r})")
+            continue
+        problems = validate(rec)
+        if problems:
+            warnings.append(f"{path}: skipped, invalid record: {'; '.join(problems[:3])}")
+            continue
+        out.append((path, rec))
+    return out, warnings
+
+
+def load_records(root: str | os.PathLike) -> tuple[list[dict[str, Any]], list[str]]:
+    """All valid records under ``root`` and a warning (naming the file) per skipped file."""
+    items, warnings = iter_store(root)
+    return [r for _, r in items], warnings
+
+
+def find_record(root: str | os.PathLike, method: str, subject: str, protocol: str, clip: str, seed: int,
+                config_hash: str) -> dict[str, Any] | None:
+    """The stored record for this run, or None (so an interrupted run can resume).
+
+    Only a valid record whose fields match is returned; a failed run (``status.state ==
+    "failed"``) is returned too, and the caller decides whether to retry it.
+    """
+    key = {"method": {"name": method}, "subject": {"name": subject}, "protocol": {"name": protocol, "clip": clip},
+           "seed": seed, "config_hash": config_hash}
+    path = record_path(root, key)
+    if not path.is_file():
+        return None
+    try:
+        rec = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return None
+    if validate(rec):
+        return None
+    same = (rec["method"]["name"] == method and rec["subject"]["name"] == subject and rec["protocol"]["name"] == protocol
+            and rec["protocol"]["clip"] == clip and rec["seed"] == seed and rec["config_hash"] == config_hash)
+    return rec if same else None
+
+
+def resolve_artefact(root: str | os.PathLike, path: str) -> Path:
+    """An artefact's file: absolute paths as is, relative ones under the store root."""
+    p = Path(path).expanduser()
+    return p if p.is_absolute() else Path(root) / p
+
+
+def check_artefacts(root: str | os.PathLike, record: Mapping[str, Any]) -> list[str]:
+    """Re-hash a record's artefacts; one line per artefact that changed or went missing."""
+    out = []
+    for role, a in sorted(record.get("artefacts", {}).items()):
+        p = resolve_artefact(root, a["path"])
+        if not p.is_file():
+            out.append(f"{role} {p}: missing")
+            continue
+        now = sha256_file(p)
+        if now != a["sha256"]:
+            out.append(f"{role} {p}: changed (recorded sha256 {a['sha256'][:12]}, now {now[:12]})")
+    return out
