@@ -1,0 +1,198 @@
+"""Bundled subjects: determinism, the ER-NeRF layout, geometry and lip-sync ground truth.
+
+Tiny subjects (64 px, 2 s) keep these fast; references are independent of the generator:
+the camera path is :class:`lmgs.types.Camera`, audio is read with the standard ``wave``
+module, images with OpenCV, JSON/CSV with the standard library.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import wave
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from lmgs.types import Camera
+from lmgs_eval.errors import UserError
+
+bundled = pytest.importorskip("lmgs_eval.data.bundled")
+SIZE, SECONDS = 64, 2.0
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("astronaut")
+    bundled.build("astronaut", out, size=SIZE, seconds=SECONDS, seed=0, progress=False)
+    return out
+
+
+def test_build_is_byte_deterministic(tiny, tmp_path):
+    again = tmp_path / "again"
+    again.mkdir()
+    bundled.build("astronaut", again, size=SIZE, seconds=SECONDS, seed=0, progress=False)
+    a = json.loads((tiny / "manifest.json").read_text())
+    b = json.loads((again / "manifest.json").read_text())
+    assert a == b
+    # and the manifest covers every file
+    files = {p.relative_to(tiny).as_posix() for p in tiny.rglob("*") if p.is_file()} - {"manifest.json"}
+    assert set(a) == files
+
+
+def test_layout_files_and_schema(tiny):
+    import cv2
+
+    n = int(SECONDS * 25)
+    for f in ("aud.wav", "astronaut.mp4", "bc.jpg", "track_params.pt", "au.csv", "transforms_train.json",
+              "transforms_val.json", "lms3d.npy", "phonemes.json", "articulation.npy", "text.txt", "meta.json"):
+        assert (tiny / f).is_file(), f
+    for i in range(n):
+        for d, ext in (("ori_imgs", "jpg"), ("ori_imgs", "lms"), ("gt_imgs", "jpg"), ("torso_imgs", "png"),
+                       ("parsing", "png"), ("teeth_mask", "npy"), ("depth", "png"), ("normal", "png")):
+            assert (tiny / d / f"{i}.{ext}").is_file(), f"{d}/{i}.{ext}"
+    assert cv2.imread(str(tiny / "gt_imgs" / "0.jpg")).shape == (SIZE, SIZE, 3)
+    assert cv2.imread(str(tiny / "torso_imgs" / "0.png"), cv2.IMREAD_UNCHANGED).shape == (SIZE, SIZE, 4)
+    d = cv2.imread(str(tiny / "depth" / "0.png"), cv2.IMREAD_UNCHANGED)
+    assert d.dtype == np.uint16 and d.shape == (SIZE, SIZE) and d.max() > 0 and (d == 0).any()
+    m = np.load(tiny / "teeth_mask" / "0.npy")
+    assert m.dtype == bool and m.shape == (SIZE, SIZE)
+    parsing = cv2.imread(str(tiny / "parsing" / "0.png"))[:, :, ::-1].reshape(-1, 3)
+    colours = {tuple(c) for c in np.unique(parsing, axis=0)}
+    assert colours <= {(255, 255, 255), (255, 0, 0), (0, 255, 0), (0, 0, 255)} and (255, 0, 0) in colours
+
+    train = json.loads((tiny / "transforms_train.json").read_text())
+    val = json.loads((tiny / "transforms_val.json").read_text())
+    assert len(train["frames"]) == int(n * 10 / 11) and len(train["frames"]) + len(val["frames"]) == n
+    for t in (train, val):
+        assert t["cx"] == SIZE / 2 and t["cy"] == SIZE / 2 and t["focal_len"] > 0
+        for fr in t["frames"]:
+            assert fr["img_id"] == fr["aud_id"]
+            assert np.asarray(fr["transform_matrix"]).shape == (4, 4)
+    assert [f["img_id"] for f in train["frames"] + val["frames"]] == list(range(n))
+
+    with open(tiny / "au.csv", newline="") as f:
+        rows = list(csv.reader(f))
+    assert rows[0][:5] == ["frame", " face_id", " timestamp", " confidence", " success"]
+    for au in ("AU01_r", "AU04_r", "AU05_r", "AU06_r", "AU07_r", "AU25_r", "AU26_r", "AU45_r"):
+        assert " " + au in rows[0]
+    assert len(rows) == n + 1
+    blink = np.array([float(r[rows[0].index(" AU45_r")]) for r in rows[1:]])
+    assert blink.min() >= 0 and blink.max() <= 5
+
+    tp = torch.load(tiny / "track_params.pt")
+    assert tp["euler"].shape == (n, 3) and tp["trans"].shape == (n, 3) and tp["focal"].shape == (1,)
+    assert np.load(tiny / "lms3d.npy").shape == (n, 68, 3)
+    meta = json.loads((tiny / "meta.json").read_text())
+    art = np.load(tiny / "articulation.npy")
+    assert art.shape == (n, len(meta["articulation_columns"])) and art.dtype == np.float32
+    assert meta["bundled"] is True and meta["generator_version"] == bundled.GENERATOR_VERSION
+    assert "stand-in" in meta["standin"] and meta["depth_scale"] > 0
+    ph = json.loads((tiny / "phonemes.json").read_text())
+    assert all({"phoneme", "start", "end", "viseme"} <= set(p) for p in ph) and ph[-1]["end"] <= SECONDS + 1e-6
+
+
+def test_audio_is_16k_mono_and_frame_aligned(tiny):
+    with wave.open(str(tiny / "aud.wav"), "rb") as w:
+        assert (w.getframerate(), w.getnchannels(), w.getsampwidth()) == (16000, 1, 2)
+        assert w.getnframes() == int(SECONDS * 25) * 640
+        x = np.frombuffer(w.readframes(w.getnframes()), "<i2")
+    assert np.abs(x).max() > 1000  # there is speech in it
+
+
+def test_3d_landmarks_project_to_2d_with_written_cameras(tiny):
+    frames = json.loads((tiny / "transforms_train.json").read_text())
+    val = json.loads((tiny / "transforms_val.json").read_text())
+    lms3d = np.load(tiny / "lms3d.npy")
+    for fr in frames["frames"] + val["frames"]:
+        i = fr["img_id"]
+        cam = Camera.from_nerf_c2w(np.asarray(fr["transform_matrix"]), frames["focal_len"], SIZE, SIZE, frames["cx"], frames["cy"])
+        proj = cam.project(torch.from_numpy(lms3d[i]).double()).numpy()
+        lms = np.loadtxt(tiny / "ori_imgs" / f"{i}.lms")
+        assert np.abs(proj - lms).max() < 0.5, i
+    # the head does move: cameras differ between frames
+    c2w = np.stack([np.asarray(f["transform_matrix"]) for f in frames["frames"]])
+    assert np.ptp(c2w[:, :3, 3], axis=0).max() > 1e-3
+
+
+def test_lips_open_on_vowels_and_close_on_bilabials(tiny):
+    n = int(SECONDS * 25)
+    lms = np.stack([np.loadtxt(tiny / "ori_imgs" / f"{i}.lms") for i in range(n)])
+    gap = np.linalg.norm(lms[:, 62] - lms[:, 66], axis=1)
+    phones = json.loads((tiny / "phonemes.json").read_text())
+    frame = lambda p: min(n - 1, int((p["start"] + p["end"]) / 2 * 25))  # noqa: E731
+    closed = [frame(p) for p in phones if p["viseme"] == "PP" and p["end"] - p["start"] >= 0.04]
+    opened = [frame(p) for p in phones if p["viseme"] in ("aa", "O") and p["end"] - p["start"] >= 0.06]
+    assert closed and opened, "the 2 s text should contain p/b/m and an open vowel"
+    assert gap[opened].max() > 1.0  # pixels at 64 px
+    assert np.median(gap[closed]) < 0.35 * gap[opened].max()
+    meta = json.loads((tiny / "meta.json").read_text())
+    art = np.load(tiny / "articulation.npy")
+    assert art[closed, meta["articulation_columns"].index("lip_closure")].min() > 0.5
+    assert gap[:3].max() < 0.2  # silence at the start: mouth at rest (closed)
+
+
+def test_cross_clips(tiny):
+    for key in ("A", "B"):
+        d = tiny / "cross" / key
+        t = json.loads((d / "transforms.json").read_text())
+        m = len(t["frames"])
+        assert m == 50  # minimum 2 s
+        with wave.open(str(d / "aud.wav"), "rb") as w:
+            assert w.getframerate() == 16000 and w.getnframes() == m * 640
+        assert np.load(d / "lms3d.npy").shape == (m, 68, 3)
+        assert (d / "gt_imgs" / f"{m - 1}.jpg").is_file() and (d / "ori_imgs" / f"{m - 1}.lms").is_file()
+        assert (d / "text.txt").read_text().strip()
+    meta = json.loads((tiny / "meta.json").read_text())
+    train_text = set(meta["texts"]["train"])
+    assert not train_text & set(meta["texts"]["cross_A"]) and not train_text & set(meta["texts"]["cross_B"])
+    assert meta["voices"]["cross_A"] != meta["voices"]["train"]
+
+
+def test_layout_reader_reads_it(tiny):
+    from lmgs_eval.data.layout import read_subject
+
+    s = read_subject(tiny)
+    assert s.n_frames == int(SECONDS * 25) and s.bundled and s.landmarks3d is not None
+    assert s.depth(0) is not None and s.normal(0).shape == (SIZE, SIZE, 3)
+
+
+def test_bad_input_names_the_value(tmp_path):
+    with pytest.raises(UserError, match="obama"):
+        bundled.build("obama", tmp_path, size=64, seconds=2, progress=False)
+    (tmp_path / "x").write_text("")
+    with pytest.raises(UserError, match="not empty"):
+        bundled.build("hopper", tmp_path, size=64, seconds=2, progress=False)
+    with pytest.raises(UserError, match="voice"):
+        bundled.synthesize_clip("hopper", "hello", "nobody", size=64, seed=0)
+
+
+def test_synthesize_clip_is_consistent():
+    clip = bundled.synthesize_clip("hopper", "Bob moved a map.", "espeak:en-us+m3", size=64, seed=1)
+    t = len(clip.frames)
+    assert clip.frames.shape == (t, 64, 64, 3) and clip.frames.dtype == np.uint8
+    assert len(clip.audio) == t * 640 and clip.lms2d.shape == (t, 68, 2) and clip.lms3d.shape == (t, 68, 3)
+    assert clip.c2w.shape == (t, 4, 4) and clip.phonemes
+    assert "piper:joe" in bundled.list_voices() and any(v.startswith("espeak:") for v in bundled.list_voices())
+
+
+@pytest.mark.slow
+def test_dlib_agrees_with_ground_truth_landmarks(tmp_path):
+    """dlib's 68 points on rendered 256 px frames lie within a few pixels of the written .lms."""
+    from lmgs_eval.data.bundled.photo import detect_landmarks
+    from lmgs_eval.data.io import read_rgb_u8
+
+    out = tmp_path / "s"
+    out.mkdir()
+    bundled.build("hopper", out, size=256, seconds=4, progress=False)
+    errs, mouth = [], []
+    for i in range(0, 100, 5):
+        det = detect_landmarks(read_rgb_u8(out / "gt_imgs" / f"{i}.jpg"))
+        assert det is not None
+        gt = np.loadtxt(out / "ori_imgs" / f"{i}.lms")
+        e = np.linalg.norm(det - gt, axis=1)
+        errs.append(e.mean())
+        mouth.append(e[48:68].mean())
+    assert np.mean(errs) < 4.0 and np.mean(mouth) < 4.0
