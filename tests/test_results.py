@@ -92,7 +92,7 @@ def fixture_records() -> list[dict]:
         "lse_c": metric("lse_c", items(8.530, 0.4, 91))}))
     for k, (name, (display, family, ms, cost)) in enumerate(_SELF.items()):
         for seed in (0, 1):
-            mets = {key: metric(key, items(mean + 0.01 * seed * (1 if ARROWS[key] else -1), spread,
+            mets = {key: metric(key, items(mean * (1 + 0.002 * seed * (1 if ARROWS[key] else -1)), spread,
                                            100 * k + 10 * j + seed))
                     for j, (key, (mean, spread)) in enumerate(ms.items())}
             cfg = _lmgs_config() if name == "lmgs" else {"name": name}

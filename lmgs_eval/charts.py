@@ -1,0 +1,189 @@
+"""Speed-accuracy charts and the stability heat-map, pure functions of result records.
+
+* rendering FPS (log x) against LPIPS, LMD and LSE-C, and training time against PSNR:
+  one marker per method x subject (mean over seeds, from the self-driven records), colour
+  by family, the Pareto front drawn (:func:`pareto_front`), each point labelled;
+* a heat-map of the change of a metric under each stress condition (methods x conditions).
+
+Output is deterministic (Agg backend, fixed fonts, no dates or software tags in the
+files, a fixed SVG hash salt), so regenerating from the same store gives the same bytes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lmgs_eval import tables as T
+
+FAMILY_COLOURS = {"2D": "#8c564b", "NeRF": "#1f77b4", "3DGS": "#2ca02c", "external": "#9467bd",
+                  "ground-truth": "#7f7f7f", "control": "#d62728"}
+_RC = {"svg.hashsalt": "lmgs-eval", "svg.fonttype": "path", "font.family": "DejaVu Sans", "font.size": 9,
+       "figure.dpi": 100}
+
+# (file stem, x cost key, x label, log x, x higher is better, y metric key)
+SPEED_CHARTS = (
+    ("speed_lpips", "fps", "rendering FPS (log)", True, True, "lpips"),
+    ("speed_lmd", "fps", "rendering FPS (log)", True, True, "lmd"),
+    ("speed_lse_c", "fps", "rendering FPS (log)", True, True, "lse_c"),
+    ("train_psnr", "train_seconds", "training time (min, log)", True, False, "psnr"),
+)
+
+
+def pareto_front(xs: Sequence[float], ys: Sequence[float], x_higher: bool = True, y_higher: bool = True) -> list[int]:
+    """Indices of the points no other point dominates, ordered by x.
+
+    A point dominates another when it is at least as good on both axes and strictly better
+    on one (``x_higher`` / ``y_higher`` give the good direction of each axis).
+
+    Args:
+        xs, ys: coordinates (same length).
+        x_higher, y_higher: whether larger is better on each axis.
+
+    Returns:
+        Indices into ``xs`` of the non-dominated points, sorted by increasing x.
+    """
+    x = np.asarray(xs, np.float64) * (1 if x_higher else -1)
+    y = np.asarray(ys, np.float64) * (1 if y_higher else -1)
+    keep = []
+    for i in range(x.size):
+        dominated = np.any((x >= x[i]) & (y >= y[i]) & ((x > x[i]) | (y > y[i])))
+        if not dominated:
+            keep.append(i)
+    return sorted(keep, key=lambda i: (float(xs[i]), float(ys[i])))
+
+
+def _points(records: Sequence[dict[str, Any]], cost_key: str, metric: str) -> list[dict[str, Any]]:
+    use = [r for r in records if r["protocol"]["name"] == "self" and T.is_ok(r) and not T.is_variant(r)
+           and r["method"]["family"] not in ("control", "ground-truth")]
+    pts = []
+    for subject, recs in T._by_subject(use).items():
+        for row in T._rows(recs):
+            c = T.cost_cell(row.records, cost_key)
+            m = T.metric_cell(row.records, metric)
+            if c.mean is None or m.mean is None or c.mean <= 0:
+                continue
+            x = c.mean / 60 if cost_key == "train_seconds" else c.mean
+            label = row.label if len({r["subject"]["name"] for r in records}) == 1 else f"{row.label} / {subject}"
+            pts.append({"x": x, "y": m.mean, "family": row.family, "label": label,
+                        "backends": {b.split(" v")[0] for b in m.backends}})
+    return pts
+
+
+def _save(fig, stem: Path) -> list[Path]:
+    png, svg = stem.with_suffix(".png"), stem.with_suffix(".svg")
+    fig.savefig(png, dpi=120, metadata={"Software": None})
+    fig.savefig(svg, metadata={"Date": None, "Creator": None})
+    return [png, svg]
+
+
+def speed_charts(records: Sequence[dict[str, Any]], out_dir: str | Path) -> list[Path]:
+    """Write the four speed / training-time versus accuracy charts (PNG and SVG); returns the files.
+
+    A chart with no point (no record has both numbers) is not written.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import matplotlib.ticker
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written: list[Path] = []
+    for stem, cost_key, xlabel, logx, x_higher, metric in SPEED_CHARTS:
+        pts = _points(records, cost_key, metric)
+        if not pts:
+            continue
+        label, y_higher, _ = T.METRICS[metric]
+        with matplotlib.rc_context(_RC):
+            fig, ax = plt.subplots(figsize=(5.2, 3.8))
+            for fam in sorted({p["family"] for p in pts}):
+                sub = [p for p in pts if p["family"] == fam]
+                ax.scatter([p["x"] for p in sub], [p["y"] for p in sub], s=36, color=FAMILY_COLOURS.get(fam, "k"),
+                           label=fam, zorder=3)
+            for p in pts:
+                ax.annotate(p["label"], (p["x"], p["y"]), textcoords="offset points", xytext=(4, 4), fontsize=7)
+            front = pareto_front([p["x"] for p in pts], [p["y"] for p in pts], x_higher, y_higher)
+            if len(front) > 1:
+                ax.plot([pts[i]["x"] for i in front], [pts[i]["y"] for i in front], "--", color="0.4", lw=1,
+                        label="Pareto front", zorder=2)
+            if logx:
+                ax.set_xscale("log")
+                fmt = matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:g}")
+                ax.xaxis.set_major_formatter(fmt)
+                ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+            ax.margins(0.15)
+            backends = sorted({b for p in pts for b in p["backends"]})
+            warn = " (MIXED backends!)" if len(backends) > 1 else ""
+            ax.set_xlabel(xlabel)
+            ax.set_ylabel(f"{label} {'↑' if y_higher else '↓'} [{', '.join(backends)}]{warn}")
+            ax.set_title(f"{label} against {'speed' if cost_key == 'fps' else 'training time'} (self-driven)")
+            ax.grid(True, which="both", alpha=0.3)
+            ax.legend(fontsize=7, loc="best")
+            fig.tight_layout()
+            written += _save(fig, out_dir / stem)
+            plt.close(fig)
+    return written
+
+
+def stability_heatmap(records: Sequence[dict[str, Any]], out_dir: str | Path, metric: str = "lse_c") -> list[Path]:
+    """Write ``stability_<metric>.png``: methods x stress conditions, colour = change from clean.
+
+    Cells with failed runs are hatched and marked with the failure count. Nothing is written
+    without stress records carrying ``metric``.
+    """
+    table = T.table_stability(records, metric)
+    cols = [c for c in table.columns if c.kind == "metric"]
+    rows = [(sec.title, row) for sec in table.sections for row in sec.rows]
+    if not rows or not cols:
+        return []
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    grid = np.full((len(rows), len(cols)), np.nan)
+    for i, (_, row) in enumerate(rows):
+        for j, c in enumerate(cols):
+            cell = row.cells.get(c.id)
+            if cell is not None and cell.mean is not None:
+                grid[i, j] = cell.mean
+    label, hib, digits = T.METRICS[metric]
+    lim = float(np.nanmax(np.abs(grid))) if np.isfinite(grid).any() else 1.0
+    multi = len(table.sections) > 1
+    with matplotlib.rc_context(_RC):
+        fig, ax = plt.subplots(figsize=(1.2 + 1.1 * len(cols), 1.0 + 0.45 * len(rows)))
+        # Better is green whatever the metric's direction.
+        im = ax.imshow(grid, cmap="RdYlGn" if hib else "RdYlGn_r", vmin=-lim, vmax=lim, aspect="auto")
+        for i, (_, row) in enumerate(rows):
+            for j, c in enumerate(cols):
+                cell = row.cells.get(c.id)
+                text = "" if np.isnan(grid[i, j]) else f"{grid[i, j]:+.{digits}f}"
+                if cell is not None and cell.text and "failed" in cell.text:
+                    text = (text + "\n" if text else "") + "✗ " + cell.text.split(":")[0]
+                    ax.add_patch(plt.Rectangle((j - 0.5, i - 0.5), 1, 1, fill=False, hatch="//", color="0.3"))
+                ax.text(j, i, text, ha="center", va="center", fontsize=7)
+        ax.set_xticks(range(len(cols)), [c.label for c in cols], rotation=30, ha="right")
+        ax.set_yticks(range(len(rows)), [f"{row.label} / {t}" if multi else row.label for t, row in rows])
+        fig.colorbar(im, ax=ax, label=f"Δ {label} from clean")
+        ax.set_title(f"Stability: change of {label} {'↑' if hib else '↓'} under stress")
+        fig.tight_layout()
+        png = out_dir / f"stability_{metric}.png"
+        fig.savefig(png, dpi=120, metadata={"Software": None})
+        plt.close(fig)
+    return [png]
+
+
+def all_charts(records: Sequence[dict[str, Any]], out_dir: str | Path) -> list[Path]:
+    """Every chart the records allow: the speed charts and one heat-map per stressed metric."""
+    files = speed_charts(records, out_dir)
+    stressed = sorted({k for r in records if r["protocol"]["name"] == "stress" for k in r["metrics"] if k in T.METRICS})
+    for m in stressed:
+        files += stability_heatmap(records, out_dir, m)
+    return files

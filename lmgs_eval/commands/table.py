@@ -1,0 +1,55 @@
+"""``lmgs-eval table``: the paper's tables and the charts, made from the results store alone."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+HELP = "write Tables I-IV, calibration, stability, status (md/tex/csv) and the speed charts from results files"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--results", default="results", type=Path, help="results store (default: results/)")
+    parser.add_argument("--format", choices=("md", "tex", "csv", "all"), default="all",
+                        help="table formats to write (default: all)")
+    parser.add_argument("--out", default="tables", type=Path, help="output folder (default: tables/)")
+    parser.add_argument("--ci", action="store_true", help="show bootstrap 95%% CIs in Markdown/LaTeX cells too")
+    parser.add_argument("--no-charts", action="store_true", help="tables only")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Load the store (warning about skipped files), write every table and chart, print Table I."""
+    from lmgs_eval.paths import atomic_write_text
+    from lmgs_eval.results import load_records
+    from lmgs_eval.tables import all_tables
+
+    records, warnings = load_records(args.results)
+    for w in warnings:
+        print(f"warning: {w}", file=sys.stderr)
+    if not records:
+        print(f"lmgs-eval table: no result records in {args.results}; run `lmgs-eval self` (or `cross`) first, "
+              f"or pass --results DIR", file=sys.stderr)
+        return 2
+    formats = ("md", "tex", "csv") if args.format == "all" else (args.format,)
+    out = Path(args.out)
+    written: list[Path] = []
+    tables = all_tables(records)
+    for t in tables:
+        for fmt in formats:
+            text = {"md": lambda: t.markdown(show_ci=args.ci), "tex": lambda: t.latex(show_ci=args.ci),
+                    "csv": t.csv}[fmt]()
+            path = out / f"{t.name}.{fmt}"
+            atomic_write_text(path, text)
+            written.append(path)
+    if not args.no_charts:
+        from lmgs_eval.charts import all_charts
+
+        written += all_charts(records, out)
+    first = next((t for t in tables if t.name == "table1_self"), tables[0] if tables else None)
+    if first is not None:
+        print(first.markdown(show_ci=args.ci))
+    print(f"{len(records)} records -> {len(written)} files in {out}/:")
+    for p in written:
+        print(f"  {p}")
+    return 0

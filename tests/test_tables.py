@@ -1,0 +1,224 @@
+"""Tables and charts from a hand-written results store: golden files, ranking, flags, commands."""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import csv
+import io
+import os
+from pathlib import Path
+
+import pytest
+
+from lmgs_eval import charts as C
+from lmgs_eval import tables as T
+from test_results import fixture_records, items, metric, record, write_store
+
+GOLDEN = Path(__file__).parent / "golden"
+
+
+def _golden(name: str, text: str) -> None:
+    path = GOLDEN / name
+    if os.environ.get("LMGS_UPDATE_GOLDEN"):
+        path.parent.mkdir(exist_ok=True)
+        path.write_text(text, encoding="utf-8")
+    assert text == path.read_text(encoding="utf-8"), f"{path} differs (LMGS_UPDATE_GOLDEN=1 to rewrite)"
+
+
+def _row(md: str, label: str) -> list[str]:
+    line = next(x for x in md.splitlines() if x.startswith(f"| {label} |"))
+    return [c.strip() for c in line.strip("|").split("|")]
+
+
+def test_table1_matches_golden_markdown_and_latex():
+    t = T.table_self(fixture_records())
+    md, tex = t.markdown(), t.latex()
+    _golden("table1_self.md", md)
+    _golden("table1_self.tex", tex)
+    head = _row(md, "Method")
+    assert head[:6] == ["Method", "PSNR↑", "LPIPS↓", "LMD↓", "LSE-D↓", "LSE-C↑"]
+    assert head[6:] == ["FPS↑", "Train (min)↓", "Gaussians", "MB↓"]
+    gt, ours, tg = _row(md, "Ground Truth"), _row(md, "Ours (lmgs)"), _row(md, "TalkingGaussian")
+    assert gt[1] == "N/A" and gt[2] == "0.0000" and gt[6] == "–"  # GT: no PSNR against itself, no cost
+    assert ours[1].startswith("**38.") and " ± " in ours[1]  # significant winner: bold, mean ± std over 2 seeds
+    assert tg[1].startswith("<u>32.")  # runner-up underlined
+    assert "\\textbf{38." in tex and "\\underline{32." in tex and "\\toprule" in tex and "$\\pm$" in tex
+    assert tex.index("Ground Truth") < tex.index("ER-NeRF") < tex.index("Ours (lmgs)")
+
+
+def test_non_significant_difference_is_not_bolded():
+    md = T.table_self(fixture_records()).markdown()
+    ours, tg = _row(md, "Ours (lmgs)"), _row(md, "TalkingGaussian")
+    # LSE-D / LSE-C: Ours is better on the mean, but by far less than the item noise.
+    for cell in (ours[4], ours[5], tg[4], tg[5]):
+        assert cell.endswith("†") and "**" not in cell and "<u>" not in cell
+    assert "† LSE-D: Ours (lmgs), TalkingGaussian (p=" in md and "no winner is bolded" in md
+    tex = T.table_self(fixture_records()).latex()
+    assert "$^\\dagger$" in tex
+
+
+def test_mixed_backends_are_flagged_and_not_ranked():
+    recs = fixture_records()
+    for r in recs:
+        if r["method"]["name"] == "ernerf" and r["protocol"]["name"] == "self":
+            r["metrics"]["lpips"]["backend"] = "lpips-alex"
+    t = T.table_self(recs)
+    md, tex = t.markdown(), t.latex()
+    assert "LPIPS↓ ‡" in _row(md, "Method")
+    lp = [_row(md, name)[2] for name in ("ER-NeRF", "TalkingGaussian", "Ours (lmgs)")]
+    assert all(c.endswith("‡") and "**" not in c and "<u>" not in c for c in lp)
+    assert "‡ LPIPS mixes metric backends (ER-NeRF: lpips-alex v1; " in md
+    assert "LPIPS made by lpips-alex v1, stlpips-alex v1" in md
+    assert "\\textbf{LPIPS}$\\downarrow$$^\\ddagger$" in tex
+    # the other columns are still ranked
+    assert _row(md, "Ours (lmgs)")[1].startswith("**")
+
+
+def test_ranking_without_per_item_values_says_it_is_untested():
+    recs = fixture_records()
+    for r in recs:
+        for m in r["metrics"].values():
+            m["per_item"] = None
+    md = T.table_self(recs).markdown()
+    assert _row(md, "Ours (lmgs)")[4].startswith("**")
+    assert "LSE-D: best / second not tested for significance" in md
+
+
+def test_footnotes_name_standins_backends_and_descriptions():
+    md = T.table_self(fixture_records()).markdown()
+    assert "LPIPS made by stlpips-alex v1; STAND-IN: ST-LPIPS" in md
+    assert "LSE-D made by onnxruntime:bundled-sync v1; STAND-IN: bundled sync scorer" in md
+    assert "Subject astronaut: bundled, synthetic: synthetic head" in md
+    assert "- Ours (lmgs) (3DGS): Ours (lmgs): reimplemented on the shared renderer" in md
+    assert "Cost measured on Test CPU, 2 threads, no GPU." in md
+
+
+def test_per_subject_sections():
+    recs = fixture_records()
+    other = []
+    for r in recs:
+        if r["protocol"]["name"] == "self" and r["method"]["name"] in ("gt", "lmgs"):
+            r2 = copy.deepcopy(r)
+            r2["subject"] = dict(r2["subject"], name="may", bundled=False, standin=None)
+            other.append(r2)
+    t = T.table_self(recs + other)
+    assert [s.title for s in t.sections] == ["astronaut (bundled)", "may"]
+    tex = t.latex()
+    assert "\\multicolumn{10}{l}{\\textit{may}}" in tex
+
+
+def test_table2_cross_layout():
+    t = T.table_cross(fixture_records())
+    md, tex = t.markdown(), t.latex()
+    assert _row(md, "Method") == ["Method", "Audio A LSE-D↓", "Audio A LSE-C↑", "Audio B LSE-D↓", "Audio B LSE-C↑"]
+    assert _row(md, "Ours (lmgs)")[1] == "**9.000**"
+    assert "\\multicolumn{2}{c}{Audio A} & \\multicolumn{2}{c}{Audio B}" in tex
+    assert "\\cmidrule(lr){2-3} \\cmidrule(lr){4-5}" in tex
+
+
+def test_table3_theta_and_table4_ablation():
+    recs = fixture_records()
+    md3 = T.table_theta(recs).markdown()
+    labels = [ln.split("|")[1].strip() for ln in md3.splitlines() if ln.startswith("| 0.")]
+    assert labels == ["0.4", "0.6", "0.8"]
+    assert _row(md3, "0.6")[1].startswith("**")
+    md4 = T.table_ablation(recs).markdown()
+    order = [ln.split("|")[1].strip() for ln in md4.splitlines() if ln.startswith("| w/o") or ln.startswith("| Full")]
+    assert order == ["w/o SE", "w/o LC", "w/o GR", "Full model"]
+    assert _row(md4, "w/o SE")[1:4] == ["✗", "✓", "✓"] and _row(md4, "Full model")[1:4] == ["✓", "✓", "✓"]
+    tex4 = T.table_ablation(recs).latex()
+    assert "$\\times$ & \\checkmark" in tex4
+
+
+def _calibration_store(constant: bool) -> list[dict]:
+    lse_c_gt = [5.0] * 20 if constant else items(8.5, 0.4, 1)
+    recs = [record("gt", "Ground Truth", "ground-truth", 0, {
+        "lse_c": metric("lse_c", lse_c_gt), "lmd": metric("lmd", [0.0] * 20)})]
+    recs.append(record("gt-shift+10", "GT, audio +10", "control", 0, {"lse_c": metric("lse_c", [5.0] * 20)},
+                       control={"kind": "audio-shift", "targets": ["lse_c"]}))
+    recs.append(record("still-frame", "Still frame", "control", 0, {
+        "lse_c": metric("lse_c", [5.0] * 20), "lmd": metric("lmd", items(3.0, 0.2, 2))},
+        control={"kind": "still-frame", "targets": ["lmd", "lse_c"]}))
+    return recs
+
+
+def test_calibration_flags_a_metric_that_does_not_separate():
+    md = T.table_calibration(_calibration_store(constant=True), metrics=("lmd", "lse_c")).markdown()
+    verdict = _row(md, "GT separated from its controls")
+    assert verdict[1:] == ["✓", "✗"]
+    assert _row(md, "Still frame")[2].endswith("✗") and not _row(md, "Still frame")[1].endswith("✗")
+    assert "✗ LSE-C does not separate the ground truth from: GT, audio +10, Still frame" in md
+    good = T.table_calibration(_calibration_store(constant=False), metrics=("lmd", "lse_c")).markdown()
+    assert _row(good, "GT separated from its controls")[1:] == ["✓", "✓"]
+    # the fixture store: GT separates on every metric its controls target
+    md = T.table_calibration(fixture_records()).markdown()
+    assert _row(md, "GT separated from its controls")[1:] == ["–", "–", "✓", "✓", "✓"]
+
+
+def test_stability_and_status_tables():
+    recs = fixture_records()
+    md = T.table_stability(recs, "lse_c").markdown()
+    assert _row(md, "Method") == ["Method", "long-300s", "noise-10db", "silence", "failed runs"]
+    tg = _row(md, "TalkingGaussian")
+    assert tg[1] == "1 failed: out of memory" and tg[4] == "1"
+    assert tg[2].startswith("-0.8") and tg[3].startswith("-4.0")
+    st = T.table_status(recs).markdown()
+    assert _row(st, "TalkingGaussian")[1] == "7 ok, 1 failed: out of memory (stress:long-300s)"
+    assert _row(st, "ER-NeRF")[1] == "ok (4)"
+
+
+def test_csv_is_machine_readable_with_cis():
+    rows = list(csv.DictReader(io.StringIO(T.table_self(fixture_records()).csv())))
+    ours = next(r for r in rows if r["method"] == "lmgs")
+    assert float(ours["psnr_ci_lo"]) < float(ours["psnr"]) < float(ours["psnr_ci_hi"])
+    assert ours["psnr_n_seeds"] == "2" and ours["psnr_mark"] == "best" and ours["lse_d_mark"] == "tie"
+    assert ours["lpips_backend"] == "stlpips-alex v1"
+    assert "[" in T.table_self(fixture_records()).markdown(show_ci=True)
+
+
+def test_pareto_front_on_hand_made_points():
+    # fps (higher better) vs lpips (lower better)
+    xs = [1, 2, 3, 4, 5, 2.5]
+    ys = [0.10, 0.05, 0.08, 0.03, 0.20, 0.04]
+    # (1,.10) dominated by (2,.05); (3,.08) by (4,.03); (2.5,.04) by (4,.03)
+    assert C.pareto_front(xs, ys, x_higher=True, y_higher=False) == [3, 4]
+    assert C.pareto_front([1, 2, 3], [1, 2, 3], True, True) == [2]
+    assert C.pareto_front([1, 2, 3], [3, 2, 1], True, True) == [0, 1, 2]
+    assert C.pareto_front([1, 1], [2, 2], True, True) == [0, 1]  # equal points do not dominate each other
+
+
+def _run_table(tmp_path, results: Path, **kw) -> int:
+    from lmgs_eval.commands import table
+
+    ns = argparse.Namespace(results=results, format="all", out=tmp_path / "tables", ci=False, no_charts=False)
+    for k, v in kw.items():
+        setattr(ns, k, v)
+    return table.run(ns)
+
+
+def test_table_command_writes_tables_and_deterministic_charts(tmp_path, capsys):
+    write_store(tmp_path / "results")
+    assert _run_table(tmp_path, tmp_path / "results") == 0
+    out = capsys.readouterr().out
+    assert out.startswith("## Table I: self-driven reconstruction")
+    files = {p.name: p for p in (tmp_path / "tables").iterdir()}
+    for name in ("table1_self.md", "table1_self.tex", "table1_self.csv", "table2_cross.md", "table3_theta.tex",
+                 "table4_ablation.csv", "calibration.md", "stability_lse_c.md", "status.md",
+                 "speed_lpips.png", "speed_lpips.svg", "speed_lmd.png", "speed_lse_c.svg", "train_psnr.png",
+                 "stability_lse_c.png"):
+        assert name in files and files[name].stat().st_size > 200, name
+    assert files["table1_self.md"].read_text() == T.table_self(fixture_records()).markdown()
+    first = {n: p.read_bytes() for n, p in files.items()}
+    assert _run_table(tmp_path, tmp_path / "results") == 0
+    assert {p.name: p.read_bytes() for p in (tmp_path / "tables").iterdir()} == first  # byte-identical rerun
+    assert first["speed_lpips.png"][:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_table_command_on_an_empty_store(tmp_path, capsys):
+    (tmp_path / "results").mkdir()
+    (tmp_path / "results" / "junk.json").write_text("[]")
+    assert _run_table(tmp_path, tmp_path / "results") == 2
+    err = capsys.readouterr().err
+    assert "junk.json: skipped" in err and "no result records in" in err
+    assert not (tmp_path / "tables").exists()
