@@ -115,7 +115,10 @@ def speed_charts(records: Sequence[dict[str, Any]], out_dir: str | Path) -> list
                 ax.set_xscale("log")
                 fmt = matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:g}")
                 ax.xaxis.set_major_formatter(fmt)
-                ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+                xs = [p["x"] for p in pts]
+                # Within about a decade there is no major tick to label: label the minor ones.
+                few = max(xs) / min(xs) < 20
+                ax.xaxis.set_minor_formatter(fmt if few else matplotlib.ticker.NullFormatter())
             ax.margins(0.15)
             backends = sorted({b for p in pts for b in p["backends"]})
             warn = " (MIXED backends!)" if len(backends) > 1 else ""
