@@ -154,32 +154,12 @@ def score_clip(pred: np.ndarray, gt: np.ndarray | None, audio16k: np.ndarray | N
 
 
 def metrics_block(results: dict) -> dict:
-    """MetricResults as the results file's ``metrics`` mapping (LSE split into LSE-D and LSE-C)."""
+    """MetricResults as the results file's ``metrics`` mapping (canonical keys, backends named)."""
+    from lmgs_eval.results import metric_entries
+
     block = {}
-    for name, r in results.items():
-        d = r.to_dict(per_item=False)
-        base = {
-            "n_original": r.n_original,
-            "n_effective": r.n_effective,
-            "higher_is_better": r.spec.higher_is_better,
-            "unit": r.spec.unit,
-            "backend": r.spec.backend,
-            "backend_version": r.spec.version,
-            "weights_sha256": r.spec.weights_sha256,
-            "flags": list(r.flags) + ([] if r.available else [f"unavailable: {r.reason}"]),
-            "standin": r.spec.standin or None,
-            "per_item": [None if not np.isfinite(v) else round(float(v), 5) for v in np.asarray(r.per_item, np.float64).ravel()] or None,
-        }
-        if name == "lse":
-            vals = d["values"]
-            block["lse_d"] = {**base, "value": vals.get("lse_d"), "higher_is_better": False}
-            block["lse_c"] = {**base, "value": vals.get("lse_c"), "higher_is_better": True, "per_item": None}
-            block["av_offset"] = {**base, "value": vals.get("offset"), "higher_is_better": False, "unit": "frames", "per_item": None}
-        elif name in ("lpips-alex", "stlpips-alex"):
-            # One LPIPS column; which network made it is in the backend (tables flag mixing).
-            block["lpips"] = {**base, "value": r.value, "backend": f"{name}:{r.spec.backend}"}
-        else:
-            block[name] = {**base, "value": r.value}
+    for r in results.values():
+        block.update(metric_entries(r.to_dict()))
     return block
 
 
@@ -193,7 +173,7 @@ def _subject_block(subject) -> dict:
         "width": subject.width,
         "height": subject.height,
         "path": str(subject.root),
-        "manifest_sha256": _manifest_sha(subject),
+        "sha256": _manifest_sha(subject),
     }
 
 
@@ -205,29 +185,21 @@ def _manifest_sha(subject) -> str | None:
 
 
 def build_record(*, info, subject, protocol: str, clip: str, split: str, n_frames: int, seed: int, metrics: dict,
-                 cost: dict, artefacts: dict, notes: list[str], method_standins=()) -> dict:
+                 cost: dict, artefacts: dict, notes: list[str], variant: str | None = None) -> dict:
     """One results-file record (schema in :mod:`lmgs_eval.results`)."""
-    import datetime
+    from lmgs_eval.results import make_record
 
-    from lmgs_eval.results import SCHEMA_VERSION, git_info, machine_info
-
-    return {
-        "schema_version": SCHEMA_VERSION,
-        "method": {"name": info.name, "display_name": info.display_name, "family": info.family,
-                   "description": info.description, "standins": list(info.standins) + list(method_standins)},
-        "subject": _subject_block(subject),
-        "protocol": {"name": protocol, "version": PROTOCOL_VERSIONS[protocol], "clip": clip, "split": split, "n_frames": int(n_frames)},
-        "metrics": metrics,
-        "cost": cost,
-        "config": info.config,
-        "config_hash": info.config_hash,
-        "seed": int(seed),
-        "code": git_info(),
-        "machine": machine_info(),
-        "artefacts": artefacts,
-        "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "notes": list(notes),
-    }
+    method = {"name": info.name, "display_name": info.display_name, "family": info.family,
+              "description": info.description, "standins": list(info.standins)}
+    if variant is not None:
+        method["variant"] = variant
+    return make_record(
+        method=method,
+        subject=_subject_block(subject),
+        protocol={"name": protocol, "version": PROTOCOL_VERSIONS[protocol], "clip": clip, "split": split, "n_frames": int(n_frames)},
+        metrics=metrics, seed=seed, config=info.config, config_hash_=info.config_hash, cost=cost,
+        artefacts=artefacts, notes=notes,
+    )
 
 
 def _cost_block(method, fit_cost: dict | None, render_cost: dict, timings: dict | None = None) -> dict:
@@ -253,12 +225,14 @@ def _cost_block(method, fit_cost: dict | None, render_cost: dict, timings: dict 
     }
 
 
-def _write_render(path: Path, frames: np.ndarray, audio: np.ndarray) -> dict:
+def _write_render(root: Path, rel: str, frames: np.ndarray, audio: np.ndarray) -> dict:
+    """Write an mp4 with its driving audio under the store root; the artefact entry (relative path)."""
     from lmgs_eval.data.io import write_video
     from lmgs_eval.results import sha256_file
 
+    path = Path(root) / rel
     write_video(path, frames, 25, audio, 16000)
-    return {"path": str(path), "sha256": sha256_file(path)}
+    return {"path": rel, "sha256": sha256_file(path)}
 
 
 # ----------------------------------------------------------------------------- self
@@ -275,7 +249,7 @@ def run_self(cfg: RunConfig) -> list[dict]:
     test = subject_to_clip(subject, subject.test_ids, progress=cfg.progress)
     driving = driving_from_subject(subject, subject.test_ids, test)
     gt = test.frames
-    renders_dir = Path(cfg.results) / "renders" / subject.name
+    renders_dir = f"renders/{subject.name}"
     records = []
 
     # The paper's "Ground Truth" row: the real test video scored like any method.
@@ -283,7 +257,7 @@ def run_self(cfg: RunConfig) -> list[dict]:
     if cfg.force or store.find_record(cfg.results, "ground-truth", subject.name, "self", "test", 0, "gt") is None:
         log("scoring the ground truth")
         res = score_clip(gt, gt, test.audio)
-        art = {"render": _write_render(renders_dir / "ground-truth.mp4", gt, test.audio)}
+        art = {"render": _write_render(cfg.results, f"{renders_dir}/ground-truth.mp4", gt, test.audio)}
         rec = build_record(info=gt_info, subject=subject, protocol="self", clip="test", split="test", n_frames=len(gt), seed=0,
                            metrics=metrics_block(res), cost={}, artefacts=art, notes=list(subject.notes))
         store.write_record(cfg.results, rec)
@@ -307,7 +281,7 @@ def run_self(cfg: RunConfig) -> list[dict]:
             frames, rc = timed_render(method, driving, timings)
             log(f"{info.name}: {len(frames)} frames at {rc['fps']:.1f} FPS; scoring")
             res = score_clip(frames, gt, test.audio)
-            art = {"render": _write_render(renders_dir / f"{info.name.replace(':', '_')}-seed{seed}.mp4", frames, test.audio)}
+            art = {"render": _write_render(cfg.results, f"{renders_dir}/{info.name.replace(':', '_')}-seed{seed}.mp4", frames, test.audio)}
             ck = Path(fit_cost["workdir"]) / "model.pt"
             if ck.exists():
                 art["checkpoint"] = {"path": str(ck), "sha256": store.sha256_file(ck)}
@@ -403,7 +377,7 @@ def run_cross(cfg: RunConfig, audio_paths: list[str] | None = None) -> tuple[lis
         return [], errors
     train = None
     test = subject_to_clip(subject, subject.test_ids)
-    renders_dir = Path(cfg.results) / "renders" / subject.name
+    renders_dir = f"renders/{subject.name}"
     records = []
     for name in cfg.methods:
         if name.startswith("external:"):
@@ -428,7 +402,7 @@ def run_cross(cfg: RunConfig, audio_paths: list[str] | None = None) -> tuple[lis
                 log(f"{info.name} on clip {c.name}: {n} frames at {rc['fps']:.1f} FPS; scoring")
                 gt = c.gt_frames[:n] if c.gt_frames is not None and len(c.gt_frames) >= n else None
                 res = score_clip(frames, gt, driving.audio, reference=False, lmd=gt is not None)
-                art = {"render": _write_render(renders_dir / f"{info.name}-seed{seed}-cross-{c.name}.mp4", frames, driving.audio)}
+                art = {"render": _write_render(cfg.results, f"{renders_dir}/{info.name.replace(':', '_')}-seed{seed}-cross-{c.name}.mp4", frames, driving.audio)}
                 rec = build_record(info=info, subject=subject, protocol="cross", clip=c.name, split=c.source, n_frames=n, seed=seed,
                                    metrics=metrics_block(res), cost=_cost_block(method, fit_cost, rc), artefacts=art,
                                    notes=list(c.notes))

@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
-import json
 import os
+
+# Before torch or numba load (see lmgs/__init__.py): idle OpenMP pools must not spin.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import json
 import wave
 from pathlib import Path
 
@@ -88,5 +92,3 @@ def run_cli(*argv: str) -> tuple[int, str, str]:
             rc = int(exc.code or 0)
     return rc, out.getvalue(), err.getvalue()
 
-
-os.environ.setdefault("OMP_NUM_THREADS", "2")
