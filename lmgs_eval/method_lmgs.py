@@ -70,6 +70,7 @@ class LMGSMethod:
             standins=STANDINS,
             config=self.cfg.to_dict(),
             config_hash=self.cfg.hash(),
+            variant=None if self.variant == "lmgs" else self.variant.removeprefix("lmgs-"),
         )
 
     def cost(self) -> dict:

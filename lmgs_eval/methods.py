@@ -32,6 +32,7 @@ class MethodInfo:
         standins: components replaced because the original cannot be had here.
         config: the full configuration (JSON-able).
         config_hash: a short hash of ``config``; a trained model is reused when it matches.
+        variant: an ablation / sweep variant of a base method (rows of Tables III-IV, not I).
     """
 
     name: str
@@ -41,6 +42,7 @@ class MethodInfo:
     standins: tuple[str, ...] = ()
     config: dict = field(default_factory=dict)
     config_hash: str = ""
+    variant: str | None = None
 
 
 @runtime_checkable

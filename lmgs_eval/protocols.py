@@ -185,14 +185,14 @@ def _manifest_sha(subject) -> str | None:
 
 
 def build_record(*, info, subject, protocol: str, clip: str, split: str, n_frames: int, seed: int, metrics: dict,
-                 cost: dict, artefacts: dict, notes: list[str], variant: str | None = None) -> dict:
+                 cost: dict, artefacts: dict, notes: list[str]) -> dict:
     """One results-file record (schema in :mod:`lmgs_eval.results`)."""
     from lmgs_eval.results import make_record
 
     method = {"name": info.name, "display_name": info.display_name, "family": info.family,
               "description": info.description, "standins": list(info.standins)}
-    if variant is not None:
-        method["variant"] = variant
+    if getattr(info, "variant", None) is not None:
+        method["variant"] = info.variant
     return make_record(
         method=method,
         subject=_subject_block(subject),
