@@ -1,0 +1,154 @@
+"""The nine baseline adapters on the tiny synthetic clip (48x48, 24 frames) with the ``tiny`` budget."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lmgs.errors import InputError
+from lmgs.types import DrivingAudio
+from lmgs_eval.methods import MethodInfo, TalkingHead, create_method, list_methods
+from model_fixtures import synthetic_clip
+
+GS = ("talkinggaussian", "degstalk", "gaussiantalker")
+NERF = ("adnerf", "radnerf", "ernerf", "geneface")
+TWO_D = ("wav2lip", "ip_lap")
+ALL = GS + NERF + TWO_D
+FAMILY = {**{m: "3DGS" for m in GS}, **{m: "NeRF" for m in NERF}, **{m: "2D" for m in TWO_D}}
+# A much shorter schedule for the determinism checks (two fits per method).
+SHORT = {**{m: {"static_steps": 10, "dynamic_steps": 10, "densify_every": 5} for m in GS},
+         **{m: {"steps": 15, "landmark_steps": 10} for m in NERF + TWO_D}}
+
+
+def _psnr(a: np.ndarray, b: np.ndarray) -> float:
+    """Mean per-frame PSNR (dB) of uint8 videos, written out here (not the toolkit's metric)."""
+    mse = ((a.astype(np.float64) - b.astype(np.float64)) ** 2).mean(axis=(1, 2, 3)) / 255.0**2
+    return float(np.mean(10 * np.log10(1.0 / np.maximum(mse, 1e-12))))
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _one_thread():
+    # 48x48 frames are too small to gain from threads; on shared cores extra threads only wait.
+    import numba
+    import torch
+
+    before = torch.get_num_threads(), numba.get_num_threads()
+    torch.set_num_threads(1)
+    numba.set_num_threads(1)
+    yield
+    torch.set_num_threads(before[0])
+    numba.set_num_threads(before[1])
+
+
+@pytest.fixture(scope="module")
+def clip():
+    return synthetic_clip()
+
+
+@pytest.fixture(scope="module")
+def fitted(clip, tmp_path_factory):
+    cache: dict[str, tuple] = {}
+
+    def get(name):
+        if name not in cache:
+            wd = tmp_path_factory.mktemp(name)
+            m = create_method(name, preset="tiny")
+            m.fit(clip, seed=0, workdir=wd, progress=False)
+            cache[name] = (m, wd)
+        return cache[name]
+
+    return get
+
+
+def _self_driving(clip) -> DrivingAudio:
+    return DrivingAudio(audio=clip.audio, w2c=clip.w2c, backgrounds=np.repeat(clip.backgrounds, len(clip), 0), blink=clip.blink)
+
+
+def test_all_nine_are_registered():
+    names = list_methods()
+    for m in ALL:
+        assert m in names
+
+
+@pytest.mark.parametrize("name", ALL)
+def test_protocol_describe_and_cost(name, fitted):
+    m, _ = fitted(name)
+    assert isinstance(m, TalkingHead)
+    info = m.describe()
+    assert isinstance(info, MethodInfo) and info.name == name and info.family == FAMILY[name]
+    assert "Simplified" in info.description or "simplified" in info.description
+    assert len(info.config_hash) == 16 and info.config
+    c = m.cost()
+    assert c["n_params"] > 0 and c["model_mb"] > 0
+    assert (c["n_gaussians"] is None) == (name not in GS)
+
+
+@pytest.mark.parametrize("name", GS + NERF)
+def test_reconstructs_training_frames_better_than_background(name, fitted, clip):
+    m, _ = fitted(name)
+    out = m.render(_self_driving(clip))
+    assert out.shape == clip.frames.shape and out.dtype == np.uint8
+    bg_only = np.broadcast_to(clip.backgrounds[0], clip.frames.shape)
+    assert _psnr(bg_only, clip.frames) < 13  # the background alone: about 11.9 dB
+    assert _psnr(out, clip.frames) > 24
+
+
+@pytest.mark.parametrize("name", TWO_D)
+def test_2d_mouth_follows_audio(name, fitted, clip):
+    """From one fixed source frame, the edited mouth is nearer the true frames than the source itself."""
+    m, _ = fitted(name)
+    n = len(clip)
+    out = m.render(DrivingAudio(audio=clip.audio, w2c=np.repeat(clip.w2c[:1], n, 0)))
+    assert out.shape == clip.frames.shape and out.dtype == np.uint8
+    gt = clip.frames.astype(np.float64)
+    moving = gt.std(axis=0).mean(-1) > 8  # pixels that change over the clip (mouth, head turn)
+    err_out = np.abs(out.astype(np.float64) - gt)[:, moving].mean()
+    err_src = np.abs(np.repeat(clip.frames[:1], n, 0).astype(np.float64) - gt)[:, moving].mean()
+    assert err_out < 0.85 * err_src
+
+
+@pytest.mark.parametrize("name", ALL)
+@pytest.mark.parametrize("seconds", [0.0, 0.1, 1.0])
+def test_silence_and_short_clips(name, fitted, clip, seconds):
+    m, _ = fitted(name)
+    n = int(seconds * 25)
+    out = m.render(DrivingAudio(audio=np.zeros(int(seconds * 16000), np.float32)))
+    assert out.shape == (n, clip.height, clip.width, 3) and out.dtype == np.uint8
+
+
+@pytest.mark.parametrize("name", ALL)
+def test_checkpoint_is_reused(name, fitted, clip):
+    m, wd = fitted(name)
+    assert (wd / "model.pt").exists()
+    again = create_method(name, preset="tiny")
+    again.fit(clip, seed=123, workdir=wd, progress=False)  # loads; a new seed would train differently
+    d = DrivingAudio(audio=clip.audio[: 6 * 640], w2c=clip.w2c[:6])
+    np.testing.assert_array_equal(m.render(d), again.render(d))
+
+
+def test_checkpoint_of_another_config_is_refused(fitted, clip):
+    _, wd = fitted("adnerf")
+    other = create_method("adnerf", preset="tiny", hidden=16)
+    with pytest.raises(InputError, match="model.pt"):
+        other.fit(clip, seed=0, workdir=wd, progress=False)
+
+
+@pytest.mark.parametrize("name", ALL)
+def test_deterministic_with_seed(name, clip, tmp_path):
+    d = DrivingAudio(audio=clip.audio[: 8 * 640], w2c=clip.w2c[:8])
+    renders = []
+    for k, seed in enumerate((0, 0, 1)):
+        m = create_method(name, preset="tiny", **SHORT[name])
+        m.fit(clip, seed=seed, workdir=tmp_path / str(k), progress=False)
+        renders.append(m.render(d))
+    np.testing.assert_array_equal(renders[0], renders[1])
+    assert not np.array_equal(renders[0], renders[2])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ALL)
+def test_long_audio(name, fitted, clip):
+    m, _ = fitted(name)
+    t = np.arange(20 * 16000) / 16000
+    out = m.render(DrivingAudio(audio=(0.2 * np.sin(2 * np.pi * 200 * t)).astype(np.float32)))
+    assert out.shape == (500, clip.height, clip.width, 3) and out.dtype == np.uint8
