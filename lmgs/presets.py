@@ -29,6 +29,8 @@ class TrainConfig:
         lambda_dssim: weight of D-SSIM (3DGS: 0.2).
         lambda_depth, lambda_normal: Geometry Regularizer weights (paper: 1e-4 each).
         lambda_mouth: weight keeping the face transparent inside the mouth mask.
+        lambda_lips: weight of an extra L1 term on the box around the lips (landmarks 48-67),
+            TalkingGaussian's region emphasis: lip motion covers few pixels of the frame.
         budget_density: Gaussians per pixel of face area (the scene-derived budget).
         mouth_fraction: mouth-branch budget as a fraction of the face budget.
         checkpoint_every: steps between checkpoints.
@@ -47,6 +49,7 @@ class TrainConfig:
     lambda_depth: float = 1e-4
     lambda_normal: float = 1e-4
     lambda_mouth: float = 0.1
+    lambda_lips: float = 1.0
     budget_density: float = 0.12
     mouth_fraction: float = 0.25
     densify_every: int = 100

@@ -17,8 +17,6 @@ from __future__ import annotations
 import csv
 import io
 import pickle
-import os
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -62,16 +60,10 @@ def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
 
 
 def _atomic_save(obj, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.tmp-", dir=path.parent)
-    os.close(fd)
-    try:
+    from lmgs.fileio import atomic_path
+
+    with atomic_path(path) as tmp:
         torch.save(obj, tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def save_model(model: LMGSModel, path: Path, extra: dict | None = None) -> None:
@@ -260,6 +252,7 @@ def fit(
         bar = tqdm(total=total, initial=start, desc="lmgs fit", unit="step", leave=False)
     last_psnr, last_frac = float("nan"), float("nan")
     mouth_masks = clip.mouth_masks
+    lip_boxes = _lip_boxes(clip)
     use_geo = cfg.gr and clip.depth is not None and clip.normal is not None
     for step in range(start, total):
         i = int(order[step])
@@ -279,6 +272,9 @@ def fit(
             ref_d = torch.from_numpy(clip.depth[i].astype(np.float32)).to(dev)
             ref_n = torch.from_numpy(clip.normal[i].astype(np.float32) / 127.0).to(dev)
             loss = loss + losses.geometry(r.depth, r.normal, r.face_alpha, ref_d, ref_n, t.lambda_depth, t.lambda_normal)
+        if lip_boxes is not None and dynamic and t.lambda_lips > 0:
+            y0, y1, x0, x1 = lip_boxes[i]
+            loss = loss + t.lambda_lips * (r.rgb[y0:y1, x0:x1] - gt[y0:y1, x0:x1]).abs().mean()
         if not torch.isfinite(loss):
             if bar is not None:
                 bar.close()
@@ -319,6 +315,20 @@ def fit(
         if ckpt is not None and ckpt.exists():
             ckpt.unlink()
     return model, report
+
+
+def _lip_boxes(clip: TrainingClip, grow: float = 0.6) -> np.ndarray | None:
+    """Per frame ``(y0, y1, x0, x1)`` of the lips' box (landmarks 48-67) grown by ``grow``."""
+    if clip.landmarks2d is None:
+        return None
+    lips = np.asarray(clip.landmarks2d)[:, 48:68]
+    lo, hi = lips.min(1), lips.max(1)
+    c, half = (lo + hi) / 2, (hi - lo) / 2 * (1 + grow) + 2
+    x0 = np.clip(np.floor(c[:, 0] - half[:, 0]), 0, clip.width - 1).astype(int)
+    x1 = np.clip(np.ceil(c[:, 0] + half[:, 0]), 1, clip.width).astype(int)
+    y0 = np.clip(np.floor(c[:, 1] - half[:, 1]), 0, clip.height - 1).astype(int)
+    y1 = np.clip(np.ceil(c[:, 1] + half[:, 1]), 1, clip.height).astype(int)
+    return np.stack([y0, np.maximum(y1, y0 + 1), x0, np.maximum(x1, x0 + 1)], 1)
 
 
 def init_mouth_fallback(face: GaussianSet, n: int) -> GaussianSet:

@@ -9,6 +9,10 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
+from lmgs.fileio import atomic_path, atomic_write_bytes, public_mode
+
+__all__ = ["atomic_dir", "atomic_path", "atomic_write_bytes", "atomic_write_text", "cache_root", "data_root", "public_mode"]
+
 
 def cache_root() -> Path:
     """The user cache directory of the project (``$XDG_CACHE_HOME/lmgs`` or ``~/.cache/lmgs``)."""
@@ -36,6 +40,7 @@ def atomic_dir(final: Path) -> Iterator[Path]:
     final = Path(final)
     final.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.tmp-", dir=final.parent))
+    public_mode(tmp, directory=True)
     try:
         yield tmp
         if final.exists():
@@ -43,23 +48,6 @@ def atomic_dir(final: Path) -> Iterator[Path]:
         os.replace(tmp, final)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
-        raise
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file and a rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.tmp-", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
         raise
 
 

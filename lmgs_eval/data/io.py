@@ -243,46 +243,35 @@ def write_video(path: Path, frames: np.ndarray, fps: int = 25, audio: np.ndarray
 
     Written to a temporary file and renamed, so a reader never sees half a video.
     """
-    import os
-    import tempfile
-
     import av
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.tmp-", suffix=path.suffix or ".mp4", dir=path.parent)
-    os.close(fd)
+    from lmgs.fileio import atomic_path
+
     frames = to_u8(np.asarray(frames))
     t, h, w, _ = frames.shape
-    try:
-        with av.open(tmp, "w", format="mp4") as c:
-            vs = c.add_stream("libx264", rate=int(fps))
-            vs.width, vs.height = w - w % 2, h - h % 2
-            vs.pix_fmt = "yuv420p"
-            vs.options = {"crf": "18", "preset": "veryfast"}
-            as_ = None
-            if audio is not None and len(audio):
-                as_ = c.add_stream("aac", rate=int(sr))
-                as_.layout = "mono"
-            for i in range(t):
-                fr = av.VideoFrame.from_ndarray(np.ascontiguousarray(frames[i, : vs.height, : vs.width]), format="rgb24")
-                for p in vs.encode(fr):
-                    c.mux(p)
-            for p in vs.encode():
+    with atomic_path(path) as tmp, av.open(str(tmp), "w", format="mp4") as c:
+        vs = c.add_stream("libx264", rate=int(fps))
+        vs.width, vs.height = w - w % 2, h - h % 2
+        vs.pix_fmt = "yuv420p"
+        vs.options = {"crf": "18", "preset": "veryfast"}
+        as_ = None
+        if audio is not None and len(audio):
+            as_ = c.add_stream("aac", rate=int(sr))
+            as_.layout = "mono"
+        for i in range(t):
+            fr = av.VideoFrame.from_ndarray(np.ascontiguousarray(frames[i, : vs.height, : vs.width]), format="rgb24")
+            for p in vs.encode(fr):
                 c.mux(p)
-            if as_ is not None:
-                pcm = np.clip(np.rint(np.asarray(audio, np.float64) * 32767), -32768, 32767).astype(np.int16)
-                step = 1024
-                for k in range(0, len(pcm), step):
-                    af = av.AudioFrame.from_ndarray(pcm[None, k : k + step], format="s16", layout="mono")
-                    af.sample_rate = int(sr)
-                    af.pts = k
-                    for p in as_.encode(af):
-                        c.mux(p)
-                for p in as_.encode():
+        for p in vs.encode():
+            c.mux(p)
+        if as_ is not None:
+            pcm = np.clip(np.rint(np.asarray(audio, np.float64) * 32767), -32768, 32767).astype(np.int16)
+            step = 1024
+            for k in range(0, len(pcm), step):
+                af = av.AudioFrame.from_ndarray(pcm[None, k : k + step], format="s16", layout="mono")
+                af.sample_rate = int(sr)
+                af.pts = k
+                for p in as_.encode(af):
                     c.mux(p)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+            for p in as_.encode():
+                c.mux(p)
