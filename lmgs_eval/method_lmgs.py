@@ -32,7 +32,12 @@ class LMGSMethod:
         from lmgs.presets import preset as make_preset
 
         self.variant = variant
-        self.cfg = make_preset(preset).replace(**{**VARIANTS[variant], **(overrides or {})})
+        try:
+            self.cfg = make_preset(preset).replace(**{**VARIANTS[variant], **(overrides or {})})
+        except (TypeError, AttributeError) as exc:
+            from lmgs_eval.errors import UserError
+
+            raise UserError(f"--set: not a config field of lmgs ({exc})") from None
         self.device = device
         self.model = None
         self.report = None

@@ -16,6 +16,9 @@ def add_run_arguments(p: argparse.ArgumentParser, default_methods: tuple[str, ..
     p.add_argument("--data-root", help="folder of subjects (default: $LMGS_DATA or ~/.cache/lmgs/data)")
     p.add_argument("--device", help="cpu, cuda, cuda:1 (default: CUDA when present)")
     p.add_argument("--renders", help="for --method external:NAME: the video or frame folder it rendered")
+    p.add_argument("--set", dest="overrides", action="append", metavar="KEY=VALUE", default=[],
+                   help="override a config value of the method, dotted (e.g. train.dynamic_steps=4000, guidance.theta=0.4); "
+                        "the config hash changes with it")
     p.add_argument("--force", action="store_true", help="redo runs already in the results store")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.set_defaults(_default_methods=default_methods)
@@ -33,6 +36,7 @@ def run_config(args: argparse.Namespace):
 
             raise UserError(f"unknown method '{m}'; known: {', '.join(known)}")
     return RunConfig(
+        method_options=parse_overrides(args.overrides),
         subject=args.subject,
         methods=methods,
         preset=args.preset,
@@ -69,3 +73,21 @@ def print_rows(records: list[dict]) -> None:
                        for r in records for k, v in r["metrics"].items() if k in ("lpips", "lse_d", "lmd")})
     for b in backends:
         print(f"  {b}")
+
+
+def parse_overrides(items: list[str]) -> dict:
+    """``["a.b=1", "c=true"]`` -> ``{"overrides": {"a.b": 1, "c": True}}`` (JSON values, else strings)."""
+    import json
+
+    from lmgs_eval.errors import UserError
+
+    out = {}
+    for item in items or []:
+        if "=" not in item:
+            raise UserError(f"--set {item!r}: expected KEY=VALUE")
+        k, v = item.split("=", 1)
+        try:
+            out[k.strip()] = json.loads(v)
+        except json.JSONDecodeError:
+            out[k.strip()] = v
+    return {"overrides": out} if out else {}

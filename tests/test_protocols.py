@@ -1,0 +1,128 @@
+"""The protocols end to end through the CLI on a tiny bundled subject (64x64, 2 s)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import run_cli, write_pcm_wav
+from lmgs_eval.results import load_records, validate
+
+SUBJECT = "astronaut-64px-2s"
+FAST = ["--set", "train.static_steps=40", "--set", "train.dynamic_steps=40", "--set", "train.landmark_steps=20",
+        "--set", "train.densify_every=20"]
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    """One self-driven run of lmgs (tiny schedule) plus the ground-truth row."""
+    root = tmp_path_factory.mktemp("results")
+    rc, out, err = run_cli("self", "--subject", SUBJECT, "--results", str(root), "--no-progress", *FAST)
+    assert rc == 0, err
+    return root, out, err
+
+
+def test_self_writes_valid_records_renders_and_rows(store):
+    root, out, _ = store
+    records, warnings = load_records(root)
+    assert warnings == []
+    by = {r["method"]["name"]: r for r in records}
+    assert set(by) == {"ground-truth", "lmgs"}
+    for r in records:
+        assert validate(r) == []
+        render = root / r["artefacts"]["render"]["path"]
+        assert render.exists() and render.stat().st_size > 0
+    lm = by["lmgs"]
+    assert lm["subject"]["bundled"] and lm["subject"]["standin"]
+    assert lm["protocol"] == {"name": "self", "version": "1", "clip": "test", "split": "test", "n_frames": 5}
+    assert lm["config"]["train"]["dynamic_steps"] == 40  # --set reached the config and its hash
+    assert lm["cost"]["fps"] > 0 and lm["cost"]["n_gaussians"] > 0 and lm["cost"]["train_seconds"] > 0
+    assert any("GeneFace" in s for s in lm["method"]["standins"])
+    assert lm["metrics"]["lpips"]["backend"] in ("stlpips-alex", "lpips-alex")
+    assert 0 < lm["metrics"]["psnr"]["value"] < 100 and by["ground-truth"]["metrics"]["psnr"]["value"] == 100.0
+    assert by["ground-truth"]["metrics"]["lpips"]["value"] == pytest.approx(0.0, abs=1e-6)
+    assert "Ground Truth" in out and "Ours (lmgs)" in out
+
+
+def test_rerun_is_skipped_and_resumes(store):
+    root, _, _ = store
+    before = sorted(p.name for p in root.rglob("*.json"))
+    rc, _, err = run_cli("self", "--subject", SUBJECT, "--results", str(root), "--no-progress", *FAST)
+    assert rc == 0 and "already in" in err
+    assert sorted(p.name for p in root.rglob("*.json")) == before
+
+
+def test_table_and_verify_from_the_store(store, tmp_path):
+    root, _, _ = store
+    rc, out, _ = run_cli("table", "--results", str(root), "--out", str(tmp_path / "t"))
+    assert rc == 0 and "Ground Truth" in out
+    assert (tmp_path / "t" / "table1_self.md").exists() and (tmp_path / "t" / "table1_self.tex").exists()
+    rc, _, _ = run_cli("verify", str(root))
+    assert rc == 0
+
+
+def test_verify_catches_a_changed_render(store, tmp_path):
+    import shutil
+
+    root, _, _ = store
+    copy = tmp_path / "copy"
+    shutil.copytree(root, copy)
+    rec = next(r for r in load_records(copy)[0] if r["method"]["name"] == "lmgs")
+    with open(copy / rec["artefacts"]["render"]["path"], "ab") as f:
+        f.write(b"tampered")
+    rc, out, err = run_cli("verify", str(copy))
+    assert rc == 1 and "changed" in (out + err)
+
+
+def test_interrupted_run_leaves_no_partial_record(tmp_path, monkeypatch):
+    import lmgs_eval.protocols as protocols
+
+    def boom(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(protocols, "score_clip", boom)
+    rc, _, err = run_cli("self", "--subject", SUBJECT, "--results", str(tmp_path), "--no-progress", *FAST)
+    assert rc == 130 and "interrupted" in err
+    assert list(tmp_path.rglob("*.json")) == []
+    assert not [p for p in tmp_path.rglob("*") if ".tmp-" in p.name]
+
+
+def test_cross_with_user_audio_and_a_bad_file(tmp_path):
+    t = np.arange(int(44100 * 1.2)) / 44100
+    tone = 0.3 * np.sin(2 * np.pi * 220 * t) * (0.5 + 0.5 * np.sin(2 * np.pi * 3 * t))
+    good = tmp_path / "good.wav"
+    write_pcm_wav(good, np.stack([tone, tone], 1), 44100)  # stereo, 44.1 kHz: accepted with notes
+    empty = tmp_path / "empty.wav"
+    empty.write_bytes(b"")
+    short = tmp_path / "short.wav"
+    write_pcm_wav(short, np.zeros(1000), 16000)
+    res = tmp_path / "res"
+    rc, out, err = run_cli("cross", "--audio", str(good), str(empty), str(short), "--subject", SUBJECT,
+                           "--results", str(res), "--no-progress", *FAST)
+    assert rc == 1
+    assert "empty.wav" in err and "short.wav" in err and "shorter than 5 frames" in err
+    records, _ = load_records(res)
+    assert len(records) == 1
+    r = records[0]
+    assert r["protocol"]["name"] == "cross" and r["protocol"]["clip"] == "good" and r["protocol"]["n_frames"] == 30
+    assert any("mixed to mono" in n for n in r["notes"]) and any("44100" in n for n in r["notes"])
+    assert validate(r) == []
+
+
+def test_cross_bundled_clips_have_lmd(tmp_path):
+    rc, _, err = run_cli("cross", "--subject", SUBJECT, "--results", str(tmp_path), "--no-progress", *FAST)
+    assert rc == 0, err
+    records, _ = load_records(tmp_path)
+    assert sorted(r["protocol"]["clip"] for r in records) == ["A", "B"]
+    for r in records:
+        assert "lmd" in r["metrics"] and "lse_d" in r["metrics"]
+
+
+def test_unknown_method_and_subject(tmp_path):
+    rc, _, err = run_cli("self", "--method", "nope", "--results", str(tmp_path))
+    assert rc == 2 and "unknown method 'nope'" in err and "lmgs" in err
+    rc, _, err = run_cli("self", "--subject", "nobody", "--results", str(tmp_path))
+    assert rc == 2 and "unknown subject" in err and "astronaut" in err
