@@ -54,10 +54,10 @@ class TwoDBudget:
         landmark_steps: audio-to-landmark predictor steps (IP_LAP).
     """
 
-    steps: int = 1500
+    steps: int = 1200
     batch: int = 8
-    crop: int = 96
-    width: int = 32
+    crop: int = 64
+    width: int = 24
     lr: float = 1e-3
     sync_weight: float = 0.03
     landmark_steps: int = 300
@@ -299,7 +299,7 @@ class Wav2Lip(TwoDMethod):
 
     def describe(self):
         info = super().describe()
-        sync = "on" if self.config()["sync_loss"] else "off: no sync scorer importable"
+        sync = "on" if self.config()["sync_loss"] else "off: the project's sync scorer provides no differentiable sync_loss"
         return type(info)(**{**info.__dict__, "description": info.description.replace("{sync}", sync)})
 
     def _build(self, build: dict) -> Wav2LipNet:
