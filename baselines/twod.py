@@ -54,10 +54,10 @@ class TwoDBudget:
         landmark_steps: audio-to-landmark predictor steps (IP_LAP).
     """
 
-    steps: int = 1200
+    steps: int = 800
     batch: int = 8
-    crop: int = 64
-    width: int = 24
+    crop: int = 48
+    width: int = 16
     lr: float = 1e-3
     sync_weight: float = 0.03
     landmark_steps: int = 300
