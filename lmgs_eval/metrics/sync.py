@@ -41,6 +41,7 @@ CROP_SIZE = 224
 CROP_SCALE = 0.4
 PAD_VALUE = 110
 SMOOTH_KERNEL = 9
+MOUTH_BOX = (84, 196, 56, 168)  # rows, columns of the 224 crop around the mouth (region "mouth", bundled scorer)
 BUNDLED_DIR = Path(__file__).resolve().parent / "weights"
 
 LSE_SPEC = MetricSpec(
@@ -340,7 +341,7 @@ class SyncScorer:
     session: object
     sha256: str
     input_hw: tuple[int, int]
-    region: str  # "full" or "lower_half" of the 224 crop
+    region: str  # "full", "lower_half" or "mouth" (MOUTH_BOX) of the 224 crop
     pixel: str  # "bgr_0_255" or "bgr_0_1"
     standin: str = ""
 
@@ -350,6 +351,9 @@ class SyncScorer:
         x = crops224
         if self.region == "lower_half":
             x = x[:, CROP_SIZE // 2:]
+        elif self.region == "mouth":
+            r0, r1, c0, c1 = MOUTH_BOX
+            x = x[:, r0:r1, c0:c1]
         h, w = self.input_hw
         if x.shape[1:3] != (h, w):
             x = np.stack([cv2.resize(f, (w, h), interpolation=cv2.INTER_AREA) for f in x])
