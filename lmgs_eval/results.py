@@ -415,6 +415,10 @@ def metric_entries(result: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
                       "per_item": compact(result.get("per_item")), "values": dict(values)},
             "lse_c": {**base, "value": values.get("lse_c"), "higher_is_better": True, "backend": spec["backend"],
                       "per_item": None},
+            # |AV offset| in frames: LSE-D/C take the best of +-15 offsets by definition, so a
+            # shifted audio track is seen here, not in them.
+            "av_offset": {**base, "value": None if values.get("offset") is None else abs(int(values["offset"])),
+                          "unit": "frames", "higher_is_better": False, "backend": spec["backend"], "per_item": None},
         }
     key = _CANONICAL.get(name, name)
     backend = name if key == "lpips" else spec["backend"]

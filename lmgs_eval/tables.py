@@ -47,6 +47,7 @@ METRICS: dict[str, tuple[str, bool, int]] = {
     "lmd": ("LMD", False, 2),
     "lse_d": ("LSE-D", False, 3),
     "lse_c": ("LSE-C", True, 3),
+    "av_offset": ("|AV offset|", False, 0),
 }
 FAMILY_ORDER = ("ground-truth", "2D", "NeRF", "3DGS", "external", "control")
 OURS = "lmgs"
@@ -647,7 +648,7 @@ def _separates(gt: Cell, ctl: Cell, hib: bool) -> bool:
 
 
 def table_calibration(records: Sequence[Record],
-                      metrics: Sequence[str] = ("psnr", "lpips", "lmd", "lse_d", "lse_c")) -> Table:
+                      metrics: Sequence[str] = ("psnr", "lpips", "lmd", "lse_d", "lse_c", "av_offset")) -> Table:
     """Calibration (issue 9): the ground truth against its negative controls, per subject.
 
     A metric *separates* when, for every control that targets it (``method.control.targets``;

@@ -29,10 +29,16 @@ def test_self_writes_valid_records_renders_and_rows(store):
     root, out, _ = store
     records, warnings = load_records(root)
     assert warnings == []
-    by = {r["method"]["name"]: r for r in records}
-    assert set(by) == {"ground-truth", "lmgs"}
     for r in records:
         assert validate(r) == []
+    controls = [r for r in records if r["method"]["family"] == "control"]
+    assert sorted(r["method"]["name"] for r in controls) == [
+        "control:gt-audio+10", "control:gt-audio+5", "control:gt-audio-10", "control:gt-audio-5",
+        "control:gt-other-audio", "control:still-frame"]
+    assert all(r["protocol"]["name"] == "calibration" and r["method"]["control"]["targets"] for r in controls)
+    by = {r["method"]["name"]: r for r in records if r["method"]["family"] != "control"}
+    assert set(by) == {"ground-truth", "lmgs"}
+    for r in by.values():
         render = root / r["artefacts"]["render"]["path"]
         assert render.exists() and render.stat().st_size > 0
     lm = by["lmgs"]

@@ -105,3 +105,23 @@ def test_ground_truth_confidence_above_wrong_audio(scorer, clips):
         gts.append(gt["lse_c"])
         wrs.append(wr["lse_c"])
     assert np.mean(gts) > 2.0 * np.mean(wrs), (gts, wrs)
+
+
+def test_calibration_controls_separate_on_held_out_clips(scorer, clips):
+    """The self protocol's negative controls (issue 9): shifted audio is caught by the AV
+    offset (LSE-D/C take the best of +-15 offsets by definition), other audio and a still
+    frame by LSE-C."""
+    from lmgs_eval.protocols import control_clips
+
+    frames, audio, _ = clips[0]
+    gt = sync.lse(frames, audio, scorer=scorer).values
+    seen = set()
+    for name, _, control, f, a in control_clips(frames, audio, clips[1][1]):
+        v = sync.lse(f, a, scorer=scorer).values
+        seen.add(control["kind"])
+        if control["kind"] == "audio-shift":
+            assert v["offset"] == -control["frames"], (name, v)
+        else:
+            assert v["lse_c"] < 0.5 * gt["lse_c"], (name, v, gt)
+            assert v["lse_d"] > gt["lse_d"], (name, v, gt)
+    assert seen == {"audio-shift", "other-audio", "still-frame"}
