@@ -87,6 +87,8 @@ def timed_render(method, driving: DrivingAudio, timings: dict | None = None) -> 
     t0 = time.perf_counter()
     frames = method.render(driving, **kw)
     secs = time.perf_counter() - t0
+    if np.issubdtype(frames.dtype, np.floating) and not np.isfinite(frames).all():
+        raise RuntimeError(f"{method.describe().name} rendered non-finite output")
     if frames.shape[0] != n or frames.dtype != np.uint8:
         raise RuntimeError(f"{method.describe().name} rendered {frames.shape} {frames.dtype}, expected {n} uint8 frames")
     return frames, {"fps": n / secs if secs > 0 else None, "render_seconds": secs, "first_frame_ms": 1000 * first / max(k, 1),

@@ -48,6 +48,8 @@ METRICS: dict[str, tuple[str, bool, int]] = {
     "lse_d": ("LSE-D", False, 3),
     "lse_c": ("LSE-C", True, 3),
     "av_offset": ("|AV offset|", False, 0),
+    "jitter": ("Jitter (px)", False, 3),
+    "silence_open": ("Open in silence (px)", False, 2),
 }
 FAMILY_ORDER = ("ground-truth", "2D", "NeRF", "3DGS", "external", "control")
 OURS = "lmgs"

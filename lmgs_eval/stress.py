@@ -1,0 +1,227 @@
+"""The stability suite (issue 8): drive trained models with perturbed audio, record where they break.
+
+For each method and each condition of :mod:`lmgs_eval.perturb` (made from the subject's
+clean test audio and, for "another voice", the bundled cross-driven clip A), the driving
+audio goes through the same loading path as a user's file (:func:`~lmgs_eval.data.io.to_mono_16k`:
+stereo mixed down, other rates resampled), is rendered, and is recorded under protocol
+``stress`` with clip = the condition name:
+
+* LSE-D / LSE-C / |AV offset| (flagged on silence, where they mean nothing);
+* LMD against ground truth where the condition keeps the test split's timing (``aligned``)
+  or brings its own (other voice);
+* **jitter**: mean over frames and mouth points 48-67 of ``|l[t+1] - 2 l[t] + l[t-1]|`` in
+  pixels (landmark acceleration; dlib landmarks of the rendered frames);
+* **silence_open**: mean inner-lip opening ``|l66 - l62|`` in pixels over the frames inside
+  the condition's silent spans (a resting mouth is near 0 px);
+* failures: a crash, non-finite or wrongly shaped output, frozen output (every frame equal
+  while the audio is not silent), no face found in most frames. A failed condition gets
+  ``status.state = "failed"`` with the reason, and the suite goes on.
+"""
+
+from __future__ import annotations
+
+import time
+import traceback
+
+import numpy as np
+
+from lmgs.types import DrivingAudio
+from lmgs_eval.errors import UserError
+from lmgs_eval.metrics.base import MetricResult, MetricSpec
+from lmgs_eval.perturb import VERSION as PERTURB_VERSION
+from lmgs_eval.perturb import Condition, make_conditions
+from lmgs_eval.protocols import (RunConfig, _cost_block, _cycle, _write_render, build_record, bundled_cross_clips,
+                                 fit_method, log, metrics_block, timed_render)
+
+MOUTH = slice(48, 68)
+JITTER_SPEC = MetricSpec(
+    name="jitter", higher_is_better=False, unit="px", backend="dlib", version="1",
+    definition="mouth points 48-67 of dlib 68-point landmarks of the rendered frames; per frame t the mean over the "
+               "20 points of |l[t+1] - 2 l[t] + l[t-1]| (pixels of the full frame); mean over frames with a face in "
+               "all three", per="frame")
+SILENCE_OPEN_SPEC = MetricSpec(
+    name="silence_open", higher_is_better=False, unit="px", backend="dlib", version="1",
+    definition="inner-lip opening |l66 - l62| of dlib 68-point landmarks in pixels, mean over the frames inside the "
+               "condition's silent spans (a resting mouth is near 0)", per="frame")
+LONG_CLIP_FRAMES = 1000  # above this, LSE detects faces every 5 frames (boxes are median-smoothed anyway)
+
+
+def jitter_result(lms: np.ndarray) -> MetricResult:
+    """Landmark acceleration of the mouth (see :data:`JITTER_SPEC`) from ``[T, 68, 2]`` (NaN rows: no face)."""
+    m = np.asarray(lms, np.float64)[:, MOUTH]
+    n = len(m)
+    if n < 3:
+        return MetricResult(JITTER_SPEC, None, {}, np.zeros(0), n, 0, available=False, reason="fewer than 3 frames")
+    acc = np.linalg.norm(m[2:] - 2 * m[1:-1] + m[:-2], axis=-1).mean(axis=1)
+    ok = np.isfinite(acc)
+    flags = [] if ok.all() else [f"no_face: {int((~ok).sum())} of {len(acc)} triple(s) without landmarks, not scored"]
+    val = float(acc[ok].mean()) if ok.any() else None
+    return MetricResult(JITTER_SPEC, val, {"jitter": val}, acc, len(acc), int(ok.sum()), flags,
+                        available=val is not None, reason="" if val is not None else "no face found")
+
+
+def silence_open_result(lms: np.ndarray, spans, fps: float = 25.0) -> MetricResult | None:
+    """Mean inner-lip opening over the frames in ``spans`` (seconds); None without spans."""
+    if not spans:
+        return None
+    t = (np.arange(len(lms)) + 0.5) / fps
+    sel = np.zeros(len(lms), bool)
+    for a, b in spans:
+        sel |= (t >= a) & (t < b)
+    opening = np.linalg.norm(np.asarray(lms, np.float64)[:, 66] - np.asarray(lms, np.float64)[:, 62], axis=-1)[sel]
+    ok = np.isfinite(opening)
+    val = float(opening[ok].mean()) if ok.any() else None
+    return MetricResult(SILENCE_OPEN_SPEC, val, {"silence_open": val}, opening, int(sel.sum()), int(ok.sum()),
+                        available=val is not None, reason="" if val is not None else "no face found")
+
+
+def check_output(frames, n: int, audio: np.ndarray) -> str | None:
+    """Why an output counts as failed (None when it does not)."""
+    if not isinstance(frames, np.ndarray) or frames.ndim != 4 or frames.shape[0] != n:
+        return f"wrong output shape {getattr(frames, 'shape', type(frames).__name__)}, expected {n} frames"
+    if frames.dtype != np.uint8 and not np.isfinite(frames).all():
+        return "non-finite output"
+    if n > 1 and float(np.sqrt(np.mean(audio.astype(np.float64) ** 2))) > 1e-4:
+        if np.array_equal(frames[0], frames[-1]) and not np.any(frames.reshape(n, -1).std(axis=0) > 0):
+            return "frozen output: every frame identical while the audio is not silent"
+    return None
+
+
+def condition_driving(cond: Condition, test_clip) -> tuple[np.ndarray, DrivingAudio, list[str]]:
+    """The condition's audio through the user-file path, and a driving clip cycled over the test cameras."""
+    audio, notes = to_16k(cond)
+    n = len(audio) // 640
+    if n < 1:
+        raise UserError(f"condition {cond.name}: shorter than one frame")
+    audio = audio[: n * 640]
+    driving = DrivingAudio(audio=audio, w2c=_cycle(test_clip.w2c, n), backgrounds=_cycle(test_clip.backgrounds, n),
+                           blink=None if test_clip.blink is None else _cycle(test_clip.blink, n))
+    return audio, driving, notes
+
+
+def to_16k(cond: Condition) -> tuple[np.ndarray, list[str]]:
+    from lmgs_eval.data.io import to_mono_16k
+
+    return to_mono_16k(cond.audio, cond.sample_rate, f"condition {cond.name}")
+
+
+def run_stress(cfg: RunConfig, conditions: tuple[str, ...] | None = None, max_minutes: float = 15.0,
+               long_seconds: float = 300.0) -> tuple[list[dict], list[str]]:
+    """The stability suite for every method and seed; returns (records written, messages).
+
+    ``max_minutes``: a condition whose predicted rendering time (frames / clean FPS) is
+    longer is not run and is reported (never recorded as a failure it did not have).
+    """
+    from lmgs_eval import results as store
+    from lmgs_eval.data.registry import find_subject
+    from lmgs_eval.methods import create_method, driving_from_subject, subject_to_clip
+    from lmgs_eval.metrics.landmarks import DlibBackend, lmd_result
+    from lmgs_eval.metrics.sync import lse
+    from lmgs_eval.protocols import score_clip
+
+    subject = find_subject(cfg.subject, cfg.data_root, progress=cfg.progress)
+    test = subject_to_clip(subject, subject.test_ids, progress=cfg.progress)
+    clips = bundled_cross_clips(subject) if subject.bundled else []
+    other = clips[0] if clips else None
+    conds = make_conditions(test.audio, seed=0, other_voice=None if other is None else other.audio, long_seconds=long_seconds)
+    if conditions:
+        unknown = sorted(set(conditions) - {c.name for c in conds})
+        if unknown:
+            raise UserError(f"unknown condition(s) {', '.join(unknown)}; known: {', '.join(c.name for c in conds)}")
+        conds = [c for c in conds if c.name in conditions or c.name == "clean"]
+    backend = DlibBackend()
+    gt_lms = backend.landmarks(test.frames.astype(np.float32) / 255.0)
+    gt_found = float(np.isfinite(gt_lms).all(axis=(1, 2)).mean())
+    other_gt_lms = None
+    messages, records = [], []
+    train = None
+    for name in cfg.methods:
+        for seed in cfg.seeds:
+            method = create_method(name, **{"preset": cfg.preset, **cfg.method_options})
+            info = method.describe()
+            ch = f"{info.config_hash}-stress{PERTURB_VERSION}"
+            todo = [c for c in conds if cfg.force or not _done(cfg.results, info.name, subject.name, c.name, seed, ch)]
+            if not todo:
+                log(f"{info.name} seed {seed}: stress conditions already in {cfg.results}; skipped")
+                continue
+            if train is None:
+                train = subject_to_clip(subject, subject.train_ids, progress=cfg.progress)
+            fit_cost = fit_method(method, train, subject, seed, cfg.progress)
+            clean_fps = None
+            for cond in sorted(todo, key=lambda c: c.name != "clean"):
+                t0 = time.perf_counter()
+                try:
+                    audio, driving, notes = condition_driving(cond, test)
+                except UserError as exc:
+                    messages.append(f"{info.name}: {exc}")
+                    continue
+                n = driving.n_frames
+                if clean_fps and n / clean_fps > 60 * max_minutes:
+                    messages.append(f"{info.name} / {cond.name}: not run, {n} frames at {clean_fps:.1f} FPS would take "
+                                    f"{n / clean_fps / 60:.0f} min (> --max-minutes {max_minutes:g})")
+                    continue
+                status, metrics, art, rc = None, {}, {}, {}
+                try:
+                    if cond.name == "clean":
+                        driving = driving_from_subject(subject, subject.test_ids, test)
+                    frames, rc = timed_render(method, driving)
+                    if cond.name == "clean":
+                        clean_fps = rc.get("fps")
+                    why = check_output(frames, n, audio)
+                    if why is None:
+                        pf = frames.astype(np.float32) / 255.0
+                        lms = backend.landmarks(pf)
+                        res = {"lse": lse(pf, audio, detect_every=5 if n > LONG_CLIP_FRAMES else 1), "jitter": jitter_result(lms)}
+                        so = silence_open_result(lms, cond.silent_spans)
+                        if so is not None:
+                            res["silence_open"] = so
+                        gl = None
+                        if cond.aligned and n <= len(gt_lms):
+                            gl = gt_lms[:n]
+                        elif cond.name == "other-voice" and other is not None and other.gt_frames is not None:
+                            if other_gt_lms is None:
+                                other_gt_lms = backend.landmarks(other.gt_frames.astype(np.float32) / 255.0)
+                            gl = other_gt_lms[:n] if len(other_gt_lms) >= n else None
+                        if gl is not None:
+                            res["lmd"] = lmd_result(lms, gl)
+                        if cond.name == "clean":  # the reference-based metrics too (no audio: LSE is above)
+                            res.update({k: v for k, v in score_clip(frames, test.frames, None, lmd=False).items() if k != "lse"})
+                        metrics = metrics_block(res)
+                        found = float(np.isfinite(lms).all(axis=(1, 2)).mean())
+                        if gt_found >= 0.5 and found < 0.5:  # only when dlib finds the ground truth's face
+                            why = f"no face detected in {100 * (1 - found):.0f}% of frames"
+                        elif gt_found < 0.5:
+                            notes = list(notes) + [f"no-face check off: dlib finds a face in only {100 * gt_found:.0f}% "
+                                                   "of the ground-truth test frames"]
+                    if why is not None:
+                        status = {"state": "failed", "reason": why}
+                    if n <= LONG_CLIP_FRAMES:
+                        safe = info.name.replace(":", "_")
+                        art = {"render": _write_render(cfg.results, f"renders/{subject.name}/stress/{safe}-seed{seed}-{cond.name}.mp4",
+                                                       frames, audio)}
+                except Exception as exc:  # a crash on one condition is a recorded failure, the suite goes on
+                    if isinstance(exc, KeyboardInterrupt):
+                        raise
+                    status = {"state": "failed", "reason": f"crash: {exc.__class__.__name__}: {str(exc)[:200]}"}
+                    notes = list(notes) + ["traceback: " + traceback.format_exc(limit=3).replace("\n", " | ")[-600:]]
+                cost = _cost_block(method, fit_cost, rc) if rc else {}
+                cost["wall_seconds"] = time.perf_counter() - t0
+                rec = build_record(info=info, subject=subject, protocol="stress", clip=cond.name, split=cond.description,
+                                   n_frames=n, seed=seed, metrics=metrics, cost=cost, artefacts=art,
+                                   notes=list(notes) + [f"perturbation set v{PERTURB_VERSION}: {cond.description}"])
+                rec["config_hash"] = ch
+                if status is not None:
+                    rec["status"] = status
+                store.write_record(cfg.results, rec)
+                records.append(rec)
+                state = "FAILED: " + status["reason"] if status else "ok"
+                log(f"{info.name} / {cond.name}: {n} frames, {state} [{cost['wall_seconds']:.0f} s]")
+    return records, messages
+
+
+def _done(root, method: str, subject: str, clip: str, seed: int, ch: str) -> bool:
+    """A finished record (a failed run is retried: the failure may have been fixed)."""
+    from lmgs_eval.results import find_record
+
+    r = find_record(root, method, subject, "stress", clip, seed, ch)
+    return r is not None and (r.get("status") or {}).get("state") != "failed"

@@ -1,0 +1,119 @@
+"""The stability suite on a tiny bundled subject: every condition runs, broken methods are
+recorded as failed without stopping the suite, and the stress metrics match hand-computed cases."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lmgs_eval import methods
+from lmgs_eval.methods import MethodInfo
+from lmgs_eval.perturb import make_conditions
+from lmgs_eval.protocols import RunConfig
+from lmgs_eval.results import load_records, validate
+from lmgs_eval.stress import check_output, jitter_result, run_stress, silence_open_result
+
+SUBJECT = "astronaut-64px-2s"
+
+
+class _Toy:
+    """A cheap method: the background with a bar whose height follows the audio energy."""
+
+    mode = "ok"
+
+    def __init__(self, preset: str = "quick", **_):
+        self.name = f"toy-{self.mode}"
+
+    def describe(self):
+        return MethodInfo(self.name, self.name, "2D", f"test method ({self.mode})", config={"mode": self.mode},
+                          config_hash=f"toy{self.mode}")
+
+    def fit(self, clip, *, seed, workdir, progress=True):
+        self.shape = clip.frames.shape[1:]
+
+    def render(self, driving):
+        n = driving.n_frames
+        a = driving.audio[: n * 640].reshape(n, 640)
+        rms = np.sqrt((a.astype(np.float64) ** 2).mean(axis=1))
+        if self.mode == "raise" and rms.max() == 0 and n > 3:  # (3: the warm-up render)
+            raise ValueError("cannot handle silence")
+        if self.mode == "nan" and n > 1000:
+            return np.full((n, *self.shape), np.nan, np.float32)
+        if self.mode == "frozen":
+            return np.repeat(driving.backgrounds[:1], n, axis=0)
+        out = driving.backgrounds.copy()
+        for t in range(n):
+            out[t, 40:40 + int(min(20, 200 * rms[t])), 28:36] = 0
+        return out
+
+    def cost(self):
+        return {"n_params": 0, "model_mb": 0.0}
+
+
+def _register(monkeypatch, mode):
+    cls = type(f"Toy{mode}", (_Toy,), {"mode": mode})
+    monkeypatch.setitem(methods._REGISTRY, f"toy-{mode}", cls)
+    return f"toy-{mode}"
+
+
+def test_every_condition_runs_and_broken_methods_are_recorded_as_failed(monkeypatch, tmp_path):
+    names = [_register(monkeypatch, m) for m in ("ok", "raise", "nan", "frozen")]
+    cfg = RunConfig(subject=SUBJECT, methods=tuple(names), results=tmp_path, progress=False)
+    records, messages = run_stress(cfg, long_seconds=60.0)
+    assert messages == []
+    recs, warnings = load_records(tmp_path)
+    assert warnings == [] and len(recs) == len(records)
+    for r in recs:
+        assert validate(r) == [], validate(r)
+    by = {(r["method"]["name"], r["protocol"]["clip"]): r for r in recs}
+    conds = {c.name for c in make_conditions(np.ones(16000, np.float32), other_voice=np.ones(8000, np.float32), long_seconds=60.0)}
+    for name in names:
+        assert {c for (m, c) in by if m == name} == conds  # the suite went on after every failure
+    failed = {k: r["status"]["reason"] for k, r in by.items() if r.get("status", {}).get("state") == "failed"}
+    assert not any(m == "toy-ok" for m, _ in failed)
+    assert failed[("toy-raise", "silence")].startswith("crash: ValueError: cannot handle silence")
+    assert [c for (m, c) in failed if m == "toy-raise"] == ["silence"]
+    assert "non-finite" in failed[("toy-nan", "long-1min")]
+    assert [c for (m, c) in failed if m == "toy-nan"] == ["long-1min"]
+    assert failed[("toy-frozen", "clean")].startswith("frozen output")
+    assert ("toy-frozen", "silence") not in failed  # a still mouth on silence is right
+    # the stressed inputs went through the user-file path: 44.1 kHz and stereo become 16 kHz mono
+    assert by[("toy-ok", "rate-44k")]["protocol"]["n_frames"] == by[("toy-ok", "clean")]["protocol"]["n_frames"]
+    assert any("resampled from 44100" in n for n in by[("toy-ok", "rate-44k")]["notes"])
+    assert any("channels mixed to mono" in n for n in by[("toy-ok", "stereo")]["notes"])
+    assert by[("toy-ok", "long-1min")]["protocol"]["n_frames"] == 1500
+    # resume: a second run redoes only the failed conditions
+    records2, _ = run_stress(RunConfig(subject=SUBJECT, methods=("toy-ok",), results=tmp_path, progress=False), long_seconds=60.0)
+    assert records2 == []
+    # the stability table and heat-map come from these records
+    from lmgs_eval import tables
+
+    md = tables.table_stability(recs, "jitter").markdown() if any("jitter" in r["metrics"] for r in recs) else \
+        tables.table_stability(recs, "lse_c").markdown()
+    assert "failed" in md
+
+
+def test_jitter_and_silence_opening_by_hand():
+    lms = np.zeros((5, 68, 2))
+    lms[:, 48:68, 1] = np.array([0, 0, 1, 0, 0])[:, None]  # one frame jumps 1 px
+    r = jitter_result(lms)
+    # accelerations at t=1,2,3: 1, -2, 1 -> mean |.| = 4/3
+    assert r.value == pytest.approx(4 / 3) and r.n_effective == 3
+    lms[:, 66, 1] = 3.0
+    lms[:, 62, 1] = 1.0
+    s = silence_open_result(lms, ((0.0, 0.08),), fps=25.0)  # frame centres 0.02, 0.06
+    assert s.n_original == 2 and s.value == pytest.approx(2.0)
+    assert silence_open_result(lms, ()) is None
+    lms[2] = np.nan
+    assert jitter_result(lms).n_effective == 0 and jitter_result(lms).value is None
+
+
+def test_check_output_names_the_failure():
+    audio = np.random.default_rng(0).standard_normal(3 * 640).astype(np.float32)
+    ok = np.random.default_rng(1).integers(0, 255, (3, 8, 8, 3), dtype=np.uint8)
+    assert check_output(ok, 3, audio) is None
+    assert "frozen" in check_output(np.repeat(ok[:1], 3, axis=0), 3, audio)
+    assert check_output(np.repeat(ok[:1], 3, axis=0), 3, np.zeros_like(audio)) is None
+    assert "shape" in check_output(ok[:2], 3, audio)
