@@ -183,9 +183,65 @@ def stability_heatmap(records: Sequence[dict[str, Any]], out_dir: str | Path, me
     return [png]
 
 
+def capacity_charts(records: Sequence[dict[str, Any]], out_dir: str | Path) -> list[Path]:
+    """``capacity_<subject>.png/svg``: quality and cost against the Gaussian count, the knee marked.
+
+    One column per quantity (PSNR, LPIPS, LMD, FPS, MB, training minutes), x = the final number
+    of Gaussians (log); a dashed line at the knee (:func:`lmgs_eval.capacity.knee`) and a
+    dotted one at the count of the ``lmgs`` self-driven run (the quick preset's default).
+    """
+    from lmgs_eval.capacity import knee, points_from_records, tolerance_text
+
+    per_subject = points_from_records(records)
+    if not per_subject:
+        return []
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    panels = (("psnr", "PSNR (dB) ↑", 1), ("lpips", "LPIPS ↓", 1), ("lmd", "LMD (px) ↓", 1),
+              ("fps", "FPS ↑", 1), ("model_mb", "model MB ↓", 1), ("train_seconds", "training min ↓", 1 / 60))
+    files = []
+    for subject, pts in sorted(per_subject.items()):
+        by_budget: dict[int, list[dict]] = {}
+        for p in pts:
+            by_budget.setdefault(p["budget"], []).append(p)
+        mean = []
+        for b, ps in sorted(by_budget.items()):
+            row = {"budget": b}
+            for k in ("n_gaussians", "psnr", "lpips", "lmd", "fps", "model_mb", "train_seconds"):
+                vals = [q[k] for q in ps if q.get(k) is not None]
+                row[k] = float(np.mean(vals)) if vals else None
+            mean.append(row)
+        k_pt = knee(mean)
+        default = [r["cost"].get("n_gaussians") for r in records if r["protocol"]["name"] == "self"
+                   and r["method"]["name"] == "lmgs" and r["subject"]["name"] == subject and (r.get("cost") or {}).get("n_gaussians")]
+        with matplotlib.rc_context(_RC):
+            fig, axes = plt.subplots(1, len(panels), figsize=(2.6 * len(panels), 2.8))
+            for ax, (key, label, scale) in zip(axes, panels):
+                xs = [r["n_gaussians"] or r["budget"] for r in mean if r.get(key) is not None]
+                ys = [r[key] * scale for r in mean if r.get(key) is not None]
+                ax.plot(xs, ys, "o-", color=FAMILY_COLOURS["3DGS"])
+                ax.set_xscale("log")
+                ax.set_title(label)
+                ax.set_xlabel("Gaussians (log)")
+                if k_pt is not None:
+                    ax.axvline(k_pt["n_gaussians"] or k_pt["budget"], color="0.3", ls="--", lw=1)
+                if default:
+                    ax.axvline(float(np.mean(default)), color="#d62728", ls=":", lw=1)
+            fig.suptitle(f"{subject}: capacity (dashed: knee, {tolerance_text()}; dotted: quick default)", fontsize=8)
+            fig.tight_layout()
+            files += _save(fig, out_dir / f"capacity_{subject}")
+            plt.close(fig)
+    return files
+
+
 def all_charts(records: Sequence[dict[str, Any]], out_dir: str | Path) -> list[Path]:
-    """Every chart the records allow: the speed charts and one heat-map per stressed metric."""
-    files = speed_charts(records, out_dir)
+    """Every chart the records allow: speed charts, one heat-map per stressed metric, capacity."""
+    files = speed_charts(records, out_dir) + capacity_charts(records, out_dir)
     stressed = sorted({k for r in records if r["protocol"]["name"] == "stress" for k in r["metrics"] if k in T.METRICS})
     for m in stressed:
         files += stability_heatmap(records, out_dir, m)

@@ -281,22 +281,32 @@ def run_self(cfg: RunConfig) -> list[dict]:
             if not cfg.force and store.find_record(cfg.results, info.name, subject.name, "self", "test", seed, info.config_hash):
                 log(f"{info.name} seed {seed}: already in {cfg.results} (same config {info.config_hash}); skipped")
                 continue
-            log(f"{info.name} seed {seed}: fitting on {len(train)} frames")
-            fit_cost = fit_method(method, train, subject, seed, cfg.progress)
-            timings: dict = {}
-            frames, rc = timed_render(method, driving, timings)
-            log(f"{info.name}: {len(frames)} frames at {rc['fps']:.1f} FPS; scoring")
-            res = score_clip(frames, gt, test.audio)
-            art = {"render": _write_render(cfg.results, f"{renders_dir}/{info.name.replace(':', '_')}-seed{seed}.mp4", frames, test.audio)}
-            ck = Path(fit_cost["workdir"]) / "model.pt"
-            if ck.exists():
-                art["checkpoint"] = {"path": str(ck), "sha256": store.sha256_file(ck)}
-            rec = build_record(info=info, subject=subject, protocol="self", clip="test", split="test", n_frames=len(frames),
-                               seed=seed, metrics=metrics_block(res), cost=_cost_block(method, fit_cost, rc, timings or None),
-                               artefacts=art, notes=list(subject.notes))
-            store.write_record(cfg.results, rec)
-            records.append(rec)
+            records.append(fit_render_score(cfg, method, subject, seed, train, driving, gt,
+                                            f"{renders_dir}/{info.name.replace(':', '_')}-seed{seed}.mp4"))
     return records
+
+
+def fit_render_score(cfg: RunConfig, method, subject, seed: int, train, driving: DrivingAudio, gt: np.ndarray, render_rel: str,
+                     protocol: str = "self", clip: str = "test") -> dict:
+    """Fit (or reload) one method, render the test split from its audio, score, record; returns the record."""
+    from lmgs_eval import results as store
+
+    info = method.describe()
+    log(f"{info.name} seed {seed}: fitting on {len(train)} frames")
+    fit_cost = fit_method(method, train, subject, seed, cfg.progress)
+    timings: dict = {}
+    frames, rc = timed_render(method, driving, timings)
+    log(f"{info.name}: {len(frames)} frames at {rc['fps']:.1f} FPS; scoring")
+    res = score_clip(frames, gt, driving.audio)
+    art = {"render": _write_render(cfg.results, render_rel, frames, driving.audio)}
+    ck = Path(fit_cost["workdir"]) / "model.pt"
+    if ck.exists():
+        art["checkpoint"] = {"path": str(ck), "sha256": store.sha256_file(ck)}
+    rec = build_record(info=info, subject=subject, protocol=protocol, clip=clip, split="test", n_frames=len(frames),
+                       seed=seed, metrics=metrics_block(res), cost=_cost_block(method, fit_cost, rc, timings or None),
+                       artefacts=art, notes=list(subject.notes))
+    store.write_record(cfg.results, rec)
+    return rec
 
 
 # ----------------------------------------------------------------------------- calibration

@@ -1,0 +1,51 @@
+"""Capacity: the knee rule by hand, and the command end to end on a tiny subject."""
+
+from __future__ import annotations
+
+import pytest
+
+from conftest import run_cli
+from lmgs_eval.capacity import knee, points_from_records
+from lmgs_eval.results import load_records, validate
+
+FAST = ["--set", "train.static_steps=30", "--set", "train.dynamic_steps=30", "--set", "train.landmark_steps=10",
+        "--set", "train.densify_every=20"]
+
+
+def _p(b, psnr, lpips, lmd):
+    return {"budget": b, "psnr": psnr, "lpips": lpips, "lmd": lmd}
+
+
+def test_knee_is_the_smallest_budget_within_tolerance_of_the_best():
+    pts = [_p(500, 28.0, 0.060, 1.50), _p(1000, 29.8, 0.041, 1.10), _p(2000, 30.0, 0.040, 1.04),
+           _p(5000, 30.05, 0.039, 1.02)]
+    # 1000: PSNR within 0.3 dB of 30.05 but LPIPS 0.041 > 0.039 x 1.05 = 0.04095 -> not yet
+    assert knee(pts)["budget"] == 2000
+    pts[1]["lpips"] = 0.0409
+    assert knee(pts)["budget"] == 2000  # LMD 1.10 > 1.02 x 1.05 = 1.071 still
+    pts[1]["lmd"] = 1.07
+    assert knee(pts)["budget"] == 1000
+    # a metric missing everywhere is ignored; the order of the input does not matter
+    assert knee([_p(b, p, l, None) for b, p, l, _ in [(5000, 30.0, 0.04, 0), (500, 29.9, 0.0401, 0)]])["budget"] == 500
+    assert knee([]) is None
+
+
+def test_capacity_command_records_each_budget(tmp_path):
+    rc, out, err = run_cli("capacity", "--subject", "astronaut-64px-2s", "--results", str(tmp_path), "--no-progress",
+                           "--budget", "500", "--budget", "900", *FAST)
+    assert rc == 0, err
+    recs, warnings = load_records(tmp_path)
+    assert warnings == [] and len(recs) == 2
+    for r in recs:
+        assert validate(r) == [] and r["protocol"]["name"] == "capacity"
+    pts = sorted(points_from_records(recs)["astronaut-64px-2s"], key=lambda p: p["budget"])
+    assert [p["budget"] for p in pts] == [500, 900]
+    # the budget reached the model: the larger budget ends with more Gaussians, within its cap
+    assert pts[0]["n_gaussians"] < pts[1]["n_gaussians"] <= 900 * 1.3
+    assert "<- knee" in out and (tmp_path / "tables" / "capacity_astronaut-64px-2s.png").exists()
+    assert recs[0]["config_hash"] != recs[1]["config_hash"]
+    rc, _, err = run_cli("capacity", "--subject", "astronaut-64px-2s", "--results", str(tmp_path), "--no-progress",
+                         "--budget", "500", *FAST)
+    assert rc == 0 and "already in" in err
+    rc, _, err = run_cli("capacity", "--method", "wav2lip", "--results", str(tmp_path))
+    assert rc == 2 and "lmgs only" in err
