@@ -69,6 +69,7 @@ def points_from_records(records: Sequence[dict]) -> dict[str, list[dict[str, Any
 def run_capacity(cfg: RunConfig, budgets: Sequence[int] = DEFAULT_BUDGETS) -> list[dict]:
     """Train ``lmgs`` at each budget on the subject, score it, record it (resumable)."""
     from lmgs.init import face_area_px
+    from lmgs.strategy import budget_from_face_area
     from lmgs_eval import results as store
     from lmgs_eval.data.registry import find_subject
     from lmgs_eval.methods import create_method, driving_from_subject, subject_to_clip
@@ -79,13 +80,18 @@ def run_capacity(cfg: RunConfig, budgets: Sequence[int] = DEFAULT_BUDGETS) -> li
     test = subject_to_clip(subject, subject.test_ids, progress=cfg.progress)
     driving = driving_from_subject(subject, subject.test_ids, test)
     area = face_area_px(train)
-    log(f"capacity on {subject.name}: face area {area:.0f} px; budgets {', '.join(map(str, budgets))}")
-    records = []
     base = dict(cfg.method_options.get("overrides", {}))
+    probe = create_method("lmgs", **{**cfg.method_options, "preset": cfg.preset})
+    density = probe.cfg.train.budget_density
+    default = budget_from_face_area(area, density)
+    budgets = sorted(set(budgets) | {default})  # the preset's own budget is always a point (same config: reused)
+    log(f"capacity on {subject.name}: face area {area:.0f} px; budgets {', '.join(map(str, budgets))} "
+        f"(default {default} = {density:g} x face area)")
+    records = []
     for n in budgets:
         for seed in cfg.seeds:
-            opts = {**{k: v for k, v in cfg.method_options.items() if k != "overrides"},
-                    "overrides": {**base, "train.budget_density": round(n / area, 6)}, "preset": cfg.preset}
+            over = {**base} if n == default else {**base, "train.budget_density": round(n / area, 6)}
+            opts = {**{k: v for k, v in cfg.method_options.items() if k != "overrides"}, "overrides": over, "preset": cfg.preset}
             method = create_method("lmgs", **opts)
             info = method.describe()
             clip = f"budget-{n}"
