@@ -12,7 +12,15 @@ import argparse
 import time
 from pathlib import Path
 
-HELP = "the main job: build astronaut, run self and cross with lmgs (quick preset), write tables and charts"
+HELP = ("the main job: build astronaut, run self and cross with lmgs (quick preset), write tables and charts; "
+        "--full: every method on both bundled subjects, ablations, stress and capacity (make bench)")
+
+FULL_SUBJECTS = ("astronaut", "hopper")
+FULL_METHODS = ("lmgs", "talkinggaussian", "degstalk", "gaussiantalker", "wav2lip", "ip_lap",
+                "ernerf", "radnerf", "adnerf", "geneface")
+FULL_SEEDS = {"lmgs": (0, 1, 2), "talkinggaussian": (0, 1, 2)}
+FULL_VARIANTS = ("lmgs-base", "lmgs-no-se", "lmgs-no-lc", "lmgs-no-gr", "lmgs-theta0.4", "lmgs-theta0.8")
+FULL_STRESS = ("lmgs", "lmgs-base", "talkinggaussian", "gaussiantalker", "degstalk")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -22,9 +30,62 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default=None, help="tables and charts folder (default RESULTS/tables)")
     p.add_argument("--data-root", help="folder of subjects (default: $LMGS_DATA or ~/.cache/lmgs/data)")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--full", action="store_true",
+                   help="the whole benchmark (resumable, hours on 2 cores): every method on astronaut and hopper "
+                        "(3 seeds for lmgs and talkinggaussian), Tables III-IV variants, stress (3DGS family) and "
+                        "capacity on astronaut; tables to ./tables")
+
+
+def run_full(args: argparse.Namespace) -> int:
+    """``make bench``: every stage resumes from the results store, so it can be finished over sittings."""
+    from lmgs_eval.capacity import run_capacity
+    from lmgs_eval.commands import table
+    from lmgs_eval.protocols import RunConfig, log, run_cross, run_self
+    from lmgs_eval.stress import run_stress
+
+    t0 = time.perf_counter()
+    results = Path(args.results)
+    stages = []
+    for subject in FULL_SUBJECTS:
+        for m in FULL_METHODS:
+            stages.append((f"{subject} / {m}", subject, m, FULL_SEEDS.get(m, (0,)), "self+cross"))
+    for v in FULL_VARIANTS:
+        stages.append((f"astronaut / {v}", "astronaut", v, (0,), "self"))
+    for m in FULL_STRESS:
+        stages.append((f"astronaut / {m} stress", "astronaut", m, (0,), "stress"))
+    stages.append(("astronaut / capacity", "astronaut", "lmgs", (0,), "capacity"))
+    failures = []
+    for k, (label, subject, m, seeds, what) in enumerate(stages, 1):
+        log(f"[bench] {k}/{len(stages)} {label} ({what}) [{(time.perf_counter() - t0) / 60:.0f} min]")
+        cfg = RunConfig(subject=subject, methods=(m,), seeds=seeds, results=results, data_root=args.data_root,
+                        progress=not args.no_progress)
+        try:
+            if what == "self+cross":
+                run_self(cfg)
+                _, errors = run_cross(cfg)
+                failures += [f"{label}: {e}" for e in errors]
+            elif what == "self":
+                run_self(cfg)
+            elif what == "stress":
+                run_stress(cfg)
+            else:
+                run_capacity(cfg)
+        except KeyboardInterrupt:
+            raise
+        except Exception as exc:  # one method's failure does not stop the benchmark; it is reported
+            failures.append(f"{label}: {exc.__class__.__name__}: {exc}")
+            log(f"[bench] {label} failed: {exc}")
+    out = Path(args.out) if args.out else Path("tables")
+    table.run(argparse.Namespace(results=results, format="all", out=out, ci=False, no_charts=False))
+    print(f"\nbenchmark finished in {(time.perf_counter() - t0) / 60:.0f} min; tables and charts: {out.resolve()}")
+    for f in failures:
+        print(f"  failed: {f}")
+    return 1 if failures else 0
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.full:
+        return run_full(args)
     from lmgs_eval.commands._common import print_rows
     from lmgs_eval.protocols import RunConfig, log, run_cross, run_self
 
