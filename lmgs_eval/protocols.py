@@ -372,7 +372,7 @@ def run_controls(cfg: RunConfig, subject, gt: np.ndarray, audio: np.ndarray, oth
             res = {"lse": lse(pf, aud)}
             m = create_metric("lmd")
             res["lmd"] = m.compute(m.update(pf, gf))
-        info = MethodInfo(name, display, "control", f"negative control: {display.lower()} (targets {', '.join(control['targets'])})",
+        info = MethodInfo(name, display, "control", f"negative control: {display} (targets {', '.join(control['targets'])})",
                           config={"control": control, "version": CONTROLS_VERSION}, config_hash=f"controls-v{CONTROLS_VERSION}")
         rec = build_record(info=info, subject=subject, protocol="calibration", clip="test", split="test", n_frames=len(frames),
                            seed=0, metrics=metrics_block(res), cost={}, artefacts={}, notes=list(subject.notes), control=control)

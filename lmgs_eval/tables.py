@@ -476,7 +476,7 @@ def _common_notes(records: Sequence[Record], columns: Sequence[Column], methods:
         name = f"{c.group + ' ' if c.group else ''}{c.label}"
         note = f"{name} made by {', '.join(sorted(made))}"
         if standins:
-            note += f"; STAND-IN: {'; '.join(sorted(standins))}"
+            note += f"; STAND-IN: {'; '.join(x.rstrip('.') for x in sorted(standins))}"
         notes.append(note + ".")
     seen = set()
     for r in records:
