@@ -132,3 +132,37 @@ def test_unknown_method_and_subject(tmp_path):
     assert rc == 2 and "unknown method 'nope'" in err and "lmgs" in err
     rc, _, err = run_cli("self", "--subject", "nobody", "--results", str(tmp_path))
     assert rc == 2 and "unknown subject" in err and "astronaut" in err
+
+
+def test_timed_render_reports_the_median_of_repeats(monkeypatch):
+    """FPS comes from the median of up to 3 timed renders (I/O outside), first-frame latency from the warm-up."""
+    import itertools
+
+    from lmgs.types import DrivingAudio
+    from lmgs_eval import protocols
+
+    class Toy:
+        calls = 0
+
+        def describe(self):
+            return type("I", (), {"name": "toy"})()
+
+        def render(self, driving):
+            Toy.calls += 1
+            return np.zeros((driving.n_frames, 4, 4, 3), np.uint8)
+
+    # perf_counter pairs: warm-up 0.3 s, then repeats of 5, 1 and 3 s
+    ticks = itertools.chain([0.0, 0.3], [10.0, 15.0], [20.0, 21.0], [30.0, 33.0])
+    monkeypatch.setattr(protocols.time, "perf_counter", lambda: next(ticks))
+    monkeypatch.setattr(protocols, "REPEAT_BUDGET_S", 100.0)
+    driving = DrivingAudio(audio=np.zeros(50 * 640, np.float32))
+    frames, rc = protocols.timed_render(Toy(), driving)
+    assert frames.shape[0] == 50 and Toy.calls == 4 and rc["repeats"] == 3
+    assert rc["render_seconds"] == pytest.approx(3.0) and rc["fps"] == pytest.approx(50 / 3.0)
+    assert rc["first_frame_ms"] == pytest.approx(1000 * 0.3 / 3)
+    # a slow method is timed once: a second run would not fit in the budget
+    ticks2 = itertools.chain([0.0, 0.3], [10.0, 25.0])
+    monkeypatch.setattr(protocols.time, "perf_counter", lambda: next(ticks2))
+    monkeypatch.setattr(protocols, "REPEAT_BUDGET_S", 20.0)
+    _, rc = protocols.timed_render(Toy(), driving)
+    assert rc["repeats"] == 1 and rc["fps"] == pytest.approx(50 / 15.0)
