@@ -164,8 +164,8 @@ def test_stability_and_status_tables():
     assert tg[1] == "1 failed: out of memory" and tg[4] == "1"
     assert tg[2].startswith("-0.8") and tg[3].startswith("-4.0")
     st = T.table_status(recs).markdown()
-    assert _row(st, "TalkingGaussian")[1] == "7 ok, 1 failed: out of memory (stress:long-300s)"
-    assert _row(st, "ER-NeRF")[1] == "ok (4)"
+    assert _row(st, "TalkingGaussian")[1] == "7 ok, 1 failed: out of memory (stress:long-300s); paper's order 10/10"
+    assert _row(st, "ER-NeRF")[1] == "ok (4); paper's order 10/10"
 
 
 def test_csv_is_machine_readable_with_cis():
@@ -222,3 +222,21 @@ def test_table_command_on_an_empty_store(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "junk.json: skipped" in err and "no result records in" in err
     assert not (tmp_path / "tables").exists()
+
+
+def test_status_counts_pairs_ordered_as_in_the_papers_table_i():
+    # paper: lmgs > talkinggaussian > ernerf on PSNR; LPIPS/LMD lower is better in the same order
+    m = lambda k, v: metric(k, None, value=v)  # noqa: E731
+    recs = [record("lmgs", "Ours", "3DGS", 0, {"psnr": m("psnr", 30.0), "lpips": m("lpips", 0.05), "lmd": m("lmd", 1.0)}),
+            record("talkinggaussian", "TG", "3DGS", 0, {"psnr": m("psnr", 31.0), "lpips": m("lpips", 0.06), "lmd": m("lmd", 1.1)}),
+            record("ernerf", "ER", "NeRF", 0, {"psnr": m("psnr", 25.0), "lpips": m("lpips", 0.10), "lmd": m("lmd", 2.0)}),
+            record("lmgs", "Ours", "3DGS", 0, {"psnr": m("psnr", 99.0)}, variant="no-se"),  # variants do not count
+            record("mymethod", "Mine", "3DGS", 0, {"psnr": m("psnr", 40.0)})]  # not in the paper
+    # lmgs vs TG: PSNR disagrees, LPIPS and LMD agree; lmgs vs ER: all three agree -> 5 of 6
+    assert T.paper_order_agreement(recs, "lmgs", "astronaut") == (5, 6)
+    # ER-NeRF is behind both in the paper and here on all three metrics
+    assert T.paper_order_agreement(recs, "ernerf", "astronaut") == (6, 6)
+    assert T.paper_order_agreement(recs, "mymethod", "astronaut") is None
+    md = T.table_status(recs).markdown()
+    assert "paper's order 5/6" in _row(md, "Ours")[1]
+    assert "paper's order" not in _row(md, "Mine")[1]
