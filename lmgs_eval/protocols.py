@@ -202,6 +202,55 @@ def _manifest_sha(subject) -> str | None:
     return sha256_file(p) if p.exists() else None
 
 
+_SHA_CACHE: dict[tuple[str, int, int], str] = {}
+
+
+def _sha_cached(path: Path) -> str:
+    from lmgs_eval.results import sha256_file
+
+    st = path.stat()
+    key = (str(path), st.st_size, st.st_mtime_ns)
+    if key not in _SHA_CACHE:
+        _SHA_CACHE[key] = sha256_file(path)
+    return _SHA_CACHE[key]
+
+
+def input_artefacts(metrics: dict, subject) -> dict:
+    """The inputs a record's numbers depend on, for ``lmgs-eval verify``: the subject's ground
+    truth (its manifest, or its transforms files) and the weights files of the metrics used."""
+    files: dict[str, Path | None] = {}
+    root = Path(subject.root)
+    if (root / "manifest.json").is_file():
+        files["ground_truth"] = root / "manifest.json"
+    else:
+        for name in ("transforms_train.json", "transforms_val.json"):
+            files[f"ground_truth:{name}"] = root / name
+    lp = (metrics.get("lpips") or {}).get("backend")
+    if lp:
+        from lmgs_eval.metrics import lpips as L
+
+        if lp == "stlpips-alex":
+            files["weights:stlpips"] = L.stlpips_weights_path()
+        elif lp == "lpips-alex":
+            files["weights:lpips_heads"] = L.lpips_heads_path()
+            files["weights:alexnet"] = L.find_alexnet()
+    sb = (metrics.get("lse_d") or {}).get("backend") or ""
+    if (metrics.get("lse_d") or {}).get("value") is not None:
+        from lmgs_eval.metrics import sync as S
+
+        if sb.endswith("bundled-sync"):
+            files["weights:sync"] = S.BUNDLED_DIR / "bundled_sync.onnx"
+        elif sb.endswith("syncnet-v2") and S.syncnet_manifest_path().is_file():
+            import json
+
+            files["weights:sync"] = Path(json.loads(S.syncnet_manifest_path().read_text())["onnx"])
+    if (metrics.get("lmd") or {}).get("value") is not None:
+        from lmgs_eval.metrics.landmarks import dlib_model_path
+
+        files["weights:dlib"] = dlib_model_path()
+    return {k: {"path": str(p.resolve()), "sha256": _sha_cached(p)} for k, p in files.items() if p is not None and p.is_file()}
+
+
 def build_record(*, info, subject, protocol: str, clip: str, split: str, n_frames: int, seed: int, metrics: dict,
                  cost: dict, artefacts: dict, notes: list[str], control: dict | None = None) -> dict:
     """One results-file record (schema in :mod:`lmgs_eval.results`)."""
@@ -218,7 +267,7 @@ def build_record(*, info, subject, protocol: str, clip: str, split: str, n_frame
         subject=_subject_block(subject),
         protocol={"name": protocol, "version": PROTOCOL_VERSIONS[protocol], "clip": clip, "split": split, "n_frames": int(n_frames)},
         metrics=metrics, seed=seed, config=info.config, config_hash_=info.config_hash, cost=cost,
-        artefacts=artefacts, notes=notes,
+        artefacts={**input_artefacts(metrics, subject), **artefacts}, notes=notes,
     )
 
 

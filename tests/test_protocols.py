@@ -48,6 +48,9 @@ def test_self_writes_valid_records_renders_and_rows(store):
     assert lm["cost"]["fps"] > 0 and lm["cost"]["n_gaussians"] > 0 and lm["cost"]["train_seconds"] > 0
     assert any("GeneFace" in s for s in lm["method"]["standins"])
     assert lm["metrics"]["lpips"]["backend"] in ("stlpips-alex", "lpips-alex")
+    # verify re-hashes the inputs too: the subject's ground truth and the LPIPS weights
+    assert lm["artefacts"]["ground_truth"]["path"].endswith("manifest.json")
+    assert any(k.startswith("weights:") and "lpips" in k for k in lm["artefacts"])
     assert 0 < lm["metrics"]["psnr"]["value"] < 100 and by["ground-truth"]["metrics"]["psnr"]["value"] == 100.0
     assert by["ground-truth"]["metrics"]["lpips"]["value"] == pytest.approx(0.0, abs=1e-6)
     assert "Ground Truth" in out and "Ours (lmgs)" in out
