@@ -75,6 +75,30 @@ def silence_open_result(lms: np.ndarray, spans, fps: float = 25.0) -> MetricResu
                         available=val is not None, reason="" if val is not None else "no face found")
 
 
+def landmarks_u8(backend, frames: np.ndarray, chunk: int = 256) -> np.ndarray:
+    """Landmarks of uint8 frames, converted to float a chunk at a time (a 5-minute clip stays in memory once)."""
+    return np.concatenate([backend.landmarks(frames[i:i + chunk].astype(np.float32) / 255.0)
+                           for i in range(0, len(frames), chunk)])
+
+
+def lse_u8(frames: np.ndarray, audio: np.ndarray):
+    """LSE of uint8 frames; long clips detect faces every 5 frames and crop without a float copy.
+
+    Returns the MetricResult, or a note (str) when no face was found in a long clip.
+    """
+    from lmgs_eval.metrics.sync import crop_faces, face_boxes, lse
+
+    if len(frames) <= LONG_CLIP_FRAMES:
+        return lse(frames.astype(np.float32) / 255.0, audio)
+    try:
+        boxes, missing = face_boxes(frames, detect_every=5)
+    except UserError as exc:
+        return f"LSE not computed: {exc}"
+    r = lse(None, audio, crops=crop_faces(frames, boxes))
+    r.notes.append(f"long clip: faces detected every 5 frames ({missing} detection(s) without a face, box held)")
+    return r
+
+
 def check_output(frames, n: int, audio: np.ndarray) -> str | None:
     """Why an output counts as failed (None when it does not)."""
     if not isinstance(frames, np.ndarray) or frames.ndim != 4 or frames.shape[0] != n:
@@ -116,7 +140,6 @@ def run_stress(cfg: RunConfig, conditions: tuple[str, ...] | None = None, max_mi
     from lmgs_eval.data.registry import find_subject
     from lmgs_eval.methods import create_method, driving_from_subject, subject_to_clip
     from lmgs_eval.metrics.landmarks import DlibBackend, lmd_result
-    from lmgs_eval.metrics.sync import lse
     from lmgs_eval.protocols import score_clip
 
     subject = find_subject(cfg.subject, cfg.data_root, progress=cfg.progress)
@@ -169,9 +192,13 @@ def run_stress(cfg: RunConfig, conditions: tuple[str, ...] | None = None, max_mi
                         clean_fps = rc.get("fps")
                     why = check_output(frames, n, audio)
                     if why is None:
-                        pf = frames.astype(np.float32) / 255.0
-                        lms = backend.landmarks(pf)
-                        res = {"lse": lse(pf, audio, detect_every=5 if n > LONG_CLIP_FRAMES else 1), "jitter": jitter_result(lms)}
+                        lms = landmarks_u8(backend, frames)
+                        res = {"jitter": jitter_result(lms)}
+                        sync = lse_u8(frames, audio)
+                        if isinstance(sync, str):
+                            notes = list(notes) + [sync]
+                        else:
+                            res["lse"] = sync
                         so = silence_open_result(lms, cond.silent_spans)
                         if so is not None:
                             res["silence_open"] = so
