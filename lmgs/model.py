@@ -172,7 +172,8 @@ class LMGSModel(nn.Module):
 
         Cameras, backgrounds and blinks come from ``driving`` when given; otherwise the
         training poses are replayed in order, the mean background is used and eyes stay open.
-        ``timings`` (if a dict) receives seconds spent in ``audio``, ``network`` and ``raster``.
+        ``timings`` (if a dict) receives seconds spent in ``audio``, ``network`` and ``raster``,
+        and, with Spatial Enhancement on, ``se_fraction``: the mean fraction of face points selected.
         """
         import time
 
@@ -187,6 +188,7 @@ class LMGSModel(nn.Module):
         mouth_f = self.mouth_deform.encode_points(self.mouth.means)
         out = np.empty((n, int(self.intrinsics[4]), int(self.intrinsics[3]), 3), np.uint8)
         t_net = t_ras = 0.0
+        fracs = []
         it = range(n)
         if progress:
             from tqdm import tqdm
@@ -197,7 +199,9 @@ class LMGSModel(nn.Module):
             bg = to_image(driving.backgrounds[t], dev) if driving.backgrounds is not None else self.default_background
             blink = float(driving.blink[t]) if driving.blink is not None else 0.0
             a = time.perf_counter()
-            face_p, _ = self.branch_params(self.face, self.face_deform, True, fa[t], None if lms is None else lms[t], blink, face_f)
+            face_p, frac = self.branch_params(self.face, self.face_deform, True, fa[t], None if lms is None else lms[t], blink, face_f)
+            if frac is not None:
+                fracs.append(float(frac))
             mouth_p, _ = self.branch_params(self.mouth, self.mouth_deform, True, fa[t], None, None, mouth_f)
             b = time.perf_counter()
             r = render_branches(face_p, mouth_p, self.camera(w2c.to(dev)), bg)
@@ -207,4 +211,6 @@ class LMGSModel(nn.Module):
             t_ras += c - b
         if timings is not None:
             timings.update(audio=t_audio, network=t_net, raster=t_ras, frames=n)
+            if fracs:
+                timings["se_fraction"] = float(np.mean(fracs))
         return out

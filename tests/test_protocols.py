@@ -47,6 +47,7 @@ def test_self_writes_valid_records_renders_and_rows(store):
     assert lm["config"]["train"]["dynamic_steps"] == 40  # --set reached the config and its hash
     assert lm["cost"]["fps"] > 0 and lm["cost"]["n_gaussians"] > 0 and lm["cost"]["train_seconds"] > 0
     assert any("GeneFace" in s for s in lm["method"]["standins"])
+    assert any(n.startswith("spatial enhancement selected") and "theta = 0.6" in n for n in lm["notes"])
     assert lm["metrics"]["lpips"]["backend"] in ("stlpips-alex", "lpips-alex")
     # verify re-hashes the inputs too: the subject's ground truth and the LPIPS weights
     assert lm["artefacts"]["ground_truth"]["path"].endswith("manifest.json")
