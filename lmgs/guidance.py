@@ -68,7 +68,11 @@ def spatial_enhance(f: torch.Tensor, g: torch.Tensor, theta: float = 0.6) -> Enh
         s = cosine_similarity_matrix(f, g)
         best, match = s.max(dim=1)
         selected = best >= theta
-    features = f + selected.unsqueeze(-1).to(f.dtype) * g[match]
+    # One-hot matrix product rather than ``g[match]``: the backward of an index with
+    # repeated indices accumulates with atomic adds on the CPU (run-to-run different
+    # float sums); a matrix product is reproducible for a given machine and thread count.
+    pick = torch.nn.functional.one_hot(match, g.shape[0]).to(f.dtype) * selected.unsqueeze(-1).to(f.dtype)
+    features = f + pick @ g
     fraction = float(selected.float().mean()) if f.shape[0] else 0.0
     return EnhanceResult(features, selected, match, best, fraction)
 
