@@ -695,7 +695,11 @@ def table_calibration(records: Sequence[Record],
         sections.append(Section(_subject_title(recs), rows + [verdict], notes))
     return Table("calibration", "Calibration: ground truth against negative controls", cols, sections,
                  _common_notes(use, cols) + ["A control separates when the ground truth is better and the bootstrap "
-                                             "95% CIs do not overlap."])
+                                             "95% CIs do not overlap.",
+                                             "The shifted-audio controls target the AV offset only: LSE-D and LSE-C "
+                                             "take the best of the offsets within +-15 frames (syncnet_python), so a "
+                                             "constant shift of up to 10 frames leaves them nearly unchanged by "
+                                             "design."])
 
 
 def table_stability(records: Sequence[Record], metric: str = "lse_c", clean: str = "clean") -> Table:
