@@ -118,9 +118,11 @@ def speed_charts(records: Sequence[dict[str, Any]], out_dir: str | Path) -> list
                 xs = [p["x"] for p in pts]
                 # Within about a decade there is no major tick to label: label the minor ones.
                 few = max(xs) / min(xs) < 20
-                # (only the 2x and 5x minor ticks, so labels never run into each other)
+                # (only the 2x and 5x minor ticks, so labels never run into each other; on a
+                # very short axis, e.g. 38-46 FPS, there may be none of those: then label all)
+                narrow = max(xs) / min(xs) < 2.5
                 minor = matplotlib.ticker.FuncFormatter(
-                    lambda v, _: f"{v:g}" if round(v / 10 ** np.floor(np.log10(v)), 6) in (2.0, 5.0) else "")
+                    lambda v, _: f"{v:g}" if narrow or round(v / 10 ** np.floor(np.log10(v)), 6) in (2.0, 5.0) else "")
                 ax.xaxis.set_minor_formatter(minor if few else matplotlib.ticker.NullFormatter())
             ax.margins(0.15)
             backends = sorted({b for p in pts for b in p["backends"]})
