@@ -571,8 +571,20 @@ def table_cross(records: Sequence[Record], metrics: Sequence[str] = ("lse_d", "l
     return Table("table2_cross", "Table II: cross-driven lip sync", cols, sections, _common_notes(use, cols))
 
 
+def _is_lmgs(rec: Record) -> bool:
+    """The reference model or one of its named variants (``lmgs``, ``lmgs-no-se``...).
+
+    Baselines built on the same backbone (``talkinggaussian``, ``degstalk``) carry the same config
+    keys, but they are other methods: they never stand in for an ablation row of Tables III-IV
+    (``lmgs-base`` is the TalkingGaussian-like configuration of the ablation).
+    """
+    name = rec["method"]["name"]
+    return name == "lmgs" or name.startswith("lmgs-")
+
+
 def _lmgs_self(records: Sequence[Record]) -> list[Record]:
-    return [r for r in records if r["protocol"]["name"] == "self" and is_ok(r) and _guidance(r) is not None]
+    return [r for r in records
+            if r["protocol"]["name"] == "self" and is_ok(r) and _is_lmgs(r) and _guidance(r) is not None]
 
 
 def table_theta(records: Sequence[Record], metrics: Sequence[str] = ("lpips", "lmd", "lse_d", "lse_c")) -> Table:

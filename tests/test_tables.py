@@ -129,6 +129,14 @@ def test_table3_theta_and_table4_ablation():
     assert _row(md4, "w/o SE")[1:4] == ["✗", "✓", "✓"] and _row(md4, "Full model")[1:4] == ["✓", "✓", "✓"]
     tex4 = T.table_ablation(recs).latex()
     assert "$\\times$ & \\checkmark" in tex4
+    # A baseline on the same backbone (config keys alike, SE/LC off, GR on) is another method,
+    # not the "w/o SE, LC" ablation row, and it must not be merged into a variant's row either.
+    degs = copy.deepcopy(next(r for r in recs if r["method"]["name"] == "lmgs-no-se"))
+    degs["method"].update(name="degstalk", display_name="DEGSTalk", variant=None)
+    degs["config"] = {"guidance": {"se": False, "lc": False, "theta": 0.6}, "gr": True}
+    md4b = T.table_ablation(recs + [degs]).markdown()
+    assert md4b == md4 and "w/o SE, LC" not in md4b
+    assert T.table_theta(recs + [degs]).markdown() == md3
 
 
 def _calibration_store(constant: bool) -> list[dict]:
