@@ -57,11 +57,20 @@ def read_sidecar(path: Path) -> dict:
     unknown = sorted(set(d) - set(SIDECAR_KEYS))
     if unknown:
         raise UserError(f"{side}: unknown keys {unknown}; allowed: {', '.join(SIDECAR_KEYS)}")
+    for k in ("fps", "train_hours", "n_gaussians", "model_mb"):
+        v = d.get(k)
+        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not v >= 0):
+            raise UserError(f"{side}: {k!r} must be a non-negative number, got {v!r}")
+    for k in ("device", "notes"):
+        if d.get(k) is not None and not isinstance(d[k], str):
+            raise UserError(f"{side}: {k!r} must be a string, got {d[k]!r}")
     return d
 
 
 class ExternalRenders:
     """A method whose frames were rendered elsewhere (e.g. the official ER-NeRF on a GPU)."""
+
+    prerendered = True  # the protocol neither fits nor times it (see protocols.fit_render_score)
 
     def __init__(self, name: str, renders: str | Path | None = None, **_):
         if not name:

@@ -275,6 +275,11 @@ def _cost_block(method, fit_cost: dict | None, render_cost: dict, timings: dict 
     import torch
 
     c = dict(method.cost() or {})
+    if getattr(method, "prerendered", False):  # only what the user's sidecar states; never measured here
+        return {"train_seconds": c.get("train_seconds"), "fps": c.get("fps"), "ms_per_frame": None,
+                "first_frame_ms": None, "render_repeats": None, "realtime_factor": None, "n_params": c.get("n_params"),
+                "n_gaussians": c.get("n_gaussians"), "model_mb": c.get("model_mb"), "peak_mb": None,
+                "device": c.get("device")}
     n = (timings or {}).get("frames") or 0
     ms = None
     if timings and n:
@@ -358,15 +363,22 @@ def fit_render_score(cfg: RunConfig, method, subject, seed: int, train, driving:
     from lmgs_eval import results as store
 
     info = method.describe()
-    log(f"{info.name} seed {seed}: fitting on {len(train)} frames")
-    fit_cost = fit_method(method, train, subject, seed, cfg.progress)
     timings: dict = {}
-    frames, rc = timed_render(method, driving, timings)
-    log(f"{info.name}: {len(frames)} frames at {rc['fps']:.1f} FPS; scoring")
+    if getattr(method, "prerendered", False):
+        # Frames rendered elsewhere: nothing to fit and nothing to time here (reading files is
+        # not rendering); the cost comes from the method's sidecar or stays empty.
+        fit_cost, rc = None, {}
+        frames = method.render(driving)
+        log(f"{info.name}: {len(frames)} frames read from its renders; scoring")
+    else:
+        log(f"{info.name} seed {seed}: fitting on {len(train)} frames")
+        fit_cost = fit_method(method, train, subject, seed, cfg.progress)
+        frames, rc = timed_render(method, driving, timings)
+        log(f"{info.name}: {len(frames)} frames at {rc['fps']:.1f} FPS; scoring")
     res = score_clip(frames, gt, driving.audio)
     art = {"render": _write_render(cfg.results, render_rel, frames, driving.audio)}
-    ck = Path(fit_cost["workdir"]) / "model.pt"
-    if ck.exists():
+    ck = Path(fit_cost["workdir"]) / "model.pt" if fit_cost else None
+    if ck is not None and ck.exists():
         art["checkpoint"] = {"path": str(ck), "sha256": store.sha256_file(ck)}
     notes = list(subject.notes)
     if timings.get("se_fraction") is not None:

@@ -170,3 +170,68 @@ def test_timed_render_reports_the_median_of_repeats(monkeypatch):
     monkeypatch.setattr(protocols, "REPEAT_BUDGET_S", 20.0)
     _, rc = protocols.timed_render(Toy(), driving)
     assert rc["repeats"] == 1 and rc["fps"] == pytest.approx(50 / 15.0)
+
+
+def _handmade_renders(folder: Path, offset: int = 0, drop: int = 0) -> np.ndarray:
+    """The tiny subject's test frames, brightened by ``offset`` levels, written as numbered PNGs."""
+    import cv2
+
+    from lmgs_eval.data.io import to_u8
+    from lmgs_eval.data.registry import find_subject
+    from lmgs_eval.methods import subject_to_clip
+
+    subject = find_subject(SUBJECT, progress=False)
+    gt = to_u8(subject_to_clip(subject, subject.test_ids, progress=False).frames)
+    pred = np.clip(gt.astype(np.int16) + offset, 0, 255).astype(np.uint8)
+    folder.mkdir(parents=True)
+    for i, f in enumerate(pred[: len(pred) - drop]):
+        cv2.imwrite(str(folder / f"{i}.png"), f[..., ::-1])  # ER-NeRF's test renders: 0.png, 1.png, ...
+    return gt
+
+
+def test_external_scores_a_handmade_renders_folder(tmp_path):
+    from skimage.metrics import peak_signal_noise_ratio
+
+    renders = tmp_path / "ernerf_renders"
+    gt = _handmade_renders(renders, offset=12)
+    (renders / "cost.json").write_text(json.dumps({"fps": 34.5, "train_hours": 2.0, "device": "RTX 3090"}))
+    root = tmp_path / "results"
+    rc, out, err = run_cli("self", "--subject", SUBJECT, "--method", "external:ernerf", "--renders", str(renders),
+                           "--results", str(root), "--no-progress")
+    assert rc == 0, err
+    rec = next(r for r in load_records(root)[0] if r["method"]["name"] == "external:ernerf")
+    assert validate(rec) == [] and rec["method"]["family"] == "external"
+    pred = np.clip(gt.astype(np.int16) + 12, 0, 255).astype(np.uint8)
+    expected = np.mean([peak_signal_noise_ratio(g, p, data_range=255) for g, p in zip(gt, pred)])
+    assert rec["metrics"]["psnr"]["value"] == pytest.approx(expected, abs=1e-3)
+    assert rec["metrics"]["psnr"]["n_original"] == len(gt) == rec["protocol"]["n_frames"]
+    # cost from the sidecar only: given figures kept, missing ones empty, never guessed
+    assert rec["cost"]["fps"] == 34.5 and rec["cost"]["train_seconds"] == 7200.0
+    assert rec["cost"]["n_gaussians"] is None and rec["cost"]["model_mb"] is None
+
+
+def test_external_with_a_missing_frame_is_a_clear_error(tmp_path):
+    renders = tmp_path / "short_renders"
+    gt = _handmade_renders(renders, drop=1)
+    rc, out, err = run_cli("self", "--subject", SUBJECT, "--method", "external:ernerf", "--renders", str(renders),
+                           "--results", str(tmp_path / "results"), "--no-progress")
+    assert rc != 0 and "Traceback" not in err
+    assert str(renders) in err and f"{len(gt) - 1} frames" in err and f"has {len(gt)}" in err
+    assert not any(r["method"]["name"] == "external:ernerf" for r in load_records(tmp_path / "results")[0])
+
+
+@pytest.mark.parametrize("sidecar, words", [
+    ('{"fps": "fast"}', "'fps' must be a non-negative number"),
+    ('{"train_hours": -1}', "'train_hours' must be a non-negative number"),
+    ('{"speed": 3}', "unknown keys ['speed']"),
+    ('{"fps": 3', "not valid JSON"),
+])
+def test_external_sidecar_errors_name_the_file(tmp_path, sidecar, words):
+    from lmgs_eval.errors import UserError
+    from lmgs_eval.external import ExternalRenders
+
+    (tmp_path / "r").mkdir()
+    (tmp_path / "r" / "cost.json").write_text(sidecar)
+    with pytest.raises(UserError) as e:
+        ExternalRenders("x", tmp_path / "r")
+    assert str(tmp_path / "r" / "cost.json") in str(e.value) and words in str(e.value)
