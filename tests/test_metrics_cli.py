@@ -33,3 +33,17 @@ def test_score_folders_length_mismatch(tmp_path, capsys):
     rec = json.loads(capsys.readouterr().out)
     assert rec["n_frames"] == 10 and "truncated" in rec["flags"][0]
     assert rec["results"]["psnr"]["n_effective"] == 10 and any("truncated" in f for f in rec["results"]["ssim"]["flags"])
+
+
+def test_bench_metrics_measures_every_metric_including_lse():
+    import argparse
+
+    from lmgs_eval.metrics import bench
+
+    out = bench.run(argparse.Namespace(frames=2, sizes="128"))
+    names = {r["metric"] for r in out["rows"]}
+    assert {"psnr", "ssim", "lmd landmarks (dlib, pred+gt)"} <= names
+    assert any(n.startswith("lse (bundled-sync") for n in names)  # the bundled scorer ships with the package
+    eager = [r for r in out["rows"] if "eager" in r["metric"]]
+    assert eager and all(r["ort_speedup"] > 0 for r in eager)
+    assert all(r["frames_per_s"] > 0 and r["ms_per_frame"] > 0 for r in out["rows"])
