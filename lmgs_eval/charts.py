@@ -80,6 +80,35 @@ def _save(fig, stem: Path) -> list[Path]:
     return [png, svg]
 
 
+def _declutter(fig, ax, labels) -> None:
+    """Move point labels apart so that none overlaps another (deterministic: greedy, top to bottom).
+
+    A label that had to move is redrawn with a thin leader line to its point.
+    """
+    if len(labels) < 2:
+        return
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    px_per_pt = fig.dpi / 72.0
+    placed = []
+    order = sorted(range(len(labels)), key=lambda i: (-labels[i].get_window_extent(renderer).y0, i))
+    for i in order:
+        a = labels[i]
+        dx, dy = a.xyann
+        for _ in range(40):
+            box = a.get_window_extent(renderer)
+            if not any(box.overlaps(b) for b in placed):
+                break
+            dy -= (box.height + 1.0) / px_per_pt
+            a.xyann = (dx, dy)
+        if dy != labels[i].xyann[1] or a.xyann != (4, 4):
+            text, xy, off = a.get_text(), a.xy, a.xyann
+            a.remove()
+            a = ax.annotate(text, xy, textcoords="offset points", xytext=off, fontsize=7,
+                            arrowprops={"arrowstyle": "-", "color": "0.6", "lw": 0.5, "shrinkA": 0, "shrinkB": 3})
+        placed.append(a.get_window_extent(renderer))
+
+
 def speed_charts(records: Sequence[dict[str, Any]], out_dir: str | Path) -> list[Path]:
     """Write the four speed / training-time versus accuracy charts (PNG and SVG); returns the files.
 
@@ -105,8 +134,8 @@ def speed_charts(records: Sequence[dict[str, Any]], out_dir: str | Path) -> list
                 sub = [p for p in pts if p["family"] == fam]
                 ax.scatter([p["x"] for p in sub], [p["y"] for p in sub], s=36, color=FAMILY_COLOURS.get(fam, "k"),
                            label=fam, zorder=3)
-            for p in pts:
-                ax.annotate(p["label"], (p["x"], p["y"]), textcoords="offset points", xytext=(4, 4), fontsize=7)
+            labels = [ax.annotate(p["label"], (p["x"], p["y"]), textcoords="offset points", xytext=(4, 4), fontsize=7)
+                      for p in pts]
             front = pareto_front([p["x"] for p in pts], [p["y"] for p in pts], x_higher, y_higher)
             if len(front) > 1:
                 ax.plot([pts[i]["x"] for i in front], [pts[i]["y"] for i in front], "--", color="0.4", lw=1,
@@ -128,11 +157,14 @@ def speed_charts(records: Sequence[dict[str, Any]], out_dir: str | Path) -> list
             backends = sorted({b for p in pts for b in p["backends"]})
             warn = " (MIXED backends!)" if len(backends) > 1 else ""
             ax.set_xlabel(xlabel)
-            ax.set_ylabel(f"{label} {'↑' if y_higher else '↓'} [{', '.join(backends)}]{warn}")
+            # short backend names on the axis (the tables' footnotes carry the full ones)
+            short = sorted({b.split("|")[0].split("(")[0] for b in backends})
+            ax.set_ylabel(f"{label} {'↑' if y_higher else '↓'} [{', '.join(short)}]{warn}")
             ax.set_title(f"{label} against {'speed' if cost_key == 'fps' else 'training time'} (self-driven)")
             ax.grid(True, which="both", alpha=0.3)
             ax.legend(fontsize=7, loc="best")
             fig.tight_layout()
+            _declutter(fig, ax, labels)
             written += _save(fig, out_dir / stem)
             plt.close(fig)
     return written

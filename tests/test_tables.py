@@ -248,3 +248,24 @@ def test_status_counts_pairs_ordered_as_in_the_papers_table_i():
     md = T.table_status(recs).markdown()
     assert "paper's order 5/6" in _row(md, "Ours")[1]
     assert "paper's order" not in _row(md, "Mine")[1]
+
+
+def test_chart_labels_of_close_points_do_not_overlap():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5.2, 3.8))
+    xs, ys = [40.0, 41.0, 42.5, 44.0], [0.0330, 0.0332, 0.0329, 0.0331]
+    ax.scatter(xs, ys)
+    labels = [ax.annotate(f"Method {k}", (x, y), textcoords="offset points", xytext=(4, 4), fontsize=7)
+              for k, (x, y) in enumerate(zip(xs, ys))]
+    r = fig.canvas.get_renderer()
+    assert any(labels[0].get_window_extent(r).overlaps(b.get_window_extent(r)) for b in labels[1:])  # the problem
+    C._declutter(fig, ax, labels)
+    texts = [t for t in ax.texts if t.get_text().startswith("Method")]
+    assert sorted(t.get_text() for t in texts) == [f"Method {k}" for k in range(4)]
+    boxes = [t.get_window_extent(r) for t in texts]
+    assert not any(boxes[i].overlaps(boxes[j]) for i in range(4) for j in range(i + 1, 4))
+    plt.close(fig)
