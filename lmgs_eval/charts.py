@@ -94,17 +94,18 @@ def _declutter(fig, ax, labels) -> None:
     order = sorted(range(len(labels)), key=lambda i: (-labels[i].get_window_extent(renderer).y0, i))
     for i in order:
         a = labels[i]
-        dx, dy = a.xyann
+        start = a.xyann
+        dx, dy = start
         for _ in range(40):
             box = a.get_window_extent(renderer)
             if not any(box.overlaps(b) for b in placed):
                 break
             dy -= (box.height + 1.0) / px_per_pt
             a.xyann = (dx, dy)
-        if dy != labels[i].xyann[1] or a.xyann != (4, 4):
-            text, xy, off = a.get_text(), a.xy, a.xyann
+        if a.xyann != start:
+            text, xy = a.get_text(), a.xy
             a.remove()
-            a = ax.annotate(text, xy, textcoords="offset points", xytext=off, fontsize=7,
+            a = ax.annotate(text, xy, textcoords="offset points", xytext=(dx, dy), fontsize=7,
                             arrowprops={"arrowstyle": "-", "color": "0.6", "lw": 0.5, "shrinkA": 0, "shrinkB": 3})
         placed.append(a.get_window_extent(renderer))
 

@@ -275,11 +275,9 @@ def _cost_block(method, fit_cost: dict | None, render_cost: dict, timings: dict 
     import torch
 
     c = dict(method.cost() or {})
-    if getattr(method, "prerendered", False):  # only what the user's sidecar states; never measured here
-        return {"train_seconds": c.get("train_seconds"), "fps": c.get("fps"), "ms_per_frame": None,
-                "first_frame_ms": None, "render_repeats": None, "realtime_factor": None, "n_params": c.get("n_params"),
-                "n_gaussians": c.get("n_gaussians"), "model_mb": c.get("model_mb"), "peak_mb": None,
-                "device": c.get("device")}
+    # Prerendered frames (fit_cost None, render_cost {}): only what the user's sidecar states;
+    # neither memory nor device of this process is theirs.
+    pre = getattr(method, "prerendered", False)
     n = (timings or {}).get("frames") or 0
     ms = None
     if timings and n:
@@ -295,8 +293,8 @@ def _cost_block(method, fit_cost: dict | None, render_cost: dict, timings: dict 
         "n_params": c.get("n_params"),
         "n_gaussians": c.get("n_gaussians"),
         "model_mb": c.get("model_mb"),
-        "peak_mb": peak_rss_mb(),
-        "device": c.get("device") or ("cuda" if torch.cuda.is_available() else "cpu"),
+        "peak_mb": None if pre else peak_rss_mb(),
+        "device": c.get("device") or (None if pre else "cuda" if torch.cuda.is_available() else "cpu"),
     }
 
 

@@ -172,8 +172,8 @@ def test_timed_render_reports_the_median_of_repeats(monkeypatch):
     assert rc["repeats"] == 1 and rc["fps"] == pytest.approx(50 / 15.0)
 
 
-def _handmade_renders(folder: Path, offset: int = 0, drop: int = 0) -> np.ndarray:
-    """The tiny subject's test frames, brightened by ``offset`` levels, written as numbered PNGs."""
+def _handmade_renders(folder: Path, offset: int = 0, drop: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The tiny subject's test frames, brightened by ``offset`` levels, written as numbered PNGs: ``(gt, pred)``."""
     import cv2
 
     from lmgs_eval.data.io import to_u8
@@ -186,14 +186,14 @@ def _handmade_renders(folder: Path, offset: int = 0, drop: int = 0) -> np.ndarra
     folder.mkdir(parents=True)
     for i, f in enumerate(pred[: len(pred) - drop]):
         cv2.imwrite(str(folder / f"{i}.png"), f[..., ::-1])  # ER-NeRF's test renders: 0.png, 1.png, ...
-    return gt
+    return gt, pred
 
 
 def test_external_scores_a_handmade_renders_folder(tmp_path):
     from skimage.metrics import peak_signal_noise_ratio
 
     renders = tmp_path / "ernerf_renders"
-    gt = _handmade_renders(renders, offset=12)
+    gt, pred = _handmade_renders(renders, offset=12)
     (renders / "cost.json").write_text(json.dumps({"fps": 34.5, "train_hours": 2.0, "device": "RTX 3090"}))
     root = tmp_path / "results"
     rc, out, err = run_cli("self", "--subject", SUBJECT, "--method", "external:ernerf", "--renders", str(renders),
@@ -201,7 +201,6 @@ def test_external_scores_a_handmade_renders_folder(tmp_path):
     assert rc == 0, err
     rec = next(r for r in load_records(root)[0] if r["method"]["name"] == "external:ernerf")
     assert validate(rec) == [] and rec["method"]["family"] == "external"
-    pred = np.clip(gt.astype(np.int16) + 12, 0, 255).astype(np.uint8)
     expected = np.mean([peak_signal_noise_ratio(g, p, data_range=255) for g, p in zip(gt, pred)])
     assert rec["metrics"]["psnr"]["value"] == pytest.approx(expected, abs=1e-3)
     assert rec["metrics"]["psnr"]["n_original"] == len(gt) == rec["protocol"]["n_frames"]
@@ -212,7 +211,7 @@ def test_external_scores_a_handmade_renders_folder(tmp_path):
 
 def test_external_with_a_missing_frame_is_a_clear_error(tmp_path):
     renders = tmp_path / "short_renders"
-    gt = _handmade_renders(renders, drop=1)
+    gt, _ = _handmade_renders(renders, drop=1)
     rc, out, err = run_cli("self", "--subject", SUBJECT, "--method", "external:ernerf", "--renders", str(renders),
                            "--results", str(tmp_path / "results"), "--no-progress")
     assert rc != 0 and "Traceback" not in err
