@@ -70,3 +70,46 @@ def test_dlib_on_astronaut_nose_tip_and_no_face():
     np.testing.assert_allclose(lms[2], lms[0], atol=2.0)
     r = lmd_result(lms, lms)
     assert r.n_effective == 2 and r.value == pytest.approx(0.0, abs=1e-12)
+
+
+class _CountingBackend:
+    """Landmarks from the frame's mean brightness (distinct per clip), counting calls."""
+
+    name = "counting"
+    version = "counting-1"
+
+    def __init__(self):
+        self.calls = 0
+
+    def landmarks(self, frames):
+        self.calls += 1
+        return np.repeat(frames.mean(axis=(1, 2, 3))[:, None, None], 68, axis=1).repeat(2, axis=2)
+
+
+def test_gt_landmarks_are_cached_by_content_and_version(tmp_path, monkeypatch):
+    from lmgs_eval.metrics.landmarks import cached_landmarks
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    rng = np.random.default_rng(0)
+    a, b = rng.random((3, 16, 16, 3)).astype(np.float32), rng.random((3, 16, 16, 3)).astype(np.float32)
+    be = _CountingBackend()
+    first = cached_landmarks(be, a)
+    np.testing.assert_array_equal(first, be.landmarks(a))
+    be.calls = 0
+    np.testing.assert_array_equal(cached_landmarks(be, a), first)
+    assert be.calls == 0  # same frames, same backend: from the cache
+    cached_landmarks(be, b)
+    assert be.calls == 1  # other frames: computed
+    be.version = "counting-2"
+    cached_landmarks(be, a)
+    assert be.calls == 2  # other backend version: computed
+    files = list((tmp_path / "lmgs" / "landmarks").glob("*.npy"))
+    assert len(files) == 3
+    for f in files:
+        f.write_bytes(b"not an npy file")
+    np.testing.assert_array_equal(cached_landmarks(be, a), first)  # damaged entry: recomputed
+    assert be.calls == 3
+    # LMD reads ground truth through the cache and scores the same
+    m = LMD(backend=GivenBackend(first), gt_backend=be)
+    assert m.compute(m.update(a, a)).value == pytest.approx(0.0)
+    assert be.calls == 3

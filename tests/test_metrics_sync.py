@@ -195,3 +195,34 @@ def test_score_video_without_audio_reports_lse_unavailable(monkeypatch, tmp_path
     assert rec["results"]["lse"]["available"] is False
     assert "no audio track" in rec["results"]["lse"]["reason"]
     json.dumps(rec)
+
+
+def test_batched_window_embedding_equals_all_windows():
+    # lse() builds video windows a batch at a time from each frame prepared once; the
+    # embeddings must equal those of every window built up front (syncnet_python's way)
+    class _Session:  # embeds a window as its per-frame means, audio as its first 4 values
+        def run(self, names, feeds):
+            a, v = feeds["audio"], feeds["video"]
+            return [a.reshape(a.shape[0], -1)[:, :4], v.mean(axis=(1, 3, 4))]
+
+    sc = S.SyncScorer("fake", _Session(), "0" * 64, (4, 6), "full", "bgr_0_255")
+    rng = np.random.default_rng(0)
+    frames = rng.uniform(0, 255, (23, 4, 6, 3)).astype(np.float32)
+    mf = rng.normal(size=(13, 120))
+    v, a = S.windows(frames, mf, n_samples=23 * 640)
+    ref_a, ref_v = sc.embed(a, v)
+    got_a, got_v = sc.embed_frames(a, frames, batch=5)
+    np.testing.assert_array_equal(got_a, ref_a)
+    np.testing.assert_array_equal(got_v, ref_v)
+    assert got_v.shape == (18, 5)
+
+
+def test_too_short_clip_is_unavailable_not_a_crash():
+    class _Session:
+        def run(self, names, feeds):
+            raise AssertionError("nothing to embed")
+
+    sc = S.SyncScorer("fake", _Session(), "0" * 64, (224, 224), "full", "bgr_0_255")
+    crops = np.zeros((4, 224, 224, 3), np.float32)
+    r = S.lse(None, np.zeros(4 * 640, np.float32) + 0.1, scorer=sc, crops=crops)
+    assert r.value is None and "too short" in " ".join(r.notes + r.flags + [str(getattr(r, "reason", ""))])

@@ -112,8 +112,9 @@ def ssim_per_frame(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
     with Gaussian-weighted local moments (sigma 1.5, 11 taps), population covariance.
     skimage pads with 'reflect' and then discards a border of 5 px (the window radius):
     the kept pixels never see the padding, so any border mode gives the kept region
-    exactly. The 15 moment maps of a frame (5 per channel) are filtered in one separable
-    OpenCV call (SIMD, threaded), about 30x faster than a float64 torch convolution here.
+    exactly. The 15 moment maps of a frame (5 per channel) are kept as contiguous planes
+    and each is filtered by OpenCV's separable filter (SIMD, threaded); the combination
+    runs in place on contiguous float64 planes (about 2x faster than interleaved channels).
 
     Args:
         pred: ``[T, H, W, 3]`` float in [0, 1], H and W at least 11.
@@ -129,27 +130,37 @@ def ssim_per_frame(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
     r = g.shape[0] // 2
     if h < 2 * r + 1 or w < 2 * r + 1:
         raise UserError(f"ssim: frames must be at least {2 * r + 1}x{2 * r + 1} pixels, got {h}x{w}")
-    import torch
-
     c1, c2 = SSIM_K1**2, SSIM_K2**2
     out = np.empty(t, np.float64)
-    stack = torch.empty((h, w, 5 * c), dtype=torch.float64)
+    st = np.empty((5, c, h, w), np.float64)  # x, y, xx, yy, xy
+    f = np.empty((5, c, h - 2 * r, w - 2 * r), np.float64)
     for i in range(t):
-        # moments built and combined in torch (threaded elementwise), filtered by OpenCV
-        x = torch.from_numpy(np.ascontiguousarray(pred[i])).double()
-        y = torch.from_numpy(np.ascontiguousarray(gt[i])).double()
-        stack[:, :, 0:c] = x
-        stack[:, :, c:2 * c] = y
-        torch.mul(x, x, out=stack[:, :, 2 * c:3 * c])
-        torch.mul(y, y, out=stack[:, :, 3 * c:4 * c])
-        torch.mul(x, y, out=stack[:, :, 4 * c:5 * c])
-        f = torch.from_numpy(cv2.sepFilter2D(stack.numpy(), -1, g, g, borderType=cv2.BORDER_REFLECT)[r:h - r, r:w - r])
-        mx, my = f[..., 0:c], f[..., c:2 * c]
+        x, y = st[0], st[1]
+        x[...] = pred[i].transpose(2, 0, 1)
+        y[...] = gt[i].transpose(2, 0, 1)
+        np.multiply(x, x, out=st[2])
+        np.multiply(y, y, out=st[3])
+        np.multiply(x, y, out=st[4])
+        for k in range(5):
+            for ch in range(c):
+                f[k, ch] = cv2.sepFilter2D(st[k, ch], -1, g, g, borderType=cv2.BORDER_REFLECT)[r:h - r, r:w - r]
+        mx, my, exx, eyy, exy = f
         mxy = mx * my
-        mxx_yy = mx * mx + my * my
-        num = (2 * mxy + c1) * (2 * (f[..., 4 * c:5 * c] - mxy) + c2)
-        den = (mxx_yy + c1) * (f[..., 2 * c:3 * c] + f[..., 3 * c:4 * c] - mxx_yy + c2)
-        out[i] = float((num / den).mean())
+        mm = mx * mx
+        mm += my * my  # mu_x^2 + mu_y^2
+        num = 2 * mxy
+        num += c1
+        cov = exy - mxy
+        cov *= 2
+        cov += c2
+        num *= cov  # (2 mu_x mu_y + C1)(2 sigma_xy + C2)
+        var = exx + eyy
+        var -= mm
+        var += c2
+        den = mm + c1
+        den *= var  # (mu_x^2 + mu_y^2 + C1)(sigma_x^2 + sigma_y^2 + C2)
+        num /= den
+        out[i] = float(num.mean())
     return out
 
 

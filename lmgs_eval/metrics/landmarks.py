@@ -15,6 +15,7 @@ The scale-normalised variant divides each frame's value by the GT inter-ocular d
 
 from __future__ import annotations
 
+import functools
 import importlib.util
 from pathlib import Path
 from typing import Protocol, runtime_checkable
@@ -103,6 +104,14 @@ def dlib_model_path() -> Path | None:
     return p if p.is_file() else None
 
 
+@functools.lru_cache(maxsize=2)
+def _dlib_models(predictor_path: str):
+    """dlib's HOG detector and the 68-point predictor, loaded once per process (about 0.8 s)."""
+    import dlib
+
+    return dlib.get_frontal_face_detector(), dlib.shape_predictor(predictor_path)
+
+
 class DlibBackend:
     """dlib HOG face detector + the 68-point shape predictor (the classic LMD detector).
 
@@ -126,8 +135,7 @@ class DlibBackend:
         if path is None:
             raise UserError("dlib landmarks need face-recognition-models (shape_predictor_68_face_landmarks.dat)")
         self._dlib = dlib
-        self.detector = dlib.get_frontal_face_detector()
-        self.predictor = dlib.shape_predictor(str(path))
+        self.detector, self.predictor = _dlib_models(str(path))
         self.redetect = max(1, int(redetect))
         self.detect_side = int(detect_side)
         self.version = f"dlib-{dlib.__version__}-hog+shape68(redetect={self.redetect},side={self.detect_side})"
@@ -269,8 +277,46 @@ def create_backend(name: str = "dlib", **kw) -> LandmarkBackend:
     raise UserError(f"unknown landmark backend {name!r} (dlib, fan; 'given' takes arrays)")
 
 
+def cached_landmarks(backend: LandmarkBackend, frames: np.ndarray) -> np.ndarray:
+    """``backend.landmarks(frames)``, kept on disk under the frames' sha256 and the backend version.
+
+    Ground truth is scored again for every method, seed and protocol run of a subject; its
+    landmarks depend only on the frames and the backend (name, version, settings), so they
+    are computed once (``<cache>/landmarks/<key>.npy``, written atomically). A damaged or
+    mismatched entry is recomputed. Backends without a ``version`` are not cached.
+    """
+    version = getattr(backend, "version", None)
+    if not version or getattr(backend, "name", "") == "given":
+        return backend.landmarks(frames)
+    import hashlib
+    import io
+
+    from lmgs_eval.paths import atomic_write_bytes, cache_root
+
+    frames = np.ascontiguousarray(frames)
+    h = hashlib.sha256(f"{frames.shape}|{frames.dtype}|{backend.name}|{version}|".encode())
+    h.update(memoryview(frames).cast("B"))
+    path = cache_root() / "landmarks" / f"{h.hexdigest()}.npy"
+    if path.is_file():
+        try:
+            lms = np.load(path, allow_pickle=False)
+            if lms.shape == (frames.shape[0], 68, 2):
+                return lms
+        except (OSError, ValueError):
+            pass  # damaged entry: recompute below
+    lms = backend.landmarks(frames)
+    buf = io.BytesIO()
+    np.save(buf, lms, allow_pickle=False)
+    atomic_write_bytes(path, buf.getvalue())
+    return lms
+
+
 class LMD:
-    """LMD between two clips with one landmark backend (see :data:`LMD_SPEC`)."""
+    """LMD between two clips with one landmark backend (see :data:`LMD_SPEC`).
+
+    Ground-truth landmarks go through :func:`cached_landmarks` (same frames, same backend:
+    same landmarks), so re-scoring a subject's ground truth costs a hash, not a detection.
+    """
 
     def __init__(self, backend: LandmarkBackend | None = None, gt_backend: LandmarkBackend | None = None):
         self.backend = backend or DlibBackend()
@@ -278,7 +324,7 @@ class LMD:
         self.spec = LMD_SPEC.with_weights(None, backend=f"{self.backend.version}|gt:{self.gt_backend.version}")
 
     def update(self, pred: np.ndarray, gt: np.ndarray) -> dict[str, np.ndarray]:
-        return {"pred_lms": self.backend.landmarks(pred), "gt_lms": self.gt_backend.landmarks(gt)}
+        return {"pred_lms": self.backend.landmarks(pred), "gt_lms": cached_landmarks(self.gt_backend, gt)}
 
     def compute(self, stats: dict[str, np.ndarray]) -> MetricResult:
         return lmd_result(stats["pred_lms"], stats["gt_lms"], self.spec)

@@ -37,6 +37,7 @@ from lmgs_eval.metrics.base import MetricResult, MetricSpec, unavailable
 
 VSHIFT = 15
 SAMPLES_PER_FRAME = 640  # 16 kHz / 25 fps
+PREPARE_CHUNK = 256  # frames cropped and shaped at a time
 CROP_SIZE = 224
 CROP_SCALE = 0.4
 PAD_VALUE = 110
@@ -79,25 +80,46 @@ def is_silent(audio16k: np.ndarray, rms_floor: float = 1e-4) -> bool:
     return x.size == 0 or float(np.sqrt(np.mean(x * x))) < rms_floor
 
 
+def n_windows(n_frames: int, n_samples: int) -> int:
+    """syncnet_python's window count: ``min(n_frames, floor(n_samples / 640)) - 5``.
+
+    Raises:
+        UserError: fewer than one window.
+    """
+    last = min(int(n_frames), int(math.floor(n_samples / SAMPLES_PER_FRAME))) - 5
+    if last <= 0:
+        raise UserError(f"sync: clip too short for 5-frame windows ({n_frames} frames, {n_samples} samples)")
+    return last
+
+
+def video_windows(frames: np.ndarray, start: int, stop: int) -> np.ndarray:
+    """Video windows ``start .. stop-1`` as ``[N, 3, 5, H, W]`` float32 from ``[T, H, W, 3]`` frames."""
+    v = np.stack([frames[i:i + 5] for i in range(start, stop)])  # [N, 5, H, W, 3]
+    return np.ascontiguousarray(v.transpose(0, 4, 1, 2, 3), np.float32)
+
+
+def audio_windows(mfcc: np.ndarray, last: int) -> np.ndarray:
+    """Audio windows ``[last, 1, 13, 20]``: 20 MFCC steps from ``4 * i`` (a short tail zero-filled)."""
+    a = np.zeros((last, 1, 13, 20), np.float32)
+    for i in range(last):
+        seg = mfcc[:, 4 * i:4 * i + 20]
+        a[i, 0, :, :seg.shape[1]] = seg  # syncnet_python would fail on a short tail; zero-fill is flagged by lse()
+    return a
+
+
 def windows(crops: np.ndarray, mfcc: np.ndarray, n_samples: int) -> tuple[np.ndarray, np.ndarray]:
     """Video ``[N, 3, 5, H, W]`` and audio ``[N, 1, 13, 20]`` windows, syncnet_python's indexing.
+
+    Holds every video window in memory (5 copies of each frame); :func:`lse` builds them a
+    batch at a time instead (:meth:`SyncScorer.embed_frames`), so a long clip fits.
 
     Args:
         crops: ``[T, H, W, 3]`` face crops in the scorer's pixel convention.
         mfcc: ``[13, M]`` from :func:`mfcc_13`.
         n_samples: number of 16 kHz audio samples.
     """
-    min_length = min(crops.shape[0], int(math.floor(n_samples / SAMPLES_PER_FRAME)))
-    last = min_length - 5
-    if last <= 0:
-        raise UserError(f"sync: clip too short for 5-frame windows ({crops.shape[0]} frames, {n_samples} samples)")
-    v = np.stack([crops[i:i + 5] for i in range(last)])  # [N, 5, H, W, 3]
-    v = np.ascontiguousarray(v.transpose(0, 4, 1, 2, 3), np.float32)
-    a = np.zeros((last, 1, 13, 20), np.float32)
-    for i in range(last):
-        seg = mfcc[:, 4 * i:4 * i + 20]
-        a[i, 0, :, :seg.shape[1]] = seg  # syncnet_python would fail on a short tail; zero-fill is flagged below
-    return v, a
+    last = n_windows(crops.shape[0], n_samples)
+    return video_windows(crops, 0, last), audio_windows(mfcc, last)
 
 
 def lse_from_embeddings(v_emb: np.ndarray, a_emb: np.ndarray, vshift: int = VSHIFT) -> dict:
@@ -361,6 +383,19 @@ class SyncScorer:
             x = x / 255.0
         return x.astype(np.float32)
 
+    def embed_frames(self, audio_win: np.ndarray, frames: np.ndarray, batch: int = 16) -> tuple[np.ndarray, np.ndarray]:
+        """Embeddings of window ``i`` = (``audio_win[i]``, prepared ``frames[i:i+5]``), a batch at a time.
+
+        Same numbers as :meth:`embed` on :func:`windows`, without holding every window.
+        """
+        a_out, v_out = [], []
+        for s in range(0, audio_win.shape[0], batch):
+            e = min(audio_win.shape[0], s + batch)
+            a, v = self.session.run(["a_emb", "v_emb"], {"audio": audio_win[s:e], "video": video_windows(frames, s, e)})
+            a_out.append(a)
+            v_out.append(v)
+        return np.concatenate(a_out), np.concatenate(v_out)
+
     def embed(self, audio_win: np.ndarray, video_win: np.ndarray, batch: int = 16) -> tuple[np.ndarray, np.ndarray]:
         a_out, v_out = [], []
         for s in range(0, audio_win.shape[0], batch):
@@ -439,20 +474,31 @@ def lse(frames: np.ndarray, audio16k: np.ndarray | None, fps: float = 25.0, scor
             return unavailable(spec, str(exc), n)
         if n_missing:
             flags.append(f"no_face: {n_missing} detection(s) without a face, box held from the nearest frame")
-        crops = crop_faces(frames, boxes)
         notes.append(f"crops: dlib HOG every {detect_every} frame(s), median-9 box smoothing, syncnet_python crop_video geometry, 224x224 BGR 0-255")
     mf = mfcc_13(audio16k)
-    v, a = windows(crops, mf, len(audio16k))
-    if 4 * (v.shape[0] - 1) + 20 > mf.shape[1]:
+    try:
+        last = n_windows(n, len(audio16k))
+    except UserError as exc:
+        return unavailable(spec, str(exc), n)
+    if 4 * (last - 1) + 20 > mf.shape[1]:
         flags.append("audio_tail_padded: last MFCC window zero-filled")
-    v = np.stack([scorer.prepare(w.transpose(1, 2, 3, 0)) for w in v]).transpose(0, 4, 1, 2, 3)
-    a_emb, v_emb = scorer.embed(a, np.ascontiguousarray(v))
+    # crop and shape each frame once, a chunk at a time (a 5-minute clip's 224 crops alone are 4.5 GB)
+    m = last + 4  # frames the windows use
+    prepared = None
+    for s in range(0, m, PREPARE_CHUNK):
+        e = min(m, s + PREPARE_CHUNK)
+        c = crops[s:e] if crops is not None else crop_faces(frames[s:e], boxes[s:e])
+        p = scorer.prepare(np.asarray(c, np.float32))
+        if prepared is None:
+            prepared = np.empty((m, *p.shape[1:]), np.float32)
+        prepared[s:e] = p
+    a_emb, v_emb = scorer.embed_frames(audio_windows(mf, last), prepared)
     r = lse_from_embeddings(v_emb, a_emb)
     values = {"lse_d": r["lse_d"], "lse_c": r["lse_c"], "offset": r["offset"]}
     if scorer.standin:
         notes.append("standin: " + scorer.standin)
     notes.append("mdist per offset -15..15: " + " ".join(f"{d:.3f}" for d in r["mdist"][::-1]))
-    return MetricResult(spec, r["lse_d"], values, r["per_window"], max(0, n - 5), int(v.shape[0]), flags, notes)
+    return MetricResult(spec, r["lse_d"], values, r["per_window"], max(0, n - 5), int(last), flags, notes)
 
 
 def find_scorer_status() -> tuple[bool, str]:
