@@ -61,7 +61,8 @@ def points_from_records(records: Sequence[dict]) -> dict[str, list[dict[str, Any
         out.setdefault(r["subject"]["name"], []).append({
             "budget": int(r["protocol"]["clip"].split("-", 1)[1]), "n_gaussians": c.get("n_gaussians"),
             "psnr": m.get("psnr", {}).get("value"), "lpips": m.get("lpips", {}).get("value"),
-            "lmd": m.get("lmd", {}).get("value"), "fps": c.get("fps"), "model_mb": c.get("model_mb"),
+            "lmd": m.get("lmd", {}).get("value"), "fps": c.get("fps_side_by_side", c.get("fps")),
+            "fps_side_by_side": c.get("fps_side_by_side") is not None, "model_mb": c.get("model_mb"),
             "train_seconds": c.get("train_seconds"), "seed": r["seed"]})
     return out
 
@@ -87,7 +88,7 @@ def run_capacity(cfg: RunConfig, budgets: Sequence[int] = DEFAULT_BUDGETS) -> li
     budgets = sorted(set(budgets) | {default})  # the preset's own budget is always a point (same config: reused)
     log(f"capacity on {subject.name}: face area {area:.0f} px; budgets {', '.join(map(str, budgets))} "
         f"(default {default} = {density:g} x face area)")
-    records = []
+    records, trained = [], []
     for n in budgets:
         for seed in cfg.seeds:
             over = {**base} if n == default else {**base, "train.budget_density": round(n / area, 6)}
@@ -95,9 +96,70 @@ def run_capacity(cfg: RunConfig, budgets: Sequence[int] = DEFAULT_BUDGETS) -> li
             method = create_method("lmgs", **opts)
             info = method.describe()
             clip = f"budget-{n}"
+            trained.append((n, seed, method))
             if not cfg.force and store.find_record(cfg.results, info.name, subject.name, "capacity", clip, seed, info.config_hash):
                 log(f"budget {n} seed {seed}: already in {cfg.results}; skipped")
                 continue
             records.append(fit_render_score(cfg, method, subject, seed, train, driving, test.frames,
                                             f"renders/{subject.name}/capacity/lmgs-{clip}-seed{seed}.mp4", "capacity", clip))
+    retime_side_by_side(cfg, subject, train, driving, trained)
     return records
+
+
+SIDE_BY_SIDE_ROUNDS = 3
+SIDE_BY_SIDE_FRAMES = 100
+
+
+def retime_side_by_side(cfg: RunConfig, subject, train, driving, trained: Sequence[tuple[int, int, Any]],
+                        rounds: int = SIDE_BY_SIDE_ROUNDS, frames: int = SIDE_BY_SIDE_FRAMES) -> dict[tuple[int, int], float]:
+    """Time every budget's model in one run, round-robin, and write the FPS into its record.
+
+    Each record's own ``fps`` was measured when that budget was trained, possibly hours
+    apart on a shared machine (the same model measured 41.5 and 26.0 FPS in two sittings
+    on one host), so a curve of those is partly a curve of the host's load. Here every
+    model (reloaded from its checkpoint, nothing retrained) renders the same first
+    ``frames`` test frames once per round, budgets interleaved, for ``rounds`` rounds; the
+    best round per model gives ``cost.fps_side_by_side``, which the capacity chart uses.
+
+    Returns ``{(budget, seed): fps}``.
+    """
+    import time
+
+    from lmgs.types import DrivingAudio
+    from lmgs_eval import results as store
+    from lmgs_eval.protocols import fit_method
+
+    n = min(frames, driving.n_frames)
+    spf = driving.sample_rate // driving.fps
+    clip = DrivingAudio(audio=driving.audio[: n * spf], w2c=None if driving.w2c is None else driving.w2c[:n],
+                        backgrounds=None if driving.backgrounds is None else driving.backgrounds[:n],
+                        blink=None if driving.blink is None else driving.blink[:n],
+                        audio_features=None if not driving.audio_features else {a: v[:n] for a, v in driving.audio_features.items()})
+    loaded = []
+    for budget, seed, method in trained:
+        info = method.describe()
+        rec = store.find_record(cfg.results, info.name, subject.name, "capacity", f"budget-{budget}", seed, info.config_hash)
+        if rec is None or (rec.get("status") or {}).get("state") == "failed":
+            continue
+        fit_method(method, train, subject, seed, False)  # reloads the checkpoint
+        method.render(clip)  # warm-up
+        loaded.append((budget, seed, method, rec))
+    if not loaded:
+        return {}
+    log(f"capacity: timing {len(loaded)} models side by side ({rounds} rounds of {n} frames, interleaved)")
+    best = {(b, s): float("inf") for b, s, _, _ in loaded}
+    for _ in range(rounds):
+        for b, s, method, _ in loaded:
+            t0 = time.perf_counter()
+            method.render(clip)
+            best[(b, s)] = min(best[(b, s)], time.perf_counter() - t0)
+    out = {}
+    for b, s, _, rec in loaded:
+        fps = n / best[(b, s)]
+        out[(b, s)] = fps
+        rec["cost"]["fps_side_by_side"] = fps
+        note = (f"fps_side_by_side: all {len(loaded)} capacity models of this subject timed in one run, round-robin, "
+                f"best of {rounds} rounds of {n} frames")
+        rec["notes"] = [x for x in rec.get("notes", []) if not x.startswith("fps_side_by_side:")] + [note]
+        store.write_record(cfg.results, rec)
+    return out

@@ -259,7 +259,10 @@ def capacity_charts(records: Sequence[dict[str, Any]], out_dir: str | Path) -> l
                    and r["method"]["name"] == "lmgs" and r["subject"]["name"] == subject and (r.get("cost") or {}).get("n_gaussians")]
         with matplotlib.rc_context(_RC):
             fig, axes = plt.subplots(1, len(panels), figsize=(2.6 * len(panels), 2.8))
+            sbs = all(q.get("fps_side_by_side") for q in pts)
             for ax, (key, label, scale) in zip(axes, panels):
+                if key == "fps":
+                    label = "FPS, side by side ↑" if sbs else "FPS, per run ↑"
                 xs = [r["n_gaussians"] or r["budget"] for r in mean if r.get(key) is not None]
                 ys = [r[key] * scale for r in mean if r.get(key) is not None]
                 ax.plot(xs, ys, "o-", color=FAMILY_COLOURS["3DGS"])

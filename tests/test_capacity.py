@@ -38,8 +38,12 @@ def test_capacity_command_records_each_budget(tmp_path):
     assert warnings == [] and len(recs) == 2
     for r in recs:
         assert validate(r) == [] and r["protocol"]["name"] == "capacity"
+        # every budget re-timed in one run, interleaved; the chart's FPS is that one
+        assert r["cost"]["fps_side_by_side"] > 0 and any(n.startswith("fps_side_by_side:") for n in r["notes"])
     pts = sorted(points_from_records(recs)["astronaut-64px-2s"], key=lambda p: p["budget"])
     assert [p["budget"] for p in pts] == [500, 900]
+    assert all(p["fps_side_by_side"] for p in pts)
+    assert [p["fps"] for p in pts] == [r["cost"]["fps_side_by_side"] for r in sorted(recs, key=lambda r: r["protocol"]["clip"])]
     # the budget reached the model: the larger budget ends with more Gaussians, within its cap
     assert pts[0]["n_gaussians"] < pts[1]["n_gaussians"] <= 900 * 1.3
     assert "<- knee" in out and (tmp_path / "tables" / "capacity_astronaut-64px-2s.png").exists()
