@@ -45,9 +45,14 @@ from baselines.common import (
 from lmgs.audio import AudioNet
 from lmgs.config import AudioConfig, DeformConfig, TriplaneConfig
 from lmgs.encoders import TriplaneEncoder
+from lmgs.presets import TrainConfig
 from lmgs_eval.methods import MethodInfo, register
 
 STANDINS = ("audio front end: log-mel computed in the project (DeepSpeech / HuBERT / WavLM cannot be had offline)",)
+
+
+# the values of lmgs's quick training schedule GaussianTalker uses (recorded in its config)
+SHARED_TRAIN_KEYS = ("lr_means", "lr_scales", "lr_quats", "lr_opacity", "lr_colors", "lambda_dssim", "densify_until")
 
 
 @dataclass(frozen=True)
@@ -59,12 +64,15 @@ class GSBudget:
         dynamic_steps: steps with the audio-driven deformation on.
         densify_every: steps between densify/prune passes.
         lr_nets: learning rate of the networks (GaussianTalker).
+        budget_density: Gaussians per pixel of face area, the same scene-derived budget as
+            lmgs's preset (part of the config, so the config hash follows it).
     """
 
     static_steps: int = 800
     dynamic_steps: int = 2400
     densify_every: int = 100
     lr_nets: float = 2e-3
+    budget_density: float = TrainConfig.budget_density
 
     @classmethod
     def tiny(cls) -> "GSBudget":
@@ -260,6 +268,14 @@ class GaussianTalker(Adapter):
         "(lmgs.strategy), log-mel audio, CPU schedule."
     )
 
+    def config(self) -> dict:
+        """The budget plus the lmgs schedule values it trains with, so the config hash follows both."""
+        from lmgs.presets import quick
+
+        lt = quick().train
+        shared = {k: getattr(lt, k) for k in SHARED_TRAIN_KEYS}
+        return {**super().config(), "shared_lmgs_train": shared}
+
     def _build(self, build: dict) -> GaussianTalkerModel:
         return GaussianTalkerModel(**build)
 
@@ -277,7 +293,7 @@ class GaussianTalker(Adapter):
         lt = quick().train  # the Gaussian learning rates and loss weights of the lmgs schedule
         n = len(clip)
         feats = audio_windows(clip.audio, n).to(dev)
-        budget = budget_from_face_area(face_area_px(clip), lt.budget_density)
+        budget = budget_from_face_area(face_area_px(clip), b.budget_density)
         gs0 = init_face(clip, max(200, int(budget * 0.6)), seed)
         pts = gs0.means.detach()
         lo, hi = pts.min(0).values, pts.max(0).values

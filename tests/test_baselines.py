@@ -152,3 +152,16 @@ def test_long_audio(name, fitted, clip):
     t = np.arange(20 * 16000) / 16000
     out = m.render(DrivingAudio(audio=(0.2 * np.sin(2 * np.pi * 200 * t)).astype(np.float32)))
     assert out.shape == (500, clip.height, clip.width, 3) and out.dtype == np.uint8
+
+
+def test_gaussiantalker_config_hash_follows_its_budget_and_shared_schedule():
+    # the Gaussian budget and the lmgs schedule values it trains with are part of its config:
+    # a cached model trained with another budget is never reused under the same hash
+    from lmgs.presets import quick
+
+    base = create_method("gaussiantalker", preset="quick")
+    cfg = base.describe().config
+    assert cfg["budget_density"] == quick().train.budget_density
+    assert cfg["shared_lmgs_train"]["lr_means"] == quick().train.lr_means
+    other = create_method("gaussiantalker", preset="quick", budget_density=0.12)
+    assert other.describe().config_hash != base.describe().config_hash
