@@ -125,16 +125,11 @@ def retime_side_by_side(cfg: RunConfig, subject, train, driving, trained: Sequen
     """
     import time
 
-    from lmgs.types import DrivingAudio
     from lmgs_eval import results as store
-    from lmgs_eval.protocols import fit_method
+    from lmgs_eval.protocols import fit_method, head_of
 
-    n = min(frames, driving.n_frames)
-    spf = driving.sample_rate // driving.fps
-    clip = DrivingAudio(audio=driving.audio[: n * spf], w2c=None if driving.w2c is None else driving.w2c[:n],
-                        backgrounds=None if driving.backgrounds is None else driving.backgrounds[:n],
-                        blink=None if driving.blink is None else driving.blink[:n],
-                        audio_features=None if not driving.audio_features else {a: v[:n] for a, v in driving.audio_features.items()})
+    clip = head_of(driving, frames)
+    n = clip.n_frames
     loaded = []
     for budget, seed, method in trained:
         info = method.describe()

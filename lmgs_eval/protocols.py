@@ -64,6 +64,19 @@ def model_dir(subject, method_name: str, config_hash: str, seed: int) -> Path:
     return cache_root() / "models" / f"{subject.name}{('-' + tag) if tag else ''}" / method_name / f"{config_hash}-seed{seed}"
 
 
+def head_of(driving: DrivingAudio, k: int) -> DrivingAudio:
+    """The first ``k`` frames (at most all) of a driving clip: audio, cameras, backgrounds, blink, features."""
+    k = min(int(k), driving.n_frames)
+    spf = driving.sample_rate // driving.fps
+    return DrivingAudio(
+        audio=driving.audio[: k * spf],
+        w2c=None if driving.w2c is None else driving.w2c[:k],
+        backgrounds=None if driving.backgrounds is None else driving.backgrounds[:k],
+        blink=None if driving.blink is None else driving.blink[:k],
+        audio_features=None if not driving.audio_features else {a: v[:k] for a, v in driving.audio_features.items()},
+    )
+
+
 def timed_render(method, driving: DrivingAudio, timings: dict | None = None) -> tuple[np.ndarray, dict]:
     """Render after a short warm-up; FPS is audio in to frames out, I/O outside the timer.
 
@@ -75,15 +88,7 @@ def timed_render(method, driving: DrivingAudio, timings: dict | None = None) -> 
 
     kw = {"timings": timings} if timings is not None and "timings" in inspect.signature(method.render).parameters else {}
     n = driving.n_frames
-    k = min(WARMUP_FRAMES, n)
-    spf = driving.sample_rate // driving.fps
-    warm = DrivingAudio(
-        audio=driving.audio[: k * spf],
-        w2c=None if driving.w2c is None else driving.w2c[:k],
-        backgrounds=None if driving.backgrounds is None else driving.backgrounds[:k],
-        blink=None if driving.blink is None else driving.blink[:k],
-        audio_features=None if not driving.audio_features else {a: v[:k] for a, v in driving.audio_features.items()},
-    )
+    warm = head_of(driving, WARMUP_FRAMES)
     t0 = time.perf_counter()
     method.render(warm)
     first = time.perf_counter() - t0
@@ -107,7 +112,7 @@ def timed_render(method, driving: DrivingAudio, timings: dict | None = None) -> 
         raise RuntimeError(f"{method.describe().name} rendered non-finite output")
     if frames.shape[0] != n or frames.dtype != np.uint8:
         raise RuntimeError(f"{method.describe().name} rendered {frames.shape} {frames.dtype}, expected {n} uint8 frames")
-    return frames, {"fps": n / secs if secs > 0 else None, "render_seconds": secs, "first_frame_ms": 1000 * first / max(k, 1),
+    return frames, {"fps": n / secs if secs > 0 else None, "render_seconds": secs, "first_frame_ms": 1000 * first / max(warm.n_frames, 1),
                     "realtime_factor": (n / driving.fps) / secs if secs > 0 else None, "repeats": len(runs)}
 
 

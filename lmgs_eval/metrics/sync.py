@@ -388,18 +388,16 @@ class SyncScorer:
 
         Same numbers as :meth:`embed` on :func:`windows`, without holding every window.
         """
+        return self._embed(audio_win, lambda s, e: video_windows(frames, s, e), batch)
+
+    def embed(self, audio_win: np.ndarray, video_win: np.ndarray, batch: int = 16) -> tuple[np.ndarray, np.ndarray]:
+        return self._embed(audio_win, lambda s, e: video_win[s:e], batch)
+
+    def _embed(self, audio_win: np.ndarray, video_of, batch: int) -> tuple[np.ndarray, np.ndarray]:
         a_out, v_out = [], []
         for s in range(0, audio_win.shape[0], batch):
             e = min(audio_win.shape[0], s + batch)
-            a, v = self.session.run(["a_emb", "v_emb"], {"audio": audio_win[s:e], "video": video_windows(frames, s, e)})
-            a_out.append(a)
-            v_out.append(v)
-        return np.concatenate(a_out), np.concatenate(v_out)
-
-    def embed(self, audio_win: np.ndarray, video_win: np.ndarray, batch: int = 16) -> tuple[np.ndarray, np.ndarray]:
-        a_out, v_out = [], []
-        for s in range(0, audio_win.shape[0], batch):
-            a, v = self.session.run(["a_emb", "v_emb"], {"audio": audio_win[s:s + batch], "video": video_win[s:s + batch]})
+            a, v = self.session.run(["a_emb", "v_emb"], {"audio": audio_win[s:e], "video": video_of(s, e)})
             a_out.append(a)
             v_out.append(v)
         return np.concatenate(a_out), np.concatenate(v_out)
