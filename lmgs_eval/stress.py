@@ -82,20 +82,14 @@ def landmarks_u8(backend, frames: np.ndarray, chunk: int = 256) -> np.ndarray:
 
 
 def lse_u8(frames: np.ndarray, audio: np.ndarray):
-    """LSE of uint8 frames; long clips detect faces every 5 frames and crop without a float copy.
-
-    Returns the MetricResult, or a note (str) when no face was found in a long clip.
-    """
-    from lmgs_eval.metrics.sync import crop_faces, face_boxes, lse
+    """LSE of uint8 frames (cropped a chunk at a time by ``lse``, no float copy of the clip);
+    a long clip detects faces every 5 frames (the boxes are median-smoothed anyway)."""
+    from lmgs_eval.metrics.sync import lse
 
     if len(frames) <= LONG_CLIP_FRAMES:
-        return lse(frames.astype(np.float32) / 255.0, audio)
-    try:
-        boxes, missing = face_boxes(frames, detect_every=5)
-    except UserError as exc:
-        return f"LSE not computed: {exc}"
-    r = lse(None, audio, crops=crop_faces(frames, boxes))
-    r.notes.append(f"long clip: faces detected every 5 frames ({missing} detection(s) without a face, box held)")
+        return lse(frames, audio)
+    r = lse(frames, audio, detect_every=5)
+    r.notes.append(f"long clip ({len(frames)} frames): faces detected every 5th frame")
     return r
 
 
@@ -194,11 +188,7 @@ def run_stress(cfg: RunConfig, conditions: tuple[str, ...] | None = None, max_mi
                     if why is None:
                         lms = landmarks_u8(backend, frames)
                         res = {"jitter": jitter_result(lms)}
-                        sync = lse_u8(frames, audio)
-                        if isinstance(sync, str):
-                            notes = list(notes) + [sync]
-                        else:
-                            res["lse"] = sync
+                        res["lse"] = lse_u8(frames, audio)
                         so = silence_open_result(lms, cond.silent_spans)
                         if so is not None:
                             res["silence_open"] = so

@@ -117,3 +117,27 @@ def test_check_output_names_the_failure():
     assert "frozen" in check_output(np.repeat(ok[:1], 3, axis=0), 3, audio)
     assert check_output(np.repeat(ok[:1], 3, axis=0), 3, np.zeros_like(audio)) is None
     assert "shape" in check_output(ok[:2], 3, audio)
+
+
+def test_stress_lse_of_uint8_frames_equals_lse_of_float_frames(monkeypatch):
+    """The stress suite scores uint8 renders without a float copy; same numbers as the float path,
+    and a long clip (here: longer than a patched 10-frame limit) detects faces every 5th frame."""
+    import cv2
+    from skimage import data
+
+    from lmgs_eval import stress
+    from lmgs_eval.metrics.sync import lse
+
+    face = cv2.resize(data.astronaut(), (256, 256), interpolation=cv2.INTER_AREA)
+    frames = np.stack([np.roll(face, (i % 3, (i // 2) % 3), axis=(0, 1)) for i in range(24)]).astype(np.uint8)
+    t = np.arange(24 * 640) / 16000
+    audio = (0.3 * np.sin(2 * np.pi * 180 * t) * (0.6 + 0.4 * np.sin(2 * np.pi * 3 * t))).astype(np.float32)
+    want = lse(frames.astype(np.float32) / 255.0, audio)
+    assert want.available
+    got = stress.lse_u8(frames, audio)
+    assert got.values == want.values and got.flags == want.flags
+    monkeypatch.setattr(stress, "LONG_CLIP_FRAMES", 10)
+    long_got = stress.lse_u8(frames, audio)
+    long_want = lse(frames.astype(np.float32) / 255.0, audio, detect_every=5)
+    assert long_got.values == long_want.values
+    assert any("every 5th frame" in n for n in long_got.notes)
