@@ -22,6 +22,7 @@ COMMANDS: dict[str, str] = {
 _OPTIONAL: dict[str, str] = {
     "metrics": "lmgs_eval.commands.metrics",
     "score": "lmgs_eval.commands.score",
+    "methods": "lmgs_eval.commands.methods",
     "weights": "lmgs_eval.commands.weights",
     "self": "lmgs_eval.commands.self_driven",
     "cross": "lmgs_eval.commands.cross",

@@ -70,6 +70,21 @@ def test_all_nine_are_registered():
         assert m in names
 
 
+def test_methods_command_lists_every_method_with_its_config_hash():
+    import json
+
+    from conftest import run_cli
+
+    code, out, _ = run_cli("methods", "--json")
+    assert code == 0
+    rows = {r["name"]: r for r in json.loads(out)["methods"]}
+    assert list(rows) == list_methods()  # the --method help points here
+    for name in (*ALL, "lmgs", "lmgs-no-se"):
+        info = create_method(name, preset="quick").describe()
+        assert (rows[name]["family"], rows[name]["config_hash"]) == (info.family, info.config_hash)
+    assert rows["lmgs-no-se"]["variant"] and not rows["lmgs"]["variant"]
+
+
 @pytest.mark.parametrize("name", ALL)
 def test_protocol_describe_and_cost(name, fitted):
     m, _ = fitted(name)

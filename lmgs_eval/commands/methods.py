@@ -1,0 +1,37 @@
+"""``lmgs-eval methods``: the methods ``--method`` accepts, with family and what each keeps."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+HELP = "list the methods --method accepts (family, config hash, what each keeps and simplifies)"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--preset", choices=("quick", "paper"), default="quick", help="preset whose config hash is shown")
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+
+
+def run(args: argparse.Namespace) -> int:
+    from lmgs_eval.methods import create_method, list_methods
+
+    rows = []
+    for name in list_methods():
+        if name.startswith("external:"):
+            rows.append({"name": name, "family": "external", "config_hash": "-", "variant": "",
+                         "description": "scores a folder or video rendered by any other code (--renders PATH)"})
+            continue
+        info = create_method(name, preset=args.preset).describe()
+        rows.append({"name": name, "family": info.family, "config_hash": info.config_hash,
+                     "variant": info.variant or "", "description": info.description})
+    if args.json:
+        print(json.dumps({"preset": args.preset, "methods": rows}, indent=2))
+        return 0
+    print(f"{'method':<18} {'family':<9} {'config':<17} description (preset {args.preset})")
+    for r in rows:
+        desc = r["description"].split(". ")[0].rstrip(".")
+        if r["variant"]:
+            desc = f"variant {r['variant']} (an ablation row of Tables III/IV)"
+        print(f"{r['name']:<18} {r['family']:<9} {r['config_hash']:<17} {desc[:110]}")
+    return 0
