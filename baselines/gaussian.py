@@ -51,7 +51,8 @@ from lmgs_eval.methods import MethodInfo, register
 STANDINS = ("audio front end: log-mel computed in the project (DeepSpeech / HuBERT / WavLM cannot be had offline)",)
 
 
-# the values of lmgs's quick training schedule GaussianTalker uses (recorded in its config)
+# lmgs's Gaussian learning rates and loss weights GaussianTalker trains with (recorded in its config): the
+# TrainConfig defaults, which every lmgs preset shares (presets differ in steps and budget, not in these)
 SHARED_TRAIN_KEYS = ("lr_means", "lr_scales", "lr_quats", "lr_opacity", "lr_colors", "lambda_dssim", "densify_until")
 
 
@@ -102,7 +103,7 @@ class LMGSConfigMethod:
         t = self.budget
         cfg = quick()
         train = dataclasses.replace(cfg.train, static_steps=t.static_steps, dynamic_steps=t.dynamic_steps,
-                                    densify_every=t.densify_every, lr_nets=t.lr_nets)
+                                    densify_every=t.densify_every, lr_nets=t.lr_nets, budget_density=t.budget_density)
         self.cfg = cfg.replace(train=train, **self.changes)
         self.device = device
         self.model = None
@@ -270,9 +271,7 @@ class GaussianTalker(Adapter):
 
     def config(self) -> dict:
         """The budget plus the lmgs schedule values it trains with, so the config hash follows both."""
-        from lmgs.presets import quick
-
-        lt = quick().train
+        lt = TrainConfig()
         shared = {k: getattr(lt, k) for k in SHARED_TRAIN_KEYS}
         return {**super().config(), "shared_lmgs_train": shared}
 
@@ -285,12 +284,10 @@ class GaussianTalker(Adapter):
         from lmgs.init import face_area_px, init_face
         from lmgs.model import to_image
         from lmgs.strategy import Strategy, accumulate, budget_from_face_area, initialize_state, step_post_backward
-        from lmgs.presets import quick
-
         dev = self.dev
         rng = seed_all(seed)
         b = self.cfg
-        lt = quick().train  # the Gaussian learning rates and loss weights of the lmgs schedule
+        lt = TrainConfig()  # the Gaussian learning rates and loss weights of the lmgs schedule (SHARED_TRAIN_KEYS)
         n = len(clip)
         feats = audio_windows(clip.audio, n).to(dev)
         budget = budget_from_face_area(face_area_px(clip), b.budget_density)

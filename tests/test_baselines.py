@@ -180,3 +180,15 @@ def test_gaussiantalker_config_hash_follows_its_budget_and_shared_schedule():
     assert cfg["shared_lmgs_train"]["lr_means"] == quick().train.lr_means
     other = create_method("gaussiantalker", preset="quick", budget_density=0.12)
     assert other.describe().config_hash != base.describe().config_hash
+
+
+@pytest.mark.parametrize("name", ["talkinggaussian", "degstalk"])
+def test_lmgs_configured_baselines_train_with_their_budget_density(name):
+    # a budget override reaches the lmgs training config (and so the hash), not only the budget record
+    from lmgs.presets import quick
+
+    base = create_method(name, preset="quick")
+    assert base.cfg.train.budget_density == quick().train.budget_density
+    other = create_method(name, preset="quick", budget_density=0.12)
+    assert other.cfg.train.budget_density == 0.12
+    assert other.describe().config_hash != base.describe().config_hash
