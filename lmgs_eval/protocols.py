@@ -77,11 +77,12 @@ def head_of(driving: DrivingAudio, k: int) -> DrivingAudio:
     )
 
 
-def timed_render(method, driving: DrivingAudio, timings: dict | None = None) -> tuple[np.ndarray, dict]:
+def timed_render(method, driving: DrivingAudio, timings: dict | None = None,
+                 repeats: int = REPEATS) -> tuple[np.ndarray, dict]:
     """Render after a short warm-up; FPS is audio in to frames out, I/O outside the timer.
 
-    The clip is rendered up to :data:`REPEATS` times (while the next repeat fits in
-    :data:`REPEAT_BUDGET_S`) and the median run is reported. A method whose ``render`` takes
+    The clip is rendered up to ``repeats`` times (while the next repeat fits in
+    :data:`REPEAT_BUDGET_S`) and the median run is reported (``repeats`` in the result). A method whose ``render`` takes
     ``timings=`` fills in seconds per stage (audio, network, raster) of that run.
     """
     import inspect
@@ -101,7 +102,7 @@ def timed_render(method, driving: DrivingAudio, timings: dict | None = None) -> 
         runs.append((time.perf_counter() - t0, tk))
         if frames is None:
             frames = out
-        if len(runs) >= REPEATS or sum(r[0] for r in runs) + runs[-1][0] > REPEAT_BUDGET_S:
+        if len(runs) >= repeats or sum(r[0] for r in runs) + runs[-1][0] > REPEAT_BUDGET_S:
             break
     runs.sort(key=lambda r: r[0])
     secs, tk = runs[(len(runs) - 1) // 2]

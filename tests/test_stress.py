@@ -84,6 +84,9 @@ def test_every_condition_runs_and_broken_methods_are_recorded_as_failed(monkeypa
     assert any("resampled from 44100" in n for n in by[("toy-ok", "rate-44k")]["notes"])
     assert any("channels mixed to mono" in n for n in by[("toy-ok", "stereo")]["notes"])
     assert by[("toy-ok", "long-1min")]["protocol"]["n_frames"] == 1500
+    # the clean clip is timed like the self protocol (median of 3 renders), a perturbed one once
+    assert by[("toy-ok", "clean")]["cost"]["render_repeats"] == 3
+    assert {r["cost"]["render_repeats"] for (m, c), r in by.items() if m == "toy-ok" and c != "clean"} == {1}
     # resume: a second run redoes only the failed conditions
     records2, _ = run_stress(RunConfig(subject=SUBJECT, methods=("toy-ok",), results=tmp_path, progress=False), long_seconds=60.0)
     assert records2 == []
