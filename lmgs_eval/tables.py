@@ -717,13 +717,16 @@ def table_calibration(records: Sequence[Record],
 def table_stability(records: Sequence[Record], metric: str = "lse_c", clean: str = "clean") -> Table:
     """Stability (issue 8): per method x stress condition, the change of ``metric`` from the clean run.
 
-    Cells show ``value - clean`` (mean over seeds); failed runs are counted per cell.
+    Cells show ``value - clean`` (mean over seeds); failed runs are counted per cell, and the
+    last column is the suite's cost: the wall time of the row's stress runs (render, scoring and
+    writing; training excluded: the suite reuses the trained model).
     """
     use = [r for r in records if r["protocol"]["name"] == "stress"]
     conds = sorted({r["protocol"]["clip"] for r in use} - {clean})
     label, hib, digits = METRICS[metric]
     cols = [Column(f"{c}.{metric}", c, metric, "metric", None, digits, rank=False) for c in conds]
     cols.append(Column("failures", "failed runs", "failures", "text"))
+    cols.append(Column("suite_min", "suite wall (min)", "suite_min", "text"))
     sections = []
     for subject, recs in _by_subject(use).items():
         rows = sorted(_rows(recs), key=_order)
@@ -748,6 +751,8 @@ def table_stability(records: Sequence[Record], metric: str = "lse_c", clean: str
                     cell.text = "–"
                 row.cells[f"{c}.{metric}"] = cell
             row.cells["failures"] = Cell(text=str(n_fail))
+            walls = [r.get("cost", {}).get("wall_seconds") for r in row.records]
+            row.cells["suite_min"] = Cell(text=f"{sum(walls) / 60:.1f}" if all(w is not None for w in walls) else "–")
         sections.append(Section(_subject_title(recs), rows))
     arrow = "↑" if hib else "↓"
     return Table(f"stability_{metric}", f"Stability: change of {label}{arrow} from the clean condition", cols,

@@ -96,6 +96,11 @@ def test_every_condition_runs_and_broken_methods_are_recorded_as_failed(monkeypa
     md = tables.table_stability(recs, "jitter").markdown() if any("jitter" in r["metrics"] for r in recs) else \
         tables.table_stability(recs, "lse_c").markdown()
     assert "failed" in md
+    # the suite's cost beside it: the wall time of each method's stress runs
+    t = tables.table_stability(recs, "lse_c")
+    for row in t.sections[0].rows:
+        want = sum(r["cost"]["wall_seconds"] for r in row.records) / 60
+        assert row.cells["suite_min"].text == f"{want:.1f}"
 
 
 def test_jitter_and_silence_opening_by_hand():

@@ -167,7 +167,7 @@ def test_calibration_flags_a_metric_that_does_not_separate():
 def test_stability_and_status_tables():
     recs = fixture_records()
     md = T.table_stability(recs, "lse_c").markdown()
-    assert _row(md, "Method") == ["Method", "long-300s", "noise-10db", "silence", "failed runs"]
+    assert _row(md, "Method") == ["Method", "long-300s", "noise-10db", "silence", "failed runs", "suite wall (min)"]
     tg = _row(md, "TalkingGaussian")
     assert tg[1] == "1 failed: out of memory" and tg[4] == "1"
     assert tg[2].startswith("-0.8") and tg[3].startswith("-4.0")
