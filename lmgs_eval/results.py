@@ -68,7 +68,7 @@ from pathlib import Path
 from typing import Any
 
 from lmgs_eval.errors import UserError
-from lmgs_eval.paths import atomic_write_text
+from lmgs_eval.paths import atomic_dir, atomic_write_text
 
 SCHEMA_VERSION = "1"
 FAMILIES = ("2D", "NeRF", "3DGS", "external", "ground-truth", "control")
@@ -500,6 +500,37 @@ def load_records(root: str | os.PathLike) -> tuple[list[dict[str, Any]], list[st
     """All valid records under ``root`` and a warning (naming the file) per skipped file."""
     items, warnings = iter_store(root)
     return [r for _, r in items], warnings
+
+
+def copy_records(src: str | os.PathLike, dst: str | os.PathLike) -> tuple[int, list[str]]:
+    """Copy into store ``dst`` every valid record of store ``src`` that ``dst`` does not hold.
+
+    Only the JSON records travel: renders and checkpoints stay where they were made, so
+    ``lmgs-eval verify`` reports a copied record's artefacts as missing on another machine,
+    while tables, charts and resume (:func:`find_record`) work from the record alone. A
+    record already in ``dst`` (same subject, protocol, method, clip, seed and config hash)
+    is kept as it is. Returns the number copied and a warning per skipped file of ``src``.
+    """
+    items, warnings = iter_store(src)
+    n = 0
+    for _, rec in items:
+        if not record_path(dst, rec).is_file():
+            write_record(dst, rec)
+            n += 1
+    return n, warnings
+
+
+def snapshot_records(records: Iterable[Mapping[str, Any]], dst: str | os.PathLike) -> Path:
+    """Write exactly ``records`` as a store at ``dst``, replacing what was there, atomically.
+
+    This is how the committed ``tables/records/`` is made: the records a set of tables was
+    generated from, so ``lmgs-eval table --results tables/records`` makes the same tables
+    again on any machine and ``make bench`` can resume from them.
+    """
+    with atomic_dir(Path(dst)) as tmp:
+        for rec in records:
+            write_record(tmp, rec)
+    return Path(dst)
 
 
 def find_record(root: str | os.PathLike, method: str, subject: str, protocol: str, clip: str, seed: int,

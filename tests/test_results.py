@@ -333,3 +333,51 @@ def test_verify_catches_changed_render_and_missing_weights(tmp_path, capsys):
 def test_verify_of_a_missing_store_is_a_user_error(tmp_path, capsys):
     assert cli_main(["verify", str(tmp_path / "nope")]) == 2
     assert "nope" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- committed records
+def test_records_snapshot_makes_the_same_tables_and_lets_a_fresh_store_resume(tmp_path, capsys):
+    """``table --records``: the snapshot regenerates byte-identical tables; importing it resumes."""
+    recs = fixture_records()
+    write_store(tmp_path / "results", recs)
+    snap = tmp_path / "tables" / "records"
+    assert cli_main(["table", "--results", str(tmp_path / "results"), "--out", str(tmp_path / "tables"),
+                     "--records", str(snap), "--no-charts"]) == 0
+    assert cli_main(["table", "--results", str(snap), "--out", str(tmp_path / "again"), "--no-charts"]) == 0
+    made = sorted(p.name for p in (tmp_path / "tables").glob("*.*"))
+    assert made and made == sorted(p.name for p in (tmp_path / "again").glob("*.*"))
+    for name in made:
+        assert (tmp_path / "tables" / name).read_bytes() == (tmp_path / "again" / name).read_bytes(), name
+    assert sorted(R.load_records(snap)[0], key=R.config_hash) == sorted(recs, key=R.config_hash)
+
+    # A fresh machine's empty store: every run of the snapshot is found, so it is not redone.
+    fresh = tmp_path / "fresh"
+    assert R.copy_records(snap, fresh) == (len(recs), [])
+    for r in recs:
+        got = R.find_record(fresh, r["method"]["name"], r["subject"]["name"], r["protocol"]["name"],
+                            r["protocol"]["clip"], r["seed"], r["config_hash"])
+        assert got == r
+    # A record already in the store is kept, not overwritten by the snapshot's.
+    mine = json.loads(R.record_path(fresh, recs[1]).read_text())
+    mine["notes"] = ["made here"]
+    R.write_record(fresh, mine)
+    assert R.copy_records(snap, fresh) == (0, [])
+    assert json.loads(R.record_path(fresh, recs[1]).read_text())["notes"] == ["made here"]
+
+    # A snapshot replaces the folder whole: a record no longer in the store leaves it.
+    R.record_path(tmp_path / "results", recs[1]).unlink()
+    assert cli_main(["table", "--results", str(tmp_path / "results"), "--out", str(tmp_path / "tables"),
+                     "--records", str(snap), "--no-charts"]) == 0
+    assert len(R.load_records(snap)[0]) == len(recs) - 1
+
+
+@pytest.mark.parametrize("where", ["same", "inside", "parent"])
+def test_records_folder_overlapping_the_store_is_refused(tmp_path, capsys, where):
+    store = tmp_path / "store"
+    write_store(store)
+    target = {"same": store, "inside": store / "tables" / "records", "parent": tmp_path}[where]
+    assert cli_main(["table", "--results", str(store), "--out", str(tmp_path / "t"), "--records", str(target),
+                     "--no-charts"]) == 2
+    err = capsys.readouterr().err
+    assert "overlaps the results store" in err and str(target) in err
+    assert len(R.load_records(store)[0]) == len(fixture_records())  # nothing was replaced

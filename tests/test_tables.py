@@ -199,7 +199,8 @@ def test_pareto_front_on_hand_made_points():
 def _run_table(tmp_path, results: Path, **kw) -> int:
     from lmgs_eval.commands import table
 
-    ns = argparse.Namespace(results=results, format="all", out=tmp_path / "tables", ci=False, no_charts=False)
+    ns = argparse.Namespace(results=results, format="all", out=tmp_path / "tables", ci=False, no_charts=False,
+                            records=None)
     for k, v in kw.items():
         setattr(ns, k, v)
     return table.run(ns)

@@ -45,6 +45,17 @@ def run_full(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     results = Path(args.results)
+    out = Path(args.out) if args.out else Path("tables")
+    archive = out / "records"
+    if archive.is_dir():
+        # The committed records of earlier sittings (on other machines): runs already
+        # recorded there are not redone, and the tables are made from them and the new runs.
+        from lmgs_eval.results import copy_records
+
+        n, warnings = copy_records(archive, results)
+        for w in warnings:
+            log(f"[bench] {w}")
+        log(f"[bench] {n} records of earlier sittings imported from {archive} into {results}")
     stages = []
     for subject in FULL_SUBJECTS:
         for m in FULL_METHODS:
@@ -75,8 +86,8 @@ def run_full(args: argparse.Namespace) -> int:
         except Exception as exc:  # one method's failure does not stop the benchmark; it is reported
             failures.append(f"{label}: {exc.__class__.__name__}: {exc}")
             log(f"[bench] {label} failed: {exc}")
-    out = Path(args.out) if args.out else Path("tables")
-    table.run(argparse.Namespace(results=results, format="all", out=out, ci=False, no_charts=False))
+    table.run(argparse.Namespace(results=results, format="all", out=out, ci=False, no_charts=False,
+                                 records=archive))
     print(f"\nbenchmark finished in {(time.perf_counter() - t0) / 60:.0f} min; tables and charts: {out.resolve()}")
     for f in failures:
         print(f"  failed: {f}")
@@ -105,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
     from lmgs_eval.commands import table
 
     out = Path(args.out) if args.out else results / "tables"
-    targs = argparse.Namespace(results=results, format="all", out=out, ci=False, no_charts=False)
+    targs = argparse.Namespace(results=results, format="all", out=out, ci=False, no_charts=False, records=None)
     table.run(targs)
     print(f"\ndemo finished in {time.perf_counter() - t0:.0f} s")
     print(f"  tables and charts: {out.resolve()}")

@@ -16,6 +16,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default="tables", type=Path, help="output folder (default: tables/)")
     parser.add_argument("--ci", action="store_true", help="show bootstrap 95%% CIs in Markdown/LaTeX cells too")
     parser.add_argument("--no-charts", action="store_true", help="tables only")
+    parser.add_argument("--records", type=Path, default=None, metavar="DIR",
+                        help="also write the records the tables were made from into DIR (JSON only; DIR is replaced), "
+                             "so `lmgs-eval table --results DIR` makes the same tables anywhere (make bench: tables/records)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -24,6 +27,9 @@ def run(args: argparse.Namespace) -> int:
     from lmgs_eval.results import load_records
     from lmgs_eval.tables import all_tables
 
+    records_dir = args.records
+    if records_dir is not None:
+        _check_records_dir(Path(records_dir), Path(args.results))
     records, warnings = load_records(args.results)
     for w in warnings:
         print(f"warning: {w}", file=sys.stderr)
@@ -46,6 +52,11 @@ def run(args: argparse.Namespace) -> int:
         from lmgs_eval.charts import all_charts
 
         written += all_charts(records, out)
+    if records_dir is not None:
+        from lmgs_eval.results import snapshot_records
+
+        snapshot_records(records, records_dir)
+        print(f"{len(records)} records the tables were made from -> {records_dir}/")
     first = next((t for t in tables if t.name == "table1_self"), tables[0] if tables else None)
     if first is not None:
         print(first.markdown(show_ci=args.ci))
@@ -53,3 +64,13 @@ def run(args: argparse.Namespace) -> int:
     for p in written:
         print(f"  {p}")
     return 0
+
+
+def _check_records_dir(records_dir: Path, results: Path) -> None:
+    """The snapshot folder must be apart from the store: inside it, its records would be read twice."""
+    from lmgs_eval.errors import UserError
+
+    a, b = records_dir.resolve(), results.resolve()
+    if a == b or b in a.parents or a in b.parents:
+        raise UserError(f"--records {records_dir}: overlaps the results store {results} "
+                        "(its records would be read twice); choose a folder outside it, e.g. tables/records")
