@@ -61,9 +61,19 @@ def points_from_records(records: Sequence[dict]) -> dict[str, list[dict[str, Any
         out.setdefault(r["subject"]["name"], []).append({
             "budget": int(r["protocol"]["clip"].split("-", 1)[1]), "n_gaussians": c.get("n_gaussians"),
             "psnr": m.get("psnr", {}).get("value"), "lpips": m.get("lpips", {}).get("value"),
-            "lmd": m.get("lmd", {}).get("value"), "fps": c.get("fps_side_by_side", c.get("fps")),
-            "fps_side_by_side": c.get("fps_side_by_side") is not None, "model_mb": c.get("model_mb"),
+            "lmd": m.get("lmd", {}).get("value"), "fps": c.get("fps_side_by_side"), "fps_run": c.get("fps"),
+            "fps_side_by_side": c.get("fps_side_by_side") is not None, "timing_run": c.get("fps_side_by_side_run"),
+            "model_mb": c.get("model_mb"),
             "train_seconds": c.get("train_seconds"), "seed": r["seed"]})
+    for pts in out.values():
+        # One kind of FPS per subject: side by side only when every point was timed in one and the
+        # same run (a later `capacity --budget N` re-times only the budgets it was given).
+        side = all(p["fps_side_by_side"] for p in pts) and len({p["timing_run"] for p in pts}) == 1
+        for p in pts:
+            run_fps = p.pop("fps_run")
+            p.pop("timing_run")
+            if not side:
+                p["fps"], p["fps_side_by_side"] = run_fps, False
     return out
 
 
@@ -126,16 +136,26 @@ def retime_side_by_side(cfg: RunConfig, subject, train, driving, trained: Sequen
     import time
 
     from lmgs_eval import results as store
-    from lmgs_eval.protocols import fit_method, head_of
+    from lmgs_eval.protocols import fit_method, head_of, model_dir
 
     clip = head_of(driving, frames)
     n = clip.n_frames
-    loaded = []
+    recorded, away = [], set()
     for budget, seed, method in trained:
         info = method.describe()
         rec = store.find_record(cfg.results, info.name, subject.name, "capacity", f"budget-{budget}", seed, info.config_hash)
-        if rec is None or (rec.get("status") or {}).get("state") == "failed":
-            continue
+        if rec is not None and (rec.get("status") or {}).get("state") != "failed":
+            recorded.append((budget, seed, method, rec))
+            if not (model_dir(subject, info.name, info.config_hash, seed) / "model.pt").exists():
+                away.add(budget)
+    if away:
+        # Records copied from another machine (tables/records): their models are not here, and
+        # "reloading" them would retrain each one; a partial re-timing would mix two runs.
+        log(f"capacity: side-by-side timing skipped: the models of budget(s) {', '.join(map(str, sorted(away)))} are not on "
+            "this machine (records made elsewhere); each record keeps the FPS it was made with")
+        return {}
+    loaded = []
+    for budget, seed, method, rec in recorded:
         fit_method(method, train, subject, seed, False)  # reloads the checkpoint
         method.render(clip)  # warm-up
         loaded.append((budget, seed, method, rec))
@@ -149,10 +169,12 @@ def retime_side_by_side(cfg: RunConfig, subject, train, driving, trained: Sequen
             method.render(clip)
             best[(b, s)] = min(best[(b, s)], time.perf_counter() - t0)
     out = {}
+    run = store.now_iso()
     for b, s, _, rec in loaded:
         fps = n / best[(b, s)]
         out[(b, s)] = fps
         rec["cost"]["fps_side_by_side"] = fps
+        rec["cost"]["fps_side_by_side_run"] = run
         note = (f"fps_side_by_side: all {len(loaded)} capacity models of this subject timed in one run, round-robin, "
                 f"best of {rounds} rounds of {n} frames")
         rec["notes"] = [x for x in rec.get("notes", []) if not x.startswith("fps_side_by_side:")] + [note]

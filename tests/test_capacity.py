@@ -53,3 +53,37 @@ def test_capacity_command_records_each_budget(tmp_path):
     assert rc == 0 and "already in" in err
     rc, _, err = run_cli("capacity", "--method", "wav2lip", "--results", str(tmp_path))
     assert rc == 2 and "lmgs only" in err
+
+    # A record made on another machine (imported from tables/records) has no model here:
+    # the side-by-side timing is skipped instead of retraining it, and FPS stay as recorded.
+    from lmgs_eval.paths import cache_root
+
+    # That second run re-timed budget 500 alone: the two budgets no longer share a timing run,
+    # so the chart falls back to each record's own FPS rather than call them side by side.
+    now = load_records(tmp_path)[0]
+    assert len({r["cost"]["fps_side_by_side_run"] for r in now}) == 2
+    assert not any(p["fps_side_by_side"] for p in points_from_records(now)["astronaut-64px-2s"])
+    by_budget = {r["protocol"]["clip"]: r for r in now}
+    ck = next((cache_root() / "models").glob(f"astronaut-64px-2s*/lmgs/{by_budget['budget-900']['config_hash']}-seed0/model.pt"))
+    ck.unlink()
+    rc, _, err = run_cli("capacity", "--subject", "astronaut-64px-2s", "--results", str(tmp_path), "--no-progress",
+                         "--budget", "500", "--budget", "900", *FAST)
+    assert rc == 0 and "side-by-side timing skipped" in err and "budget(s) 900 " in err
+    assert not ck.exists()  # not retrained
+    again = {r["protocol"]["clip"]: r for r in load_records(tmp_path)[0]}
+    assert {k: r["cost"] for k, r in again.items()} == {k: r["cost"] for k, r in by_budget.items()}
+
+
+def test_capacity_points_never_mix_side_by_side_and_per_run_fps():
+    def rec(budget, fps, side=None, run="2026-11-24T04:00:00"):
+        cost = {"fps": fps, "n_gaussians": budget,
+                **({"fps_side_by_side": side, "fps_side_by_side_run": run} if side is not None else {})}
+        return {"protocol": {"name": "capacity", "clip": f"budget-{budget}"}, "subject": {"name": "s"}, "seed": 0,
+                "metrics": {}, "cost": cost}
+
+    both = points_from_records([rec(500, 40.0, 61.0), rec(900, 30.0, 45.0)])["s"]
+    assert [(p["fps"], p["fps_side_by_side"]) for p in both] == [(61.0, True), (45.0, True)]
+    mixed = points_from_records([rec(500, 40.0, 61.0), rec(900, 30.0)])["s"]
+    assert [(p["fps"], p["fps_side_by_side"]) for p in mixed] == [(40.0, False), (30.0, False)]
+    two_runs = points_from_records([rec(500, 40.0, 61.0), rec(900, 30.0, 45.0, run="2026-11-24T05:00:00")])["s"]
+    assert [(p["fps"], p["fps_side_by_side"]) for p in two_runs] == [(40.0, False), (30.0, False)]
