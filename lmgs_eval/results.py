@@ -512,12 +512,28 @@ def copy_records(src: str | os.PathLike, dst: str | os.PathLike) -> tuple[int, l
     is kept as it is. Returns the number copied and a warning per skipped file of ``src``.
     """
     items, warnings = iter_store(src)
-    n = 0
+    copied = []
     for _, rec in items:
         if not record_path(dst, rec).is_file():
-            write_record(dst, rec)
-            n += 1
-    return n, warnings
+            copied.append(write_record(dst, rec).relative_to(dst).as_posix())
+    if copied:
+        atomic_write_text(Path(dst) / IMPORTED_FILE, json.dumps(
+            {"records": sorted(imported_records(dst) | set(copied))}, indent=1) + "\n")
+    return len(copied), warnings
+
+
+IMPORTED_FILE = ".imported.json"
+"""Ledger of a store's records copied from elsewhere by :func:`copy_records` (hidden: not a record)."""
+MADE_ELSEWHERE = ("render", "checkpoint")
+"""Artefact roles that stay on the machine that made a record (ground truth and weights travel)."""
+
+
+def imported_records(root: str | os.PathLike) -> set[str]:
+    """Paths (relative to the store) of the records :func:`copy_records` brought into ``root``."""
+    try:
+        return set(json.loads((Path(root) / IMPORTED_FILE).read_text(encoding="utf-8"))["records"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return set()
 
 
 def snapshot_records(records: Iterable[Mapping[str, Any]], dst: str | os.PathLike) -> Path:
@@ -562,15 +578,25 @@ def resolve_artefact(root: str | os.PathLike, path: str) -> Path:
     return p if p.is_absolute() else Path(root) / p
 
 
-def check_artefacts(root: str | os.PathLike, record: Mapping[str, Any]) -> list[str]:
-    """Re-hash a record's artefacts; one line per artefact that changed or went missing."""
+def check_artefacts(root: str | os.PathLike, record: Mapping[str, Any], imported: bool = False) -> tuple[list[str], int]:
+    """Re-hash a record's artefacts: one line per artefact that changed or went missing, and how many were checked.
+
+    ``imported``: the record was copied from another machine (:func:`copy_records`), so its
+    render and checkpoint being absent here is expected, not a problem, and they are not
+    counted as checked; present ones, and every other artefact (ground truth, metric
+    weights), are checked as usual.
+    """
     out = []
+    checked = 0
     for role, a in sorted(record.get("artefacts", {}).items()):
         p = resolve_artefact(root, a["path"])
+        if imported and role in MADE_ELSEWHERE and not p.is_file():
+            continue
+        checked += 1
         if not p.is_file():
             out.append(f"{role} {p}: missing")
             continue
         now = sha256_file(p)
         if now != a["sha256"]:
             out.append(f"{role} {p}: changed (recorded sha256 {a['sha256'][:12]}, now {now[:12]})")
-    return out
+    return out, checked

@@ -381,3 +381,35 @@ def test_records_folder_overlapping_the_store_is_refused(tmp_path, capsys, where
     err = capsys.readouterr().err
     assert "overlaps the results store" in err and str(target) in err
     assert len(R.load_records(store)[0]) == len(fixture_records())  # nothing was replaced
+
+
+def test_verify_of_imported_records_excuses_only_their_renders_and_checkpoints(tmp_path, capsys):
+    """Records copied from another machine: renders/checkpoints stay there; weights are still checked."""
+    made = tmp_path / "made"
+    (made / "renders").mkdir(parents=True)
+    (made / "renders" / "a.mp4").write_bytes(b"frames")
+    weights = tmp_path / "w.onnx"
+    weights.write_bytes(b"weights")
+    recs = fixture_records()[:3]
+    for r in recs:
+        r["artefacts"] = {"render": {"path": "renders/a.mp4", "sha256": R.sha256_file(made / "renders" / "a.mp4")},
+                          "checkpoint": {"path": str(tmp_path / "gone" / "model.pt"), "sha256": "0" * 64},
+                          "weights:sync": {"path": str(weights), "sha256": R.sha256_file(weights)}}
+    write_store(made, recs)
+    here = tmp_path / "here"
+    assert R.copy_records(made, here)[0] == 3
+    assert len(R.imported_records(here)) == 3 and R.load_records(here)[1] == []  # the ledger is not a record
+    assert cli_main(["verify", str(here)]) == 0
+    out = capsys.readouterr().out
+    assert "3 records were imported" in out and "3 records, 3 artefacts checked: all inputs unchanged" in out
+
+    # a record made here with its render missing is still a problem
+    own = fixture_records()[5]
+    own["artefacts"] = {"render": {"path": "renders/b.mp4", "sha256": "1" * 64}}
+    R.write_record(here, own)
+    weights.write_bytes(b"other weights")  # and a weights file that changed is caught on imported records too
+    assert cli_main(["verify", str(here)]) == 1
+    out = capsys.readouterr().out
+    assert f"render {here / 'renders' / 'b.mp4'}: missing" in out
+    assert out.count(f"weights:sync {weights}: changed") == 3
+    assert "4 of 4 records" in out
