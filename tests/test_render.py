@@ -48,6 +48,43 @@ def test_forward_matches_reference(backend, n, w, h, seed):
     assert out.depth.shape == (h, w, 1) and out.normal.shape == (h, w, 3)
 
 
+def _edge_scene(dtype=torch.float32):
+    p = _scene(60, seed=8, dtype=dtype)
+    p[0][0:5, 2] = -2.0  # behind the camera
+    p[0][5:8, 2] = 0.005  # nearer than the 0.01 plane
+    p[0][8:12, 0] = torch.tensor([1.6, -1.5, 1.55, -1.6], dtype=dtype)  # near the left/right border
+    p[2][12:14] = 1.5  # huge
+    p[2][14:20] = -12.0  # tiny
+    p[3][20:25] = -30.0  # fully transparent
+    p[1][25] = 0.0  # zero quaternion
+    p[2][26] = torch.tensor([-3.0, -3.0, -3.0], dtype=dtype)  # equal scales: the normal's argmin tie
+    return p
+
+
+@pytest.mark.parametrize("dtype,atol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+@pytest.mark.parametrize("scene", ["random", "edges", "rotated"])
+def test_nograd_projection_equals_the_autograd_path(dtype, atol, scene):
+    """Without autograd the numba path projects in numba too; it equals the torch projection."""
+    w2c = None
+    if scene == "rotated":
+        c, s_ = math.cos(0.4), math.sin(0.4)
+        w2c = torch.tensor([[c, 0, s_, 0.2], [0, 1, 0, -0.1], [-s_, 0, c, 0.5], [0, 0, 0, 1]], dtype=dtype)
+    p = {"random": lambda: _scene(300, seed=11, dtype=dtype), "edges": lambda: _edge_scene(dtype),
+         "rotated": lambda: _scene(200, seed=12, dtype=dtype)}[scene]()
+    cam = _camera(37, 29, dtype=dtype, w2c=w2c)
+    bg = torch.tensor([0.1, 0.5, 0.9], dtype=dtype)
+    with torch.no_grad():
+        fast = rasterize(*p, cam, bg, backend="numba")
+    grads = [t.clone().requires_grad_(True) for t in p]
+    slow = rasterize(*grads, cam, bg, backend="numba")  # torch projection (autograd)
+    for k in OUTS:
+        torch.testing.assert_close(getattr(fast, k), getattr(slow, k).detach(), atol=atol, rtol=0, msg=lambda m: f"{k}: {m}")
+    assert torch.equal(fast.radii, slow.radii)
+    torch.testing.assert_close(fast.means2d * fast.visible[:, None], slow.means2d.detach() * slow.visible[:, None],
+                               atol=atol * 100, rtol=0)
+    assert fast.visible.any() and not fast.visible.all()
+
+
 def test_forward_dense_scene_hits_early_stop():
     # many opaque, large Gaussians: transmittance reaches the 1e-4 stop in most pixels
     p = _scene(150, seed=5, spread=0.2, log_scale=-1.5)

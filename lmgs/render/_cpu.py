@@ -33,22 +33,27 @@ def _tile_order(n_tiles: int) -> np.ndarray:
     return order.reshape(m, p).T.copy()
 
 
+def _composite_rows(rows: np.ndarray, rects: np.ndarray, vis: np.ndarray, depths: np.ndarray, width: int, height: int):
+    """Sort the visible Gaussians front to back, bin them into tiles and composite their rows."""
+    tiles_w, tiles_h = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
+    n_tiles = tiles_w * tiles_h
+    # stable sort by depth: ties keep index order, like the dense reference
+    vis_ids = np.flatnonzero(vis)
+    order = vis_ids[np.argsort(depths[vis_ids], kind="stable")].astype(np.int64)
+    offsets, ids = K.bin_tiles(rects, order, n_tiles, tiles_w)
+    tile_order = _tile_order(n_tiles)
+    out, t_final, last = K.forward(rows, ids, offsets, tile_order, tiles_w, width, height)
+    return out, t_final, last, (offsets, ids, tile_order, tiles_w)
+
+
 class _Composite(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, opacities, features, radii, depths, width, height):
         n = means2d.shape[0]
-        tiles_w, tiles_h = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
-        n_tiles = tiles_w * tiles_h
         rects = tile_rects(means2d, radii, width, height).numpy()
-        vis = (radii > 0).numpy()
-        # stable sort by depth: ties keep index order, like the dense reference
-        d = depths.detach().cpu().numpy()
-        vis_ids = np.flatnonzero(vis)
-        order = vis_ids[np.argsort(d[vis_ids], kind="stable")].astype(np.int64)
-        offsets, ids = K.bin_tiles(rects, order, n_tiles, tiles_w)
         rows = K.gaussian_rows(_np(means2d), _np(conics), _np(opacities), _np(features))
-        tile_order = _tile_order(n_tiles)
-        out, t_final, last = K.forward(rows, ids, offsets, tile_order, tiles_w, width, height)
+        out, t_final, last, (offsets, ids, tile_order, tiles_w) = _composite_rows(
+            rows, rects, (radii > 0).numpy(), depths.detach().cpu().numpy(), width, height)
         ctx.saved = (rows, offsets, ids, tile_order, tiles_w, width, height, t_final, last, n)
         dtype, dev = means2d.dtype, means2d.device
         feat = torch.from_numpy(out).to(device=dev, dtype=dtype)
@@ -78,3 +83,25 @@ def composite(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Composite to ``features [H, W, 7]`` and ``alpha [H, W, 1]`` (see :func:`K.forward`)."""
     return _Composite.apply(means2d, conics, opacities, features, radii.cpu(), depths.cpu(), width, height)
+
+
+def rasterize_nograd(means, quats, log_scales, opacity_logits, colors, camera) -> tuple[torch.Tensor, ...]:
+    """Projection and compositing in numba, no autograd: ``features [H, W, 7]``, ``alpha``, ``means2d``, ``radii``.
+
+    The twin of ``project`` + :func:`composite` for rendering a trained model (nothing
+    needs a gradient): the ~60 small torch operations of the projection, the float64
+    copies and the tile ranges become one parallel pass over the Gaussians
+    (:func:`K.project_rows`, float64 throughout, like the kernels). Plain colours only.
+    """
+    from lmgs.render import _projection as P
+
+    width, height = int(camera.width), int(camera.height)
+    dtype, dev = means.dtype, means.device
+    rows, depths, radii, rects, means2d = K.project_rows(
+        _np(means), _np(quats), _np(log_scales), _np(opacity_logits), _np(colors), _np(camera.world_to_camera),
+        float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), width, height,
+        P.NEAR_PLANE, P.EPS2D, P.LOG_SCALE_MIN, P.LOG_SCALE_MAX)
+    out, t_final, _, _ = _composite_rows(rows, rects, radii > 0, depths, width, height)
+    feat = torch.from_numpy(out).to(device=dev, dtype=dtype)
+    alpha = torch.from_numpy(1.0 - t_final).to(device=dev, dtype=dtype)[..., None]
+    return feat, alpha, torch.from_numpy(means2d).to(device=dev, dtype=dtype), torch.from_numpy(radii)

@@ -90,7 +90,10 @@ def rasterize(
             convention :math:`c = \\max(0, \\mathrm{SH}(v) + 0.5)`.
         backend: ``"numba"`` (fast CPU path), ``"torch"`` (pure-torch tiled compositor,
             slow), ``"gsplat"`` (CUDA, ``pip install .[cuda]``), or ``"auto"``: gsplat
-            for CUDA tensors when it is installed, else numba.
+            for CUDA tensors when it is installed, else numba. When no input needs a
+            gradient (rendering a trained model), the numba path also projects in numba
+            (``K.project_rows``, float64, the same formulas; tests hold it equal to the
+            torch projection) instead of the ~60 small torch operations autograd needs.
 
     Returns:
         A :class:`RasterResult`.
@@ -108,6 +111,11 @@ def rasterize(
         feat, alpha, means2d, radii = rasterize_gsplat(
             means, quats, log_scales, opacity_logits, colors, degree, camera
         )
+    elif chosen == "numba" and degree is None and not (torch.is_grad_enabled() and any(
+            t.requires_grad for t in (means, quats, log_scales, opacity_logits, colors))):
+        from lmgs.render._cpu import rasterize_nograd
+
+        feat, alpha, means2d, radii = rasterize_nograd(means, quats, log_scales, opacity_logits, colors, camera)
     else:
         p = project(means, quats, log_scales, opacity_logits, colors, degree, camera)
         if chosen == "numba":
