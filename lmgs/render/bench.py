@@ -5,7 +5,8 @@ so that its peak memory is its own: ``peak_mb`` is the growth of the process's p
 resident set (``resource.getrusage(RUSAGE_SELF).ru_maxrss``) during the first
 forward+backward of the row's scene, over the level after building the scene and a tiny
 warm-up render (which loads the numba cache). Times are medians of repeated runs after
-that; ``fwd_bwd_ms`` is forward plus ``backward()`` of a sum over every output image.
+that; ``fwd_bwd_ms`` is forward plus ``backward()`` of a sum over every output image, and
+``fwd_nograd_ms`` the forward under ``torch.no_grad()`` (how a trained model renders).
 """
 
 from __future__ import annotations
@@ -102,6 +103,9 @@ def _measure(backend: str, res: int, n: int, repeats: int) -> dict:
 
     fwd_ms, fwd_min = timed(lambda: fwd(params, cam))
     fwd_bwd_ms, fwd_bwd_min = timed(lambda: fwd_bwd(params, cam))
+    with torch.no_grad():  # rendering a trained model: no autograd (numba: the projection runs in numba too)
+        fwd(params, cam)
+        fwd_ng_ms, _ = timed(lambda: fwd(params, cam))
     return {
         "backend": backend,
         "res": f"{res}x{res}",
@@ -109,6 +113,8 @@ def _measure(backend: str, res: int, n: int, repeats: int) -> dict:
         "n_visible": n_visible,
         "fwd_ms": fwd_ms,
         "fwd_bwd_ms": fwd_bwd_ms,
+        "fwd_nograd_ms": fwd_ng_ms,
+        "nograd_speedup": fwd_ms / fwd_ng_ms,
         "fwd_min_ms": fwd_min,
         "fwd_bwd_min_ms": fwd_bwd_min,
         "peak_mb": peak_kb / 1024.0,
@@ -158,6 +164,8 @@ def run(args: argparse.Namespace) -> dict:
         "peak_mb": "growth of ru_maxrss over the warmed-up worker during one fwd+bwd (fresh process per row)",
         "ratio": "anchor median time / this backend's median time, same run, same scene",
         "times": "fwd_ms/fwd_bwd_ms are medians, *_min_ms minima of the repeats (the 2 cores are shared)",
+        "nograd": "fwd_nograd_ms: the same forward under torch.no_grad() (rendering a trained model); "
+                  "nograd_speedup = fwd_ms / fwd_nograd_ms, same worker, same scene",
         "scene": "head-sized blob 0.6 m away, fx = 1.5 x res, ~1.5 px sigma at 256 px",
         "threads": {"torch": torch.get_num_threads(), "numba": numba.get_num_threads(), "cpus": os.cpu_count()},
         "machine": f"{platform.machine()} {platform.processor() or ''}".strip(),
