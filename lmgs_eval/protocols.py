@@ -14,6 +14,7 @@ subject, protocol, clip, seed and config hash are already in the store is not re
 
 from __future__ import annotations
 
+import os
 import resource
 import sys
 import time
@@ -77,6 +78,47 @@ def head_of(driving: DrivingAudio, k: int) -> DrivingAudio:
     )
 
 
+def host_cpu_seconds() -> tuple[float, float] | None:
+    """``(busy, total)`` CPU seconds of the whole host since boot (Linux ``/proc/stat``), else None."""
+    try:
+        with open("/proc/stat", encoding="ascii") as f:
+            parts = f.readline().split()
+        ticks = [int(x) for x in parts[1:9]]  # user nice system idle iowait irq softirq steal
+        hz = os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return None
+    if parts[0] != "cpu" or len(ticks) < 8 or hz <= 0:
+        return None
+    total = sum(ticks) / hz
+    return total - (ticks[3] + ticks[4]) / hz, total
+
+
+class OthersCPU:
+    """Share of the host's CPU time that other processes took during a span (contention while timing).
+
+    ``share = (host busy - this process's CPU) / host total`` over the span: about 0 on a
+    quiet host, 0.5 when another process keeps one of two cores busy. Hypervisor steal
+    counts as taken by others. ``share`` is None where ``/proc/stat`` is not available.
+    """
+
+    def __enter__(self) -> "OthersCPU":
+        self.share: float | None = None
+        self._h0, self._p0 = host_cpu_seconds(), _own_cpu_seconds()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        h1, p1 = host_cpu_seconds(), _own_cpu_seconds()
+        if self._h0 is None or h1 is None or h1[1] <= self._h0[1]:
+            return
+        others = (h1[0] - self._h0[0]) - (p1 - self._p0)
+        self.share = min(1.0, max(0.0, others / (h1[1] - self._h0[1])))
+
+
+def _own_cpu_seconds() -> float:
+    t = os.times()
+    return t.user + t.system
+
+
 def timed_render(method, driving: DrivingAudio, timings: dict | None = None,
                  repeats: int = REPEATS) -> tuple[np.ndarray, dict]:
     """Render after a short warm-up; FPS is audio in to frames out, I/O outside the timer.
@@ -95,15 +137,16 @@ def timed_render(method, driving: DrivingAudio, timings: dict | None = None,
     first = time.perf_counter() - t0
     runs = []  # (seconds, stage timings) of each timed repeat; the median is reported
     frames = None
-    while True:
-        tk: dict = {} if kw else None
-        t0 = time.perf_counter()
-        out = method.render(driving, **({"timings": tk} if kw else {}))
-        runs.append((time.perf_counter() - t0, tk))
-        if frames is None:
-            frames = out
-        if len(runs) >= repeats or sum(r[0] for r in runs) + runs[-1][0] > REPEAT_BUDGET_S:
-            break
+    with OthersCPU() as busy:
+        while True:
+            tk: dict = {} if kw else None
+            t0 = time.perf_counter()
+            out = method.render(driving, **({"timings": tk} if kw else {}))
+            runs.append((time.perf_counter() - t0, tk))
+            if frames is None:
+                frames = out
+            if len(runs) >= repeats or sum(r[0] for r in runs) + runs[-1][0] > REPEAT_BUDGET_S:
+                break
     runs.sort(key=lambda r: r[0])
     secs, tk = runs[(len(runs) - 1) // 2]
     secs = float(np.median([r[0] for r in runs]))
@@ -114,7 +157,8 @@ def timed_render(method, driving: DrivingAudio, timings: dict | None = None,
     if frames.shape[0] != n or frames.dtype != np.uint8:
         raise RuntimeError(f"{method.describe().name} rendered {frames.shape} {frames.dtype}, expected {n} uint8 frames")
     return frames, {"fps": n / secs if secs > 0 else None, "render_seconds": secs, "first_frame_ms": 1000 * first / max(warm.n_frames, 1),
-                    "realtime_factor": (n / driving.fps) / secs if secs > 0 else None, "repeats": len(runs)}
+                    "realtime_factor": (n / driving.fps) / secs if secs > 0 else None, "repeats": len(runs),
+                    "others_cpu_share": busy.share}
 
 
 def fit_method(method, clip, subject, seed: int, progress: bool) -> dict:
@@ -295,6 +339,7 @@ def _cost_block(method, fit_cost: dict | None, render_cost: dict, timings: dict 
         "ms_per_frame": ms,
         "first_frame_ms": render_cost.get("first_frame_ms"),
         "render_repeats": render_cost.get("repeats"),
+        "others_cpu_share": render_cost.get("others_cpu_share"),
         "realtime_factor": render_cost.get("realtime_factor"),
         "n_params": c.get("n_params"),
         "n_gaussians": c.get("n_gaussians"),

@@ -162,6 +162,7 @@ SCHEMA: dict[str, Any] = {
                 "model_mb": _ONUM,
                 "peak_mb": _ONUM,
                 "device": _OSTR,
+                "others_cpu_share": _ONUM,
             },
         },
         "config": {"type": "object"},

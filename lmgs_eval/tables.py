@@ -55,6 +55,9 @@ FAMILY_ORDER = ("ground-truth", "2D", "NeRF", "3DGS", "external", "control")
 OURS = "lmgs"
 TIE = "†"
 MIXED = "‡"
+BUSY = "§"
+BUSY_SHARE = 0.10
+"""FPS timed while other processes took more of the host's CPU than this (``cost.others_cpu_share``) are marked."""
 
 
 # ----------------------------------------------------------------------------- data model
@@ -378,8 +381,29 @@ def _column_backends(sec: Section, col: Column) -> set[str]:
     return out
 
 
+def flag_busy_timings(sec: Section, columns: Sequence[Column]) -> None:
+    """Mark FPS timed while other processes took more than :data:`BUSY_SHARE` of the host's CPU."""
+    col = next((c for c in columns if c.kind == "cost" and c.key == "fps"), None)
+    if col is None:
+        return
+    busy = []
+    for row in sec.rows:
+        cell = row.cells.get(col.id)
+        shares = [r["cost"]["others_cpu_share"] for r in row.records if (r.get("cost") or {}).get("others_cpu_share") is not None]
+        if cell is not None and cell.mean is not None and shares and max(shares) > BUSY_SHARE:
+            cell.flag = BUSY
+            busy.append(f"{row.label} {max(shares):.0%}")
+    if busy:
+        sec.notes.append(f"{BUSY} FPS timed while other processes took more than {BUSY_SHARE:.0%} of the host's CPU "
+                         f"(cost.others_cpu_share, worst run: {', '.join(busy)}); on a quiet host these render faster.")
+
+
 def rank_section(sec: Section, columns: Sequence[Column], alpha: float = ALPHA) -> None:
-    """Mark best / second / ties per column (see the module docstring); notes go to ``sec.notes``."""
+    """Mark best / second / ties per column (see the module docstring); notes go to ``sec.notes``.
+
+    FPS timed on a busy host are marked first (:func:`flag_busy_timings`).
+    """
+    flag_busy_timings(sec, columns)
     for col in columns:
         if col.kind != "metric" or not col.rank:
             continue

@@ -46,6 +46,7 @@ def test_self_writes_valid_records_renders_and_rows(store):
     assert lm["protocol"] == {"name": "self", "version": "1", "clip": "test", "split": "test", "n_frames": 5}
     assert lm["config"]["train"]["dynamic_steps"] == 40  # --set reached the config and its hash
     assert lm["cost"]["fps"] > 0 and lm["cost"]["n_gaussians"] > 0 and lm["cost"]["train_seconds"] > 0
+    assert 0 <= lm["cost"]["others_cpu_share"] <= 1  # how busy the host was while the FPS was timed
     assert any("GeneFace" in s for s in lm["method"]["standins"])
     assert any(n.startswith("spatial enhancement selected") and "theta = 0.6" in n for n in lm["notes"])
     assert lm["metrics"]["lpips"]["backend"] in ("stlpips-alex", "lpips-alex")
@@ -207,6 +208,7 @@ def test_external_scores_a_handmade_renders_folder(tmp_path):
     # cost from the sidecar only: given figures kept, missing ones empty, never guessed
     assert rec["cost"]["fps"] == 34.5 and rec["cost"]["train_seconds"] == 7200.0
     assert rec["cost"]["n_gaussians"] is None and rec["cost"]["model_mb"] is None
+    assert rec["cost"]["others_cpu_share"] is None  # nothing was timed here
 
 
 def test_external_with_a_missing_frame_is_a_clear_error(tmp_path):
