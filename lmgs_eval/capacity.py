@@ -52,28 +52,27 @@ def knee(points: Sequence[dict[str, Any]]) -> dict[str, Any] | None:
 
 
 def points_from_records(records: Sequence[dict]) -> dict[str, list[dict[str, Any]]]:
-    """Per subject, one point per capacity record: budget, count, quality and cost."""
-    out: dict[str, list[dict[str, Any]]] = {}
+    """Per subject, one point per capacity record: budget, count, quality and cost.
+
+    ``fps`` is the side-by-side figure only when every point of the subject was timed in one
+    and the same side-by-side run (a later ``capacity --budget N`` re-times only the budgets
+    it was given); otherwise every point uses its own run's FPS, so an axis never mixes them.
+    """
+    raw: dict[str, list[tuple[dict[str, Any], Any, Any, Any]]] = {}
     for r in records:
         if r["protocol"]["name"] != "capacity" or (r.get("status") or {}).get("state") == "failed":
             continue
         m, c = r["metrics"], r.get("cost") or {}
-        out.setdefault(r["subject"]["name"], []).append({
-            "budget": int(r["protocol"]["clip"].split("-", 1)[1]), "n_gaussians": c.get("n_gaussians"),
-            "psnr": m.get("psnr", {}).get("value"), "lpips": m.get("lpips", {}).get("value"),
-            "lmd": m.get("lmd", {}).get("value"), "fps": c.get("fps_side_by_side"), "fps_run": c.get("fps"),
-            "fps_side_by_side": c.get("fps_side_by_side") is not None, "timing_run": c.get("fps_side_by_side_run"),
-            "model_mb": c.get("model_mb"),
-            "train_seconds": c.get("train_seconds"), "seed": r["seed"]})
-    for pts in out.values():
-        # One kind of FPS per subject: side by side only when every point was timed in one and the
-        # same run (a later `capacity --budget N` re-times only the budgets it was given).
-        side = all(p["fps_side_by_side"] for p in pts) and len({p["timing_run"] for p in pts}) == 1
-        for p in pts:
-            run_fps = p.pop("fps_run")
-            p.pop("timing_run")
-            if not side:
-                p["fps"], p["fps_side_by_side"] = run_fps, False
+        point = {"budget": int(r["protocol"]["clip"].split("-", 1)[1]), "n_gaussians": c.get("n_gaussians"),
+                 "psnr": m.get("psnr", {}).get("value"), "lpips": m.get("lpips", {}).get("value"),
+                 "lmd": m.get("lmd", {}).get("value"), "model_mb": c.get("model_mb"),
+                 "train_seconds": c.get("train_seconds"), "seed": r["seed"]}
+        raw.setdefault(r["subject"]["name"], []).append(
+            (point, c.get("fps"), c.get("fps_side_by_side"), c.get("fps_side_by_side_run")))
+    out: dict[str, list[dict[str, Any]]] = {}
+    for subject, rows in raw.items():
+        side = all(sbs is not None for _, _, sbs, _ in rows) and len({run for *_, run in rows}) == 1
+        out[subject] = [{**p, "fps": sbs if side else fps, "fps_side_by_side": side} for p, fps, sbs, _ in rows]
     return out
 
 
