@@ -506,11 +506,12 @@ def load_records(root: str | os.PathLike) -> tuple[list[dict[str, Any]], list[st
 def copy_records(src: str | os.PathLike, dst: str | os.PathLike) -> tuple[int, list[str]]:
     """Copy into store ``dst`` every valid record of store ``src`` that ``dst`` does not hold.
 
-    Only the JSON records travel: renders and checkpoints stay where they were made, so
-    ``lmgs-eval verify`` reports a copied record's artefacts as missing on another machine,
-    while tables, charts and resume (:func:`find_record`) work from the record alone. A
-    record already in ``dst`` (same subject, protocol, method, clip, seed and config hash)
-    is kept as it is. Returns the number copied and a warning per skipped file of ``src``.
+    Only the JSON records travel: renders and checkpoints stay where they were made, while
+    tables, charts and resume (:func:`find_record`) work from the record alone. The copies
+    are listed in ``dst``'s :data:`IMPORTED_FILE`, so ``lmgs-eval verify`` does not call
+    their absent renders and checkpoints missing. A record already in ``dst`` (same subject,
+    protocol, method, clip, seed and config hash) is kept as it is. Returns the number
+    copied and a warning per skipped file of ``src``.
     """
     items, warnings = iter_store(src)
     copied = []
