@@ -381,6 +381,12 @@ def _column_backends(sec: Section, col: Column) -> set[str]:
     return out
 
 
+def timed_busy(cost: dict) -> bool:
+    """True when a run's FPS was timed while other processes took more than :data:`BUSY_SHARE` of the host."""
+    share = cost.get("others_cpu_share")
+    return share is not None and share > BUSY_SHARE
+
+
 def flag_busy_timings(sec: Section, columns: Sequence[Column]) -> None:
     """Mark FPS timed while other processes took more than :data:`BUSY_SHARE` of the host's CPU."""
     col = next((c for c in columns if c.kind == "cost" and c.key == "fps"), None)
@@ -389,8 +395,8 @@ def flag_busy_timings(sec: Section, columns: Sequence[Column]) -> None:
     busy = []
     for row in sec.rows:
         cell = row.cells.get(col.id)
-        shares = [r["cost"]["others_cpu_share"] for r in row.records if (r.get("cost") or {}).get("others_cpu_share") is not None]
-        if cell is not None and cell.mean is not None and shares and max(shares) > BUSY_SHARE:
+        shares = [r["cost"]["others_cpu_share"] for r in row.records if timed_busy(r.get("cost") or {})]
+        if cell is not None and cell.mean is not None and shares:
             cell.flag = BUSY
             busy.append(f"{row.label} {max(shares):.0%}")
     if busy:

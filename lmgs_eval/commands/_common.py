@@ -52,7 +52,7 @@ def run_config(args: argparse.Namespace):
 
 def print_rows(records: list[dict]) -> None:
     """The records just made, as a small table on stdout (§: FPS timed on a busy host)."""
-    from lmgs_eval.tables import BUSY
+    from lmgs_eval.tables import BUSY, timed_busy
 
     cols = [("psnr", "PSNR↑", "{:.2f}"), ("lpips", "LPIPS↓", "{:.4f}"), ("lmd", "LMD↓", "{:.2f}"),
             ("lse_d", "LSE-D↓", "{:.3f}"), ("lse_c", "LSE-C↑", "{:.3f}")]
@@ -69,10 +69,10 @@ def print_rows(records: list[dict]) -> None:
         def f(v, fmt):
             return fmt.format(v) if isinstance(v, (int, float)) else "-"
 
-        fps = f(c.get("fps"), "{:.1f}") + (BUSY if _busy(c) else "")
+        fps = f(c.get("fps"), "{:.1f}") + (BUSY if timed_busy(c) else "")
         print(f"{r['method']['display_name'][:26]:<26} {r['protocol']['clip'][:6]:<6} {r['seed']:>4} " + " ".join(vals)
               + f" {fps:>7} {f(c.get('train_seconds'), '{:.0f}'):>8} {f(c.get('n_gaussians'), '{:d}'):>7} {f(c.get('model_mb'), '{:.2f}'):>6}")
-    busy = [r["cost"]["others_cpu_share"] for r in records if _busy(r.get("cost") or {})]
+    busy = [r["cost"]["others_cpu_share"] for r in records if timed_busy(r.get("cost") or {})]
     if busy:
         print(f"  {BUSY} FPS timed while other processes took up to {max(busy):.0%} of the host's CPU "
               "(cost.others_cpu_share): a quiet host renders faster")
@@ -80,13 +80,6 @@ def print_rows(records: list[dict]) -> None:
                        for r in records for k, v in r["metrics"].items() if k in ("lpips", "lse_d", "lmd")})
     for b in backends:
         print(f"  {b}")
-
-
-def _busy(cost: dict) -> bool:
-    from lmgs_eval.tables import BUSY_SHARE
-
-    share = cost.get("others_cpu_share")
-    return share is not None and share > BUSY_SHARE
 
 
 def parse_overrides(items: list[str]) -> dict:
