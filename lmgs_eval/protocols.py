@@ -114,6 +114,97 @@ class OthersCPU:
         self.share = min(1.0, max(0.0, others / (h1[1] - self._h0[1])))
 
 
+PROBE_SLOW = 1.5
+"""A render timed while the host ran the fixed probe this many times slower than its best is marked."""
+
+
+def probe_ms() -> float:
+    """Milliseconds of a fixed workload of the kind renders do (40 chained 256x256 float32 matmuls + tanh,
+    torch's intra-op threads): the host's speed right now, independent of any method."""
+    import torch
+
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(256, 256, generator=g)
+    w = torch.randn(256, 256, generator=g) * 0.05
+    t0 = time.perf_counter()
+    for _ in range(40):
+        x = torch.tanh(x @ w)
+    return 1000.0 * (time.perf_counter() - t0)
+
+
+def _probe_key() -> str:
+    import platform
+
+    import torch
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo", encoding="ascii", errors="replace") as f:
+            cpu = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), cpu)
+    except OSError:
+        pass
+    return f"{cpu}|cpus={os.cpu_count()}|threads={torch.get_num_threads()}|torch={torch.__version__}"
+
+
+class HostSpeed:
+    """How much slower than its best this host ran a fixed probe around a timed span.
+
+    The probe (:func:`probe_ms`, median of 3) runs before and after the span;
+    ``slowdown = max(before, after) / best``, where ``best`` is the fastest probe this
+    machine (same CPU model, thread count and torch) has recorded in the ledger
+    ``<cache>/host_probe.json`` (a first probe on a machine is compared with itself).
+    It sees what :class:`OthersCPU` cannot: a virtual machine slowed by its hypervisor
+    without guest-visible steal, frequency scaling, and threads of two processes
+    oversubscribing the cores. ``ledger=None`` keeps no ledger (best = this span's probes).
+    """
+
+    def __init__(self, ledger: Path | None | str = "default", probe=None):
+        from lmgs_eval.paths import cache_root
+
+        self.ledger = cache_root() / "host_probe.json" if ledger == "default" else (Path(ledger) if ledger else None)
+        self._probe = probe or (lambda: probe_ms())  # looked up at call time (tests replace it)
+        self.before = self.after = self.best = self.slowdown = None
+
+    def _median3(self) -> float:
+        return float(np.median([self._probe() for _ in range(3)]))
+
+    def __enter__(self) -> "HostSpeed":
+        self._probe()  # warm-up (thread pool, allocator)
+        self.before = self._median3()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.after = self._median3()
+        best = min(self.before, self.after)
+        key = _probe_key()
+        if self.ledger is not None:
+            import json
+
+            from lmgs_eval.paths import atomic_write_text
+
+            try:
+                book = json.loads(self.ledger.read_text()) if self.ledger.exists() else {}
+                if not isinstance(book, dict):
+                    book = {}
+            except (OSError, ValueError):
+                book = {}  # an unreadable ledger is started again
+            entry = book.get(key) if isinstance(book.get(key), dict) else {}
+            known = entry.get("best_ms")
+            if isinstance(known, (int, float)) and known > 0:
+                best = min(best, float(known))
+            book[key] = {"best_ms": best, "n": int(entry.get("n", 0)) + 1}
+            try:
+                self.ledger.parent.mkdir(parents=True, exist_ok=True)
+                atomic_write_text(self.ledger, json.dumps(book, indent=1, sort_keys=True))
+            except OSError:
+                pass  # a read-only cache loses the ledger, not the timing
+        self.best = best
+        self.slowdown = max(self.before, self.after) / best if best > 0 else None
+
+    def cost(self) -> dict:
+        return {"host_probe_ms": [self.before, self.after], "host_probe_best_ms": self.best, "host_slowdown": self.slowdown}
+
+
 def _own_cpu_seconds() -> float:
     t = os.times()
     return t.user + t.system
@@ -137,7 +228,7 @@ def timed_render(method, driving: DrivingAudio, timings: dict | None = None,
     first = time.perf_counter() - t0
     runs = []  # (seconds, stage timings) of each timed repeat; the median is reported
     frames = None
-    with OthersCPU() as busy:
+    with HostSpeed() as host, OthersCPU() as busy:
         while True:
             tk: dict = {} if kw else None
             t0 = time.perf_counter()
@@ -158,7 +249,7 @@ def timed_render(method, driving: DrivingAudio, timings: dict | None = None,
         raise RuntimeError(f"{method.describe().name} rendered {frames.shape} {frames.dtype}, expected {n} uint8 frames")
     return frames, {"fps": n / secs if secs > 0 else None, "render_seconds": secs, "first_frame_ms": 1000 * first / max(warm.n_frames, 1),
                     "realtime_factor": (n / driving.fps) / secs if secs > 0 else None, "repeats": len(runs),
-                    "others_cpu_share": busy.share}
+                    "others_cpu_share": busy.share, **host.cost()}
 
 
 def fit_method(method, clip, subject, seed: int, progress: bool) -> dict:
@@ -340,6 +431,9 @@ def _cost_block(method, fit_cost: dict | None, render_cost: dict, timings: dict 
         "first_frame_ms": render_cost.get("first_frame_ms"),
         "render_repeats": render_cost.get("repeats"),
         "others_cpu_share": render_cost.get("others_cpu_share"),
+        "host_slowdown": render_cost.get("host_slowdown"),
+        "host_probe_ms": render_cost.get("host_probe_ms"),
+        "host_probe_best_ms": render_cost.get("host_probe_best_ms"),
         "realtime_factor": render_cost.get("realtime_factor"),
         "n_params": c.get("n_params"),
         "n_gaussians": c.get("n_gaussians"),

@@ -58,6 +58,8 @@ MIXED = "‡"
 BUSY = "§"
 BUSY_SHARE = 0.10
 """FPS timed while other processes took more of the host's CPU than this (``cost.others_cpu_share``) are marked."""
+SLOW_HOST = 1.5
+"""... and FPS timed while the host ran a fixed probe this many times slower than its best (``cost.host_slowdown``)."""
 
 
 # ----------------------------------------------------------------------------- data model
@@ -382,9 +384,26 @@ def _column_backends(sec: Section, col: Column) -> set[str]:
 
 
 def timed_busy(cost: dict) -> bool:
-    """True when a run's FPS was timed while other processes took more than :data:`BUSY_SHARE` of the host."""
-    share = cost.get("others_cpu_share")
-    return share is not None and share > BUSY_SHARE
+    """True when a run's FPS was timed while other processes took more than :data:`BUSY_SHARE` of the host's
+    CPU, or while the host ran the fixed probe more than :data:`SLOW_HOST` times slower than its best."""
+    share, slow = cost.get("others_cpu_share"), cost.get("host_slowdown")
+    return (share is not None and share > BUSY_SHARE) or (slow is not None and slow > SLOW_HOST)
+
+
+def busy_text(cost: dict) -> str:
+    """What made a timing busy, e.g. ``others 23%`` or ``probe 2.1x slower``."""
+    parts = []
+    share, slow = cost.get("others_cpu_share"), cost.get("host_slowdown")
+    if share is not None and share > BUSY_SHARE:
+        parts.append(f"others {share:.0%}")
+    if slow is not None and slow > SLOW_HOST:
+        parts.append(f"probe {slow:.1f}x slower")
+    return ", ".join(parts)
+
+
+BUSY_NOTE = (f"{BUSY} FPS timed on a busy or slowed host: other processes took more than {BUSY_SHARE:.0%} of its CPU "
+             f"(cost.others_cpu_share) or it ran a fixed probe workload more than {SLOW_HOST:g}x slower than its best on "
+             "that machine (cost.host_slowdown)")
 
 
 def flag_busy_timings(sec: Section, columns: Sequence[Column]) -> None:
@@ -395,13 +414,14 @@ def flag_busy_timings(sec: Section, columns: Sequence[Column]) -> None:
     busy = []
     for row in sec.rows:
         cell = row.cells.get(col.id)
-        shares = [r["cost"]["others_cpu_share"] for r in row.records if timed_busy(r.get("cost") or {})]
-        if cell is not None and cell.mean is not None and shares:
+        costs = [r.get("cost") or {} for r in row.records]
+        hit = [c for c in costs if timed_busy(c)]
+        if cell is not None and cell.mean is not None and hit:
             cell.flag = BUSY
-            busy.append(f"{row.label} {max(shares):.0%}")
+            worst = max(hit, key=lambda c: (c.get("host_slowdown") or 1.0) * (1 + (c.get("others_cpu_share") or 0.0)))
+            busy.append(f"{row.label} {len(hit)}/{len(costs)} runs, worst {busy_text(worst)}")
     if busy:
-        sec.notes.append(f"{BUSY} FPS timed while other processes took more than {BUSY_SHARE:.0%} of the host's CPU "
-                         f"(cost.others_cpu_share, worst run: {', '.join(busy)}); on a quiet host these render faster.")
+        sec.notes.append(f"{BUSY_NOTE}: {'; '.join(busy)}. On a quiet host these render faster.")
 
 
 def rank_section(sec: Section, columns: Sequence[Column], alpha: float = ALPHA) -> None:
