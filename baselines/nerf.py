@@ -22,6 +22,13 @@ between the entry and exit of the box:
 
     \\alpha_k = 1 - e^{-\\sigma_k \\delta_k}, \\quad w_k = \\alpha_k \\prod_{j<k} (1 - \\alpha_j), \\quad
     C = \\sum_k w_k c_k + \\big(1 - \\textstyle\\sum_k w_k\\big) B
+
+Rendering a trained field (no autograd) marches the same samples in groups along each ray
+(:func:`march_rays`): a ray stops once its transmittance is below ``1e-4`` (what it would
+still add is below a 40th of a uint8 level), and ER-NeRF and RAD-NeRF skip samples in cells
+of their occupancy grid (:meth:`NeRFHead.update_occupancy`) where no training condition put
+density, as the originals' occupancy-grid ray marching does. AD-NeRF and GeneFace have no
+occupancy grid (neither original does).
 """
 
 from __future__ import annotations
@@ -61,20 +68,27 @@ class NeRFBudget:
     Attributes:
         steps: optimiser steps (one training frame per step).
         rays: random rays per step (drawn among the rays that cross the head box).
+        head_share: share of those rays drawn from the pixels where the frame differs from its
+            background (the head; AD-NeRF likewise samples the head region more): without it, a
+            head that covers a small part of the box lets the density collapse to zero everywhere.
         samples: stratified samples per ray.
         hidden: width of the field MLP.
         lr: Adam learning rate.
         landmark_steps: steps of the audio-to-landmark predictor (GeneFace only).
         chunk: rays per chunk when rendering full frames.
+        occupancy: cells per side of the occupancy grid that rendering skips empty space with
+            (ER-NeRF and RAD-NeRF only; 0: none).
     """
 
     steps: int = 1500
     rays: int = 1024
+    head_share: float = 0.75
     samples: int = 32
     hidden: int = 64
     lr: float = 5e-3
     landmark_steps: int = 300
-    chunk: int = 8192
+    chunk: int = 2048
+    occupancy: int = 32
 
     @classmethod
     def tiny(cls) -> "NeRFBudget":
@@ -123,6 +137,58 @@ def render_rays(field, cond, origins, dirs, near, far, background, samples: int,
     trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1] + 1e-10], 1), 1)
     w = alpha * trans
     return (w[..., None] * rgb).sum(1) + (1 - w.sum(1, keepdim=True)) * background
+
+
+OCCUPANCY_METHODS = ("ernerf", "radnerf")
+"""The flavours whose originals march rays through an occupancy grid."""
+OCCUPANCY_FRAMES = 32
+"""Training conditions the occupancy grid is made from (evenly spread over the clip)."""
+
+STOP_TRANSMITTANCE = 1e-4
+"""A marched ray stops when its transmittance falls below this (:func:`march_rays`)."""
+
+
+@torch.no_grad()
+def march_rays(field, cond, origins, dirs, near, far, background, samples: int, diag: float, group: int = 8,
+               stop: float = STOP_TRANSMITTANCE) -> torch.Tensor:
+    """:func:`render_rays` without jitter, for rendering: the same samples and compositing.
+
+    Samples are taken ``group`` at a time along every ray; a ray whose transmittance fell below
+    ``stop`` takes no more (``stop=0``: every sample, equal to :func:`render_rays`). Samples in
+    cells the field's occupancy grid marks empty (``field.occupied``, when it has one) are not
+    evaluated and count as empty.
+    """
+    R = origins.shape[0]
+    dev, dt = origins.device, origins.dtype
+    span = far - near
+    delta = (span / samples / (diag / samples))[:, None]
+    color = torch.zeros(R, 3, device=dev, dtype=dt)
+    trans = torch.ones(R, device=dev, dtype=dt)
+    alive = torch.arange(R, device=dev)
+    occupied = getattr(field, "occupied", None)
+    for k0 in range(0, samples, group):
+        if stop > 0:
+            alive = alive[trans[alive] >= stop]
+        if len(alive) == 0:
+            break
+        k = torch.arange(k0, min(k0 + group, samples), device=dev, dtype=dt)
+        t = near[alive, None] + span[alive, None] * (k + 0.5) / samples  # [A, G]
+        pts = origins[alive, None] + dirs[alive, None] * t[..., None]
+        A, G = t.shape
+        sigma = torch.zeros(A * G, device=dev, dtype=dt)
+        rgb = torch.zeros(A * G, 3, device=dev, dtype=dt)
+        flat = pts.reshape(-1, 3)
+        keep = occupied(flat) if occupied is not None else None
+        if keep is None:
+            sigma, rgb = field(flat, cond)
+        elif bool(keep.any()):
+            sigma[keep], rgb[keep] = field(flat[keep], cond)
+        alpha = 1 - torch.exp(-sigma.view(A, G) * delta[alive])
+        # transmittance before each sample of the group, continuing from the earlier groups
+        tr = trans[alive, None] * torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1] + 1e-10], 1), 1)
+        color[alive] += ((alpha * tr)[..., None] * rgb.view(A, G, 3)).sum(1)
+        trans[alive] = tr[:, -1] * (1 - alpha[:, -1] + 1e-10)
+    return color + trans[:, None] * background
 
 
 # ----------------------------------------------------------------------------- encoders
@@ -181,12 +247,19 @@ class NeRFHead(nn.Module):
         hidden: MLP width.
         n_landmark_coef: PCA coefficients of the landmark condition (GeneFace), else 0.
         intrinsics: ``(focal, cx, cy, width, height)``.
+        occupancy: cells per side of the occupancy grid (0: none; see :meth:`update_occupancy`).
     """
 
+    OCCUPANCY_DENSITY = 0.01
+    """A cell is empty when no probed condition gave a density above this at its probes (per-sample
+    alpha below 1 %; RAD-NeRF's own threshold, 10 at its step of sqrt(3)/512, is about 3 %)."""
+
     def __init__(self, kind: str, in_channels: int, window: int, box_min, box_max, hidden: int, n_landmark_coef: int = 0,
-                 intrinsics=(1.0, 0.0, 0.0, 1, 1), n_train_frames: int = 1):
+                 intrinsics=(1.0, 0.0, 0.0, 1, 1), n_train_frames: int = 1, occupancy: int = 0):
         super().__init__()
         self.kind = kind
+        # occupancy grid over the box ([-1, 1]^3 after normalize), all occupied until update_occupancy
+        self.register_buffer("occ_grid", torch.ones((occupancy,) * 3, dtype=torch.bool))
         self.register_buffer("box_min", torch.as_tensor(box_min, dtype=torch.float32))
         self.register_buffer("box_max", torch.as_tensor(box_max, dtype=torch.float32))
         self.intrinsics = tuple(float(v) for v in intrinsics)
@@ -229,6 +302,43 @@ class NeRFHead(nn.Module):
     def normalize(self, x: torch.Tensor) -> torch.Tensor:
         return (2 * (x - self.box_min) / (self.box_max - self.box_min) - 1).clamp(-1, 1)
 
+    def occupied(self, x: torch.Tensor) -> torch.Tensor | None:
+        """Whether world points ``[N, 3]`` lie in occupied cells (None: no occupancy grid)."""
+        g = self.occ_grid
+        if g.numel() == 0:
+            return None
+        n = g.shape[0]
+        i = ((self.normalize(x) + 1) * (n / 2)).long().clamp_(0, n - 1)
+        return g[i[:, 0], i[:, 1], i[:, 2]]
+
+    @torch.no_grad()
+    def update_occupancy(self, conds: torch.Tensor, probes: int = 2, seed: int = 0, chunk: int = 1 << 16) -> float:
+        """Mark the cells where any of ``conds`` ``[K, 32]`` puts density; returns the occupied fraction.
+
+        Each cell is probed at ``probes`` random points per condition; a cell is occupied if a
+        probe's density exceeds :attr:`OCCUPANCY_DENSITY`, and the grid is dilated by one cell
+        (a probe can miss the densest point of its cell), as ER-NeRF / RAD-NeRF's occupancy
+        grids are made from the densities of training conditions.
+        """
+        n = self.occ_grid.shape[0]
+        if n == 0:
+            return 1.0
+        gen = torch.Generator().manual_seed(seed)
+        dev = self.box_min.device
+        ax = torch.arange(n, dtype=torch.float32)
+        cells = torch.stack(torch.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+        top = torch.zeros(n**3, device=dev)
+        for c in conds:
+            for _ in range(probes):
+                u = (cells + torch.rand(cells.shape, generator=gen)) * (2.0 / n) - 1.0
+                x = ((u + 1) / 2 * (self.box_max.cpu() - self.box_min.cpu()) + self.box_min.cpu()).to(dev)
+                for s in range(0, len(x), chunk):
+                    sig, _ = self(x[s : s + chunk], c)
+                    top[s : s + chunk] = torch.maximum(top[s : s + chunk], sig)
+        occ = (top > self.OCCUPANCY_DENSITY).float().view(1, 1, n, n, n)
+        self.occ_grid.copy_(F.max_pool3d(occ, 3, stride=1, padding=1)[0, 0] > 0)
+        return float(self.occ_grid.float().mean())
+
     def conditions(self, feats: torch.Tensor, landmark_coef: torch.Tensor | None = None) -> torch.Tensor:
         """Per-frame condition vectors ``[T, 32]`` from audio windows (or landmark coefficients)."""
         if self.kind == "geneface":
@@ -247,6 +357,16 @@ class NeRFHead(nn.Module):
             return self.mlp(torch.cat([self.grid(u), fa], -1))
         f = self.triplane(u)  # ER-NeRF: region attention gates the audio by the point's feature
         return self.mlp(torch.cat([f, torch.sigmoid(self.att(f)) * c], -1))
+
+
+HEAD_DIFFERENCE = 12
+"""uint8 levels (any channel) by which a pixel must differ from its background to count as the head."""
+
+
+def head_pixels(clip, i: int) -> np.ndarray:
+    """``[H, W]`` bool: the pixels of frame ``i`` that differ from its background (the rendered head)."""
+    diff = np.abs(clip.frames[i].astype(np.int16) - clip.background(i).astype(np.int16)).max(-1)
+    return diff > HEAD_DIFFERENCE
 
 
 def _landmark_coefficients(predictor, targets: torch.Tensor) -> torch.Tensor:
@@ -273,7 +393,8 @@ class NeRFMethod(Adapter):
         feats = audio_windows(clip.audio, n).to(dev)
         lo, hi = head_box(clip)
         build = {"in_channels": int(feats.shape[2]), "window": int(feats.shape[1]), "box_min": lo.tolist(), "box_max": hi.tolist(),
-                 "hidden": b.hidden, "intrinsics": [clip.focal, clip.cx, clip.cy, clip.width, clip.height], "n_train_frames": n}
+                 "hidden": b.hidden, "intrinsics": [clip.focal, clip.cx, clip.cy, clip.width, clip.height], "n_train_frames": n,
+                 "occupancy": b.occupancy if self.name in OCCUPANCY_METHODS else 0}
         lm_coef = None
         predictor = None
         if self.name == "geneface":
@@ -305,11 +426,14 @@ class NeRFMethod(Adapter):
             if i not in rays_cache:
                 o, d = camera_rays(clip.w2c[i], clip.focal, clip.cx, clip.cy, clip.height, clip.width, dev)
                 near, far, hit = box_hits(o, d, lo_t, hi_t)
-                rays_cache[i] = (o, d, near, far, torch.nonzero(hit)[:, 0])
-            o, d, near, far, idx = rays_cache[i]
+                fg = torch.from_numpy(head_pixels(clip, i).reshape(-1)).to(dev) & hit
+                rays_cache[i] = (o, d, near, far, torch.nonzero(hit)[:, 0], torch.nonzero(fg)[:, 0])
+            o, d, near, far, idx, fg_idx = rays_cache[i]
             if len(idx) == 0:
                 continue
-            pick = idx[torch.from_numpy(rng.integers(0, len(idx), size=b.rays)).to(dev)]
+            n_fg = int(round(b.head_share * b.rays)) if len(fg_idx) else 0
+            pick = torch.cat([fg_idx[torch.from_numpy(rng.integers(0, max(len(fg_idx), 1), size=n_fg)).to(dev)],
+                              idx[torch.from_numpy(rng.integers(0, len(idx), size=b.rays - n_fg)).to(dev)]])
             gt = torch.from_numpy(clip.frames[i].reshape(-1, 3)[pick.cpu().numpy()]).to(dev).float() / 255
             bg = torch.from_numpy(clip.background(i).reshape(-1, 3)[pick.cpu().numpy()]).to(dev).float() / 255
             cond = model.conditions(feats, lm_coef)[i] if self.name == "geneface" else model.audio_net(feats, index=torch.tensor([i], device=dev))[0]
@@ -325,6 +449,11 @@ class NeRFMethod(Adapter):
                     bar.set_postfix(loss=f"{float(loss):.4f}")
         if bar is not None:
             bar.close()
+        if build["occupancy"]:
+            # the conditions of OCCUPANCY_FRAMES training frames spread over the clip
+            pick = torch.from_numpy(np.unique(np.linspace(0, n - 1, OCCUPANCY_FRAMES).round().astype(np.int64))).to(dev)
+            with torch.no_grad():
+                model.update_occupancy(model.audio_net(feats, index=pick), seed=seed)
         return model, build
 
     @torch.no_grad()
@@ -350,14 +479,16 @@ class NeRFMethod(Adapter):
             idx = torch.nonzero(hit)[:, 0]
             for s in range(0, len(idx), self.cfg.chunk):
                 j = idx[s : s + self.cfg.chunk]
-                img[j] = render_rays(m, conds[t], o[j], d[j], near[j], far[j], bg[j], self.cfg.samples, m.diag, jitter=False)
+                img[j] = march_rays(m, conds[t], o[j], d[j], near[j], far[j], bg[j], self.cfg.samples, m.diag)
             out[t] = to_u8(img.view(h, w, 3))
         return out
 
     def budget_text(self) -> str:
         b = self.cfg
         extra = f", {b.landmark_steps} landmark steps" if self.name == "geneface" else ""
-        return f"{b.steps} steps x {b.rays} rays x {b.samples} samples, MLP width {b.hidden}{extra}; full-frame render, {b.samples} samples per ray"
+        grid = f", occupancy grid {b.occupancy}^3" if self.name in OCCUPANCY_METHODS and b.occupancy else ""
+        return (f"{b.steps} steps x {b.rays} rays x {b.samples} samples, MLP width {b.hidden}{extra}; full-frame render, "
+                f"{b.samples} samples per ray, rays stop at transmittance {STOP_TRANSMITTANCE:g}{grid}")
 
 
 @register("adnerf")
@@ -379,8 +510,10 @@ class RADNeRF(NeRFMethod):
     description = (
         "Kept: the decomposed audio-spatial encoding (a multi-resolution 3D grid for the point, a 2D grid indexed by "
         "a learned 2D projection of the audio feature) feeding a small MLP, no region attention, volume rendering. "
-        "Simplified: dense grids (8^3, 16^3, 32^3) instead of hash grids, no eye/torso branches, no occupancy-grid "
-        "ray marching (stratified samples in the head box), log-mel instead of DeepSpeech, CPU budget."
+        "Kept also: occupancy-grid ray marching when rendering (a 32^3 grid over the head box marking where 32 "
+        "training conditions put density; empty cells are skipped). Simplified: dense grids (8^3, 16^3, 32^3) "
+        "instead of hash grids, no eye/torso branches, stratified samples in the head box (no grid-guided sampling "
+        "in training), log-mel instead of DeepSpeech, CPU budget."
     )
 
 
@@ -391,8 +524,10 @@ class ERNeRF(NeRFMethod):
     description = (
         "Kept: the tri-plane hash encoder (lmgs.encoders.TriplaneEncoder) for the point and region attention: "
         "channel gates computed from the point's tri-plane feature multiply the audio feature before the MLP; "
-        "volume rendering over the frame's background. Simplified: 6 levels up to 128 per plane, no eye/AU branch, "
-        "no torso field, no adaptive pose encoding, stratified samples in the head box, log-mel features, CPU budget."
+        "volume rendering over the frame's background, occupancy-grid ray marching when rendering (a 32^3 grid over "
+        "the head box from 32 training conditions). Simplified: 6 levels up to 128 per plane, no eye/AU branch, "
+        "no torso field, no adaptive pose encoding, stratified samples in the head box in training, log-mel "
+        "features, CPU budget."
     )
 
 
