@@ -3,7 +3,9 @@
 * rendering FPS (log x) against LPIPS, LMD and LSE-C, and training time against PSNR:
   one marker per method x subject (mean over seeds, from the self-driven records), colour
   by family, the Pareto front drawn (:func:`pareto_front`), each point labelled;
-* a heat-map of the change of a metric under each stress condition (methods x conditions).
+* a heat-map of the change of a metric under each stress condition (methods x conditions);
+* a contact sheet of the self-driven renders per subject (methods x frames, from the videos
+  the records point to, where they are on this machine), to look at what the numbers score.
 
 Output is deterministic (Agg backend, fixed fonts, no dates or software tags in the
 files, a fixed SVG hash salt), so regenerating from the same store gives the same bytes.
@@ -286,4 +288,75 @@ def all_charts(records: Sequence[dict[str, Any]], out_dir: str | Path) -> list[P
     stressed = sorted({k for r in records if r["protocol"]["name"] == "stress" for k in r["metrics"] if k in T.METRICS})
     for m in stressed:
         files += stability_heatmap(records, out_dir, m)
+    return files
+
+
+SHEET_FRAMES = 5
+"""Test frames per method on a render contact sheet (evenly spaced over the clip)."""
+
+
+def render_sheets(records: Sequence[dict[str, Any]], root: str | Path, out_dir: str | Path,
+                  frames: int = SHEET_FRAMES) -> list[Path]:
+    """``renders_<subject>.png``: per subject, ground truth then each method's self-driven render
+    (its lowest seed), ``frames`` test frames each, labelled with the method and its PSNR.
+
+    Renders are read from store ``root`` (``artefacts.render.path``); a record whose video is
+    not on this machine (made elsewhere) is left out and the sheet says how many were.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from lmgs_eval.data.io import read_video
+
+    root, out_dir = Path(root), Path(out_dir)
+    by_subject: dict[str, dict[str, dict]] = {}
+    for r in records:
+        if r["protocol"]["name"] != "self" or (r.get("status") or {}).get("state", "ok") != "ok":
+            continue
+        row = by_subject.setdefault(r["subject"]["name"], {})
+        name = r["method"]["name"]
+        if name not in row or r["seed"] < row[name]["seed"]:
+            row[name] = r
+    files = []
+    for subject in sorted(by_subject):
+        rows, missing = [], 0
+        order = sorted(by_subject[subject].values(), key=lambda r: (r["method"]["family"] != "ground-truth",
+                                                                   r["method"]["family"], r["method"]["display_name"]))
+        for r in order:
+            art = (r.get("artefacts") or {}).get("render")
+            path = root / art["path"] if art else None
+            if path is None or not path.is_file():
+                missing += 1
+                continue
+            video = read_video(path)[0]
+            pick = np.unique(np.linspace(0, len(video) - 1, frames).round().astype(int))
+            psnr = (r["metrics"].get("psnr") or {}).get("value")
+            label = r["method"]["display_name"] + (f"\nseed {r['seed']}" if r["method"]["family"] != "ground-truth" else "")
+            if isinstance(psnr, (int, float)) and r["method"]["family"] != "ground-truth":
+                label += f", {psnr:.2f} dB"
+            rows.append((label, np.concatenate([video[i] for i in pick], 1)))
+        if not rows:
+            continue
+        h, w = rows[0][1].shape[:2]
+        fig_w, fig_h = w / 100 + 1.6, len(rows) * (h / 100 + 0.05) + 0.3
+        with matplotlib.rc_context(_RC):
+            fig, axes = plt.subplots(len(rows), 1, figsize=(fig_w, fig_h), squeeze=False)
+            for ax, (label, strip) in zip(axes[:, 0], rows):
+                ax.imshow(np.clip(strip, 0, 1), interpolation="nearest")
+                ax.set_xticks([])
+                ax.set_yticks([])
+                ax.set_ylabel(label, rotation=0, ha="right", va="center", fontsize=8)
+            title = f"{subject}: self-driven test renders, frames evenly spaced"
+            if missing:
+                title += f" ({missing} method(s) rendered on another machine: not shown)"
+            fig.suptitle(title, fontsize=9, y=1 - 0.06 / fig_h, va="top")
+            fig.subplots_adjust(left=1.5 / fig_w, right=0.99, top=1 - 0.3 / fig_h, bottom=0.005, hspace=0.04)
+            stem = out_dir / f"renders_{subject}"
+            out_dir.mkdir(parents=True, exist_ok=True)
+            png = stem.with_suffix(".png")
+            fig.savefig(png, dpi=100, metadata={"Software": None})
+            plt.close(fig)
+        files.append(png)
     return files

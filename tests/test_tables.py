@@ -305,3 +305,35 @@ def test_chart_labels_of_close_points_do_not_overlap():
     boxes = [t.get_window_extent(r) for t in texts]
     assert not any(boxes[i].overlaps(boxes[j]) for i in range(4) for j in range(i + 1, 4))
     plt.close(fig)
+
+
+def test_render_sheet_shows_each_methods_video_and_leaves_out_those_not_here(tmp_path):
+    # two methods' self-driven renders written as videos of a known flat colour, one method's
+    # render absent (made on another machine): the sheet has their rows, in colour, and no others
+    import numpy as np
+
+    from lmgs_eval.data.io import write_video
+
+    recs = [r for r in fixture_records() if r["protocol"]["name"] == "self"]
+    colours = {"gt": (0.9, 0.9, 0.9), "lmgs": (0.9, 0.1, 0.1), "talkinggaussian": (0.1, 0.1, 0.9)}
+    for r in recs:
+        name = r["method"]["name"]
+        if name not in colours or r["seed"] != 0:
+            continue
+        rel = f"renders/{name}.mp4"
+        frames = np.ones((10, 64, 64, 3), np.float32) * np.asarray(colours[name], np.float32)
+        write_video(tmp_path / rel, (frames * 255).astype(np.uint8))
+        r["artefacts"] = {**(r.get("artefacts") or {}), "render": {"path": rel, "sha256": "0" * 64}}
+    (png,) = C.render_sheets(recs, tmp_path, tmp_path / "out")
+    assert png.name == "renders_astronaut.png"
+    import imageio.v3 as iio
+
+    img = iio.imread(png)[..., :3].astype(int)
+    red = (img[..., 0] > 180) & (img[..., 1] < 80) & (img[..., 2] < 80)
+    blue = (img[..., 2] > 180) & (img[..., 0] < 80) & (img[..., 1] < 80)
+    rows_red, rows_blue = np.flatnonzero(red.any(1)), np.flatnonzero(blue.any(1))
+    assert red.sum() > 5 * 64 * 40 and blue.sum() > 5 * 64 * 40  # five frames of each method
+    assert rows_red.max() < rows_blue.min()  # "Ours (lmgs)" sorts before "TalkingGaussian" within 3DGS
+    n_methods = len({r["method"]["name"] for r in recs})
+    assert n_methods > 3  # so some rows are missing: the fixture's other methods have no video here
+    assert C.render_sheets([r for r in recs if r["method"]["name"] == "ernerf"], tmp_path, tmp_path / "none") == []

@@ -52,6 +52,9 @@ def run(args: argparse.Namespace) -> int:
         from lmgs_eval.charts import all_charts
 
         written += all_charts(records, out)
+        from lmgs_eval.charts import render_sheets
+
+        written += render_sheets(records, args.results, out)
     if records_dir is not None:
         from lmgs_eval.results import snapshot_records
 
