@@ -258,27 +258,36 @@ def fit_method(method, clip, subject, seed: int, progress: bool) -> dict:
     workdir = model_dir(subject, info.name, info.config_hash, seed)
     reused = (workdir / "model.pt").exists()
     t0 = time.perf_counter()
-    method.fit(clip, seed=seed, workdir=workdir, progress=progress)
+    with OthersCPU() as busy:
+        method.fit(clip, seed=seed, workdir=workdir, progress=progress)
     secs = time.perf_counter() - t0
-    rec = {"train_seconds": secs, "reused_checkpoint": reused, "workdir": str(workdir)}
+    rec = {"train_seconds": secs, "train_others_cpu_share": busy.share, "reused_checkpoint": reused, "workdir": str(workdir)}
     if reused:
-        rec["train_seconds"] = _recorded_train_seconds(workdir)
+        fit = _recorded_fit(workdir)
+        rec["train_seconds"] = fit.get("train_seconds")
+        rec["train_others_cpu_share"] = fit.get("train_others_cpu_share")
     else:
         import json
 
         from lmgs_eval.paths import atomic_write_text
 
-        atomic_write_text(workdir / "fit.json", json.dumps({"train_seconds": secs, "peak_mb": peak_rss_mb()}))
+        atomic_write_text(workdir / "fit.json", json.dumps({"train_seconds": secs, "peak_mb": peak_rss_mb(),
+                                                            "train_others_cpu_share": busy.share}))
     return rec
 
 
-def _recorded_train_seconds(workdir: Path) -> float | None:
+def _recorded_fit(workdir: Path) -> dict:
+    """What ``fit.json`` says of the training that made a checkpoint (empty if it is not there)."""
     import json
 
     p = workdir / "fit.json"
     if p.exists():
-        return json.loads(p.read_text()).get("train_seconds")
-    return None
+        try:
+            d = json.loads(p.read_text())
+            return d if isinstance(d, dict) else {}
+        except ValueError:
+            return {}
+    return {}
 
 
 # ----------------------------------------------------------------------------- scoring
@@ -426,6 +435,7 @@ def _cost_block(method, fit_cost: dict | None, render_cost: dict, timings: dict 
         ms["total"] = 1000.0 / render_cost["fps"] if render_cost.get("fps") else None
     return {
         "train_seconds": (fit_cost or {}).get("train_seconds", c.get("train_seconds")),
+        "train_others_cpu_share": (fit_cost or {}).get("train_others_cpu_share"),
         "fps": render_cost.get("fps") if render_cost.get("fps") is not None else c.get("fps"),
         "ms_per_frame": ms,
         "first_frame_ms": render_cost.get("first_frame_ms"),

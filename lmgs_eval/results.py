@@ -164,6 +164,7 @@ SCHEMA: dict[str, Any] = {
                 "device": _OSTR,
                 "others_cpu_share": _ONUM,
                 "host_slowdown": _ONUM,
+                "train_others_cpu_share": _ONUM,
                 "host_probe_best_ms": _ONUM,
                 "host_probe_ms": {"type": ["array", "null"], "items": _ONUM},
             },

@@ -422,6 +422,30 @@ def flag_busy_timings(sec: Section, columns: Sequence[Column]) -> None:
             busy.append(f"{row.label} {len(hit)}/{len(costs)} runs, worst {busy_text(worst)}")
     if busy:
         sec.notes.append(f"{BUSY_NOTE}: {'; '.join(busy)}. On a quiet host these render faster.")
+    flag_busy_training(sec, columns)
+
+
+def trained_busy(cost: dict) -> bool:
+    """True when other processes took more than :data:`BUSY_SHARE` of the host's CPU while the model trained."""
+    share = cost.get("train_others_cpu_share")
+    return share is not None and share > BUSY_SHARE
+
+
+def flag_busy_training(sec: Section, columns: Sequence[Column]) -> None:
+    """Mark training times measured while other processes took more than :data:`BUSY_SHARE` of the host's CPU."""
+    col = next((c for c in columns if c.kind == "cost" and c.key == "train_seconds"), None)
+    if col is None:
+        return
+    busy = []
+    for row in sec.rows:
+        cell = row.cells.get(col.id)
+        shares = [(r.get("cost") or {})["train_others_cpu_share"] for r in row.records if trained_busy(r.get("cost") or {})]
+        if cell is not None and cell.mean is not None and shares:
+            cell.flag = BUSY
+            busy.append(f"{row.label} {len(shares)}/{len(row.records)} runs, worst others {max(shares):.0%}")
+    if busy:
+        sec.notes.append(f"{BUSY} Train: trained while other processes took more than {BUSY_SHARE:.0%} of the host's CPU "
+                         f"(cost.train_others_cpu_share): {'; '.join(busy)}. On a quiet host these train faster.")
 
 
 def rank_section(sec: Section, columns: Sequence[Column], alpha: float = ALPHA) -> None:

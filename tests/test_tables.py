@@ -110,6 +110,22 @@ def test_fps_timed_on_a_slowed_host_is_marked():
     assert "slower than its best on that machine (cost.host_slowdown)" in md
 
 
+def test_training_time_measured_on_a_busy_host_is_marked():
+    recs = fixture_records()
+    for r in recs:
+        if r["protocol"]["name"] == "self":
+            r["cost"]["train_others_cpu_share"] = 0.04
+            if r["method"]["name"] == "lmgs" and r["seed"] == 0:
+                r["cost"]["train_others_cpu_share"] = 0.52
+    md = T.table_self(recs).markdown()
+    head = _row(md, "Method")
+    train, fps = head.index("Train (min)↓"), head.index("FPS↑")
+    assert _row(md, "Ours (lmgs)")[train].endswith("§") and not _row(md, "TalkingGaussian")[train].endswith("§")
+    assert not _row(md, "Ours (lmgs)")[fps].endswith("§")  # the render timing was not busy
+    assert "§ Train: trained while other processes took more than 10% of the host's CPU" in md
+    assert "Ours (lmgs) 1/2 runs, worst others 52%" in md
+
+
 def test_ranking_without_per_item_values_says_it_is_untested():
     recs = fixture_records()
     for r in recs:

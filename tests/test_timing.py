@@ -91,3 +91,34 @@ def test_host_speed_survives_a_corrupt_ledger_and_keeps_none_when_asked(tmp_path
 def test_probe_is_a_real_workload():
     ms = [probe_ms() for _ in range(3)]
     assert all(m > 0 for m in ms)
+
+
+def test_training_records_the_contention_and_a_reused_checkpoint_keeps_it(tmp_path, monkeypatch):
+    import json
+    from types import SimpleNamespace
+
+    from lmgs_eval import protocols
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+
+    class Toy:
+        def describe(self):
+            return SimpleNamespace(name="toy", config_hash="abc")
+
+        def fit(self, clip, *, seed, workdir, progress):
+            workdir.mkdir(parents=True, exist_ok=True)
+            if not (workdir / "model.pt").exists():
+                _spin(0.3)
+                (workdir / "model.pt").write_bytes(b"x")
+
+    subject = SimpleNamespace(name="s", bundled=False, meta={})
+    first = protocols.fit_method(Toy(), None, subject, 0, progress=False)
+    share = first["train_others_cpu_share"]
+    assert not first["reused_checkpoint"] and (share is None or 0 <= share <= 1)
+    if host_cpu_seconds() is not None:
+        assert share is not None
+    saved = json.loads((tmp_path / "cache" / "lmgs" / "models" / "s" / "toy" / "abc-seed0" / "fit.json").read_text())
+    assert saved["train_others_cpu_share"] == share and saved["train_seconds"] == first["train_seconds"]
+    again = protocols.fit_method(Toy(), None, subject, 0, progress=False)
+    assert again["reused_checkpoint"]
+    assert (again["train_seconds"], again["train_others_cpu_share"]) == (first["train_seconds"], share)

@@ -52,7 +52,7 @@ def run_config(args: argparse.Namespace):
 
 def print_rows(records: list[dict]) -> None:
     """The records just made, as a small table on stdout (§: FPS timed on a busy host)."""
-    from lmgs_eval.tables import BUSY, BUSY_NOTE, busy_text, timed_busy
+    from lmgs_eval.tables import BUSY, BUSY_NOTE, BUSY_SHARE, busy_text, timed_busy, trained_busy
 
     cols = [("psnr", "PSNR↑", "{:.2f}"), ("lpips", "LPIPS↓", "{:.4f}"), ("lmd", "LMD↓", "{:.2f}"),
             ("lse_d", "LSE-D↓", "{:.3f}"), ("lse_c", "LSE-C↑", "{:.3f}")]
@@ -70,11 +70,15 @@ def print_rows(records: list[dict]) -> None:
             return fmt.format(v) if isinstance(v, (int, float)) else "-"
 
         fps = f(c.get("fps"), "{:.1f}") + (BUSY if timed_busy(c) else "")
+        train = f(c.get("train_seconds"), "{:.0f}") + (BUSY if trained_busy(c) else "")
         print(f"{r['method']['display_name'][:26]:<26} {r['protocol']['clip'][:6]:<6} {r['seed']:>4} " + " ".join(vals)
-              + f" {fps:>7} {f(c.get('train_seconds'), '{:.0f}'):>8} {f(c.get('n_gaussians'), '{:d}'):>7} {f(c.get('model_mb'), '{:.2f}'):>6}")
+              + f" {fps:>7} {train:>8} {f(c.get('n_gaussians'), '{:d}'):>7} {f(c.get('model_mb'), '{:.2f}'):>6}")
     busy = [busy_text(r["cost"]) for r in records if timed_busy(r.get("cost") or {})]
     if busy:
         print(f"  {BUSY_NOTE} ({'; '.join(dict.fromkeys(busy))}): a quiet host renders faster")
+    if any(trained_busy(r.get("cost") or {}) for r in records):
+        print(f"  {BUSY} train s: trained while other processes took more than {BUSY_SHARE:.0%} of the host's CPU "
+              "(cost.train_others_cpu_share): a quiet host trains faster")
     backends = sorted({f"{k}: {v['backend']}" + (f" (stand-in: {v['standin']})" if v.get("standin") else "")
                        for r in records for k, v in r["metrics"].items() if k in ("lpips", "lse_d", "lmd")})
     for b in backends:
