@@ -236,6 +236,26 @@ class FieldMLP(nn.Module):
         o = self.out(self.body(h))
         return F.softplus(o[:, 0]), torch.sigmoid(o[:, 1:])
 
+    @torch.no_grad()
+    def forward_parts(self, parts: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """``forward(cat(parts, -1))`` for rendering, without building the concatenation: a 1-D part
+        (the same for every point, e.g. the frame's audio condition) folds into the first bias;
+        ReLUs act in place. Equal to :meth:`forward` up to float rounding."""
+        layers = [m for m in self.body if isinstance(m, nn.Linear)]
+        w, bias, h, k = layers[0].weight, layers[0].bias, None, 0
+        for part in parts:
+            wp = w[:, k : k + part.shape[-1]]
+            k += part.shape[-1]
+            if part.dim() == 1:
+                bias = bias + wp @ part
+            else:
+                h = part @ wp.T if h is None else h.addmm_(part, wp.T)
+        h = h.add_(bias).relu_()
+        for lin in layers[1:]:
+            h = F.linear(h, lin.weight, lin.bias).relu_()
+        o = self.out(h)
+        return F.softplus(o[:, 0]), torch.sigmoid(o[:, 1:])
+
 
 class NeRFHead(nn.Module):
     """A radiance field conditioned per frame, in one of four flavours (see the module doc).
@@ -348,6 +368,8 @@ class NeRFHead(nn.Module):
 
     def forward(self, x: torch.Tensor, cond: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         u = self.normalize(x)
+        if not torch.is_grad_enabled() and cond.dim() == 1:
+            return self._render_forward(u, cond)
         c = cond.expand(u.shape[0], -1)
         if self.kind in ("adnerf", "geneface"):
             return self.mlp(torch.cat([self.pe(u), c], -1))
@@ -357,6 +379,17 @@ class NeRFHead(nn.Module):
             return self.mlp(torch.cat([self.grid(u), fa], -1))
         f = self.triplane(u)  # ER-NeRF: region attention gates the audio by the point's feature
         return self.mlp(torch.cat([f, torch.sigmoid(self.att(f)) * c], -1))
+
+    def _render_forward(self, u: torch.Tensor, cond: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`forward` without autograd, one condition for all points (:meth:`FieldMLP.forward_parts`)."""
+        if self.kind in ("adnerf", "geneface"):
+            return self.mlp.forward_parts([self.pe(u), cond])
+        if self.kind == "radnerf":
+            a = torch.tanh(self.aud_coord(cond)).view(1, 1, 1, 2)
+            fa = F.grid_sample(self.aud_grid, a, align_corners=True).view(-1)
+            return self.mlp.forward_parts([self.grid(u), fa])
+        f = self.triplane(u)
+        return self.mlp.forward_parts([f, torch.sigmoid(self.att(f)).mul_(cond)])
 
 
 HEAD_DIFFERENCE = 12

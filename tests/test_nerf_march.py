@@ -138,3 +138,22 @@ def test_trained_ernerf_renders_the_same_with_its_grid(tmp_path):
     m.model.occ_grid.fill_(True)
     full = m.render(drv).astype(np.float64)
     assert np.abs(fast - full).mean() < 0.5
+
+
+@pytest.mark.parametrize("kind", ["adnerf", "radnerf", "ernerf", "geneface"])
+def test_render_forward_equals_the_training_forward(kind):
+    # the no-grad path (no concatenation, condition folded into the first bias, in-place ReLU)
+    torch.manual_seed(1)
+    f = NeRFHead(kind, in_channels=8, window=4, box_min=BOX[0], box_max=BOX[1], hidden=16,
+                 n_landmark_coef=6 if kind == "geneface" else 0)
+    with torch.no_grad():
+        for prm in f.parameters():  # away from the near-transparent start, so every term matters
+            prm.add_(torch.randn_like(prm) * 0.3)
+    x = torch.rand(500, 3) * 2 - 1
+    cond = torch.randn(32)
+    with torch.enable_grad():
+        s_ref, c_ref = f(x, cond)
+    with torch.no_grad():
+        s, c = f(x, cond)
+    assert torch.allclose(s, s_ref.detach(), atol=1e-5, rtol=1e-5) and torch.allclose(c, c_ref.detach(), atol=1e-6)
+    assert s_ref.std() > 1e-3 and c_ref.std() > 1e-3
