@@ -136,6 +136,11 @@ class DeformConfig:
         blink: use the blink (AU45) scalar.
         position_only: predict only position offsets (TalkingGaussian's mouth branch).
         position_scale: position offsets are the MLP output times this (TalkingGaussian: 1e-2).
+        zero_init: the offset MLP's last layer starts at zero, so the dynamic stage starts from
+            the static stage's solution instead of random offsets (as Landmark Compensation's head).
+        bound_audio: the audio feature enters through ``tanh`` (|F_a| < 1). Without it a runaway
+            of the audio encoder (|F_a| ~ 500) threw every face Gaussian off-screen in a
+            16,000-Gaussian hopper run; off-screen Gaussians get no gradient, so it never recovered.
     """
 
     hidden: int = 64
@@ -146,6 +151,8 @@ class DeformConfig:
     blink: bool = True
     position_only: bool = False
     position_scale: float = 1e-2
+    zero_init: bool = True
+    bound_audio: bool = True
 
     @classmethod
     def quick(cls) -> "DeformConfig":

@@ -10,10 +10,11 @@ feature (ER-NeRF, Li et al., ICCV 2023; TalkingGaussian, Li et al., ECCV 2024):
 
     a^{aud}_i = \\sigma\\big(\\mathrm{MLP}_{aud}(F_i)\\big), \\quad
     a^{exp}_i = \\sigma\\big(\\mathrm{MLP}_{exp}(F_i)\\big), \\quad
-    h_i = \\big[F_i \\,\\|\\, a^{aud}_i \\odot F_a \\,\\|\\, a^{exp}_i \\odot e\\big]
+    h_i = \\big[F_i \\,\\|\\, a^{aud}_i \\odot \\tanh(F_a) \\,\\|\\, a^{exp}_i \\odot e\\big]
 
 (``attention="softmax"`` uses a softmax over each modality's channels instead of
-:math:`\\sigma`), then an MLP gives the offsets
+:math:`\\sigma`; ``bound_audio=False`` feeds :math:`F_a` without the ``tanh``), then an MLP,
+whose last layer starts at zero (``zero_init``), gives the offsets
 
 .. math::
 
@@ -109,6 +110,9 @@ class DeformNet(nn.Module):
             layers += [nn.Linear(d_in, cfg.hidden), nn.ReLU()]
             d_in = cfg.hidden
         layers.append(nn.Linear(d_in, n_out))
+        if cfg.zero_init:
+            nn.init.zeros_(layers[-1].weight)
+            nn.init.zeros_(layers[-1].bias)
         self.mlp = nn.Sequential(*layers)
         self.lc = LandmarkCompensation(D, guidance) if guidance.lc else None
 
@@ -148,7 +152,8 @@ class DeformNet(nn.Module):
             F = f
         kind = self.cfg.attention
         a_aud = _gate(self.aud_att(F), kind)  # [N, A]
-        parts = [F, a_aud * audio.to(F)]
+        audio = torch.tanh(audio.to(F)) if self.cfg.bound_audio else audio.to(F)
+        parts = [F, a_aud * audio]
         if self.exp_total:
             e = self._expression(blink, exp, F)
             parts.append(_gate(self.exp_att(F), kind) * e)

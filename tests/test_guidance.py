@@ -114,6 +114,8 @@ def test_deform_face_branch_shapes_and_switches():
     torch.manual_seed(0)
     xyz, lms, aud = torch.rand(200, 3) * 2 - 1, torch.rand(68, 3) * 2 - 1, torch.randn(16)
     net = DeformNet(16, DeformConfig(exp_dim=3), _small_tri(), GuidanceConfig())
+    with torch.no_grad():
+        net.mlp[-1].weight.normal_(0, 0.1)  # a trained-looking last layer (it starts at zero)
     out = net(xyz, aud, lms, blink=0.4, exp=torch.zeros(3))
     assert out.d_xyz.shape == (200, 3) and out.d_rot.shape == (200, 4) and out.d_scale.shape == (200, 3)
     assert 0.0 <= out.se_fraction <= 1.0
@@ -138,6 +140,7 @@ def test_deform_mouth_branch_position_only_and_audio_dependence():
     with torch.no_grad():
         for p in net.encoder.parameters():
             p.normal_()
+        net.mlp[-1].weight.normal_(0, 0.1)
     xyz = torch.rand(100, 3) * 2 - 1
     a = net(xyz, torch.zeros(8))
     b = net(xyz, torch.ones(8) * 3)
@@ -146,3 +149,27 @@ def test_deform_mouth_branch_position_only_and_audio_dependence():
     # cached point features give the same result
     f = net.encode_points(xyz)
     torch.testing.assert_close(net(xyz, torch.ones(8) * 3, point_features=f).d_xyz, b.d_xyz)
+
+
+def test_deform_starts_at_the_static_solution_and_bounds_the_audio():
+    torch.manual_seed(0)
+    xyz, lms = torch.rand(300, 3) * 2 - 1, torch.rand(68, 3) * 2 - 1
+    net = DeformNet(16, DeformConfig(), _small_tri(), GuidanceConfig())
+    out = net(xyz, torch.randn(16) * 5, lms, blink=0.7)
+    # zero-initialised last layer + zero-initialised LC head: no offset at all before training
+    assert torch.count_nonzero(out.d_xyz) == 0 and torch.count_nonzero(out.d_rot) == 0 and torch.count_nonzero(out.d_scale) == 0
+    old = DeformNet(16, DeformConfig(zero_init=False, bound_audio=False), _small_tri(), GuidanceConfig())
+    assert float(old(xyz, torch.randn(16), lms, blink=0.7).d_scale.abs().max()) > 1e-3
+    # a runaway audio feature (|F_a| ~ 500 in the collapsed run) cannot move the points further
+    # than a saturated one: tanh(1e3 v) == tanh(1e6 v) == sign(v) ...
+    with torch.no_grad():
+        net.mlp[-1].weight.normal_(0, 0.1)
+        old.load_state_dict(net.state_dict())
+    v = torch.randn(16)
+    big = net(xyz, v * 1e3, lms, blink=0.7)
+    torch.testing.assert_close(net(xyz, v * 1e6, lms, blink=0.7).d_xyz, big.d_xyz)
+    torch.testing.assert_close(old(xyz, torch.sign(v), lms, blink=0.7).d_xyz, big.d_xyz)
+    assert bool(torch.isfinite(big.d_scale).all())
+    # ... while without the bound the offsets grow with the feature
+    grow = old(xyz, v * 1e3, lms, blink=0.7).d_xyz.abs().max() / old(xyz, v, lms, blink=0.7).d_xyz.abs().max()
+    assert float(grow) > 50
