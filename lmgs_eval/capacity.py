@@ -76,10 +76,32 @@ def points_from_records(records: Sequence[dict]) -> dict[str, list[dict[str, Any
     return out
 
 
+def failed_points(records: Sequence[dict]) -> dict[str, list[dict[str, Any]]]:
+    """Per subject, the capacity runs that failed: ``{"budget", "seed", "reason"}``."""
+    out: dict[str, list[dict[str, Any]]] = {}
+    for r in records:
+        if r["protocol"]["name"] == "capacity" and (r.get("status") or {}).get("state") == "failed":
+            out.setdefault(r["subject"]["name"], []).append(
+                {"budget": int(r["protocol"]["clip"].split("-", 1)[1]), "seed": r["seed"], "reason": r["status"].get("reason", "")})
+    return out
+
+
+def _failed_record(cfg: RunConfig, info, subject, clip: str, seed: int, reason: str) -> dict:
+    from lmgs_eval import results as store
+    from lmgs_eval.protocols import build_record
+
+    rec = build_record(info=info, subject=subject, protocol="capacity", clip=clip, split="test", n_frames=0, seed=seed,
+                       metrics={}, cost={}, artefacts={}, notes=list(subject.notes))
+    rec["status"] = {"state": "failed", "reason": reason[:500]}
+    store.write_record(cfg.results, rec)
+    return rec
+
+
 def run_capacity(cfg: RunConfig, budgets: Sequence[int] = DEFAULT_BUDGETS) -> list[dict]:
     """Train ``lmgs`` at each budget on the subject, score it, record it (resumable)."""
     from lmgs.init import face_area_px
     from lmgs.strategy import budget_from_face_area
+    from lmgs.train import TrainingDiverged
     from lmgs_eval import results as store
     from lmgs_eval.data.registry import find_subject
     from lmgs_eval.methods import create_method, driving_from_subject, subject_to_clip
@@ -106,11 +128,16 @@ def run_capacity(cfg: RunConfig, budgets: Sequence[int] = DEFAULT_BUDGETS) -> li
             info = method.describe()
             clip = f"budget-{n}"
             trained.append((n, seed, method))
-            if not cfg.force and store.find_record(cfg.results, info.name, subject.name, "capacity", clip, seed, info.config_hash):
+            old = None if cfg.force else store.find_record(cfg.results, info.name, subject.name, "capacity", clip, seed, info.config_hash)
+            if old is not None and (old.get("status") or {}).get("state") != "failed":  # a failed budget is retried
                 log(f"budget {n} seed {seed}: already in {cfg.results}; skipped")
                 continue
-            records.append(fit_render_score(cfg, method, subject, seed, train, driving, test.frames,
-                                            f"renders/{subject.name}/capacity/lmgs-{clip}-seed{seed}.mp4", "capacity", clip))
+            try:
+                records.append(fit_render_score(cfg, method, subject, seed, train, driving, test.frames,
+                                                f"renders/{subject.name}/capacity/lmgs-{clip}-seed{seed}.mp4", "capacity", clip))
+            except TrainingDiverged as exc:  # recorded as failed; the other budgets go on
+                log(f"budget {n} seed {seed}: FAILED: {exc}")
+                records.append(_failed_record(cfg, info, subject, clip, seed, f"training diverged: {exc}"))
     retime_side_by_side(cfg, subject, train, driving, trained)
     return records
 

@@ -230,9 +230,10 @@ def capacity_charts(records: Sequence[dict[str, Any]], out_dir: str | Path) -> l
     of Gaussians (log); a dashed line at the knee (:func:`lmgs_eval.capacity.knee`) and a
     dotted one at the count of the ``lmgs`` self-driven run (the quick preset's default).
     """
-    from lmgs_eval.capacity import knee, points_from_records, tolerance_text
+    from lmgs_eval.capacity import failed_points, knee, points_from_records, tolerance_text
 
     per_subject = points_from_records(records)
+    failed = failed_points(records)
     if not per_subject:
         return []
     import matplotlib
@@ -275,7 +276,9 @@ def capacity_charts(records: Sequence[dict[str, Any]], out_dir: str | Path) -> l
                     ax.axvline(k_pt["n_gaussians"] or k_pt["budget"], color="0.3", ls="--", lw=1)
                 if default:
                     ax.axvline(float(np.mean(default)), color="#d62728", ls=":", lw=1)
-            fig.suptitle(f"{subject}: capacity (dashed: knee, {tolerance_text()}; dotted: quick default)", fontsize=8)
+            fails = sorted({f["budget"] for f in failed.get(subject, [])})
+            extra = f"; training failed at budget {', '.join(map(str, fails))}" if fails else ""
+            fig.suptitle(f"{subject}: capacity (dashed: knee, {tolerance_text()}; dotted: quick default{extra})", fontsize=8)
             fig.tight_layout()
             files += _save(fig, out_dir / f"capacity_{subject}")
             plt.close(fig)

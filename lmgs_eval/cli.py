@@ -3,7 +3,8 @@
 Each subcommand lives in its own module under :mod:`lmgs_eval.commands` with three names:
 ``HELP`` (one line), ``add_arguments(parser)`` and ``run(args) -> int``. Modules keep heavy
 imports (torch, onnxruntime, dlib) inside ``run`` so ``lmgs-eval --help`` stays instant.
-User errors (:class:`lmgs.errors.InputError`) become one line on stderr and exit code 2.
+User errors (:class:`lmgs.errors.InputError`) become one line on stderr and exit code 2; a
+training run that diverged (:class:`lmgs.errors.TrainingDiverged`) one line and exit code 1.
 """
 
 from __future__ import annotations
@@ -61,7 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from lmgs.errors import InputError
+    from lmgs.errors import InputError, TrainingDiverged
 
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -73,6 +74,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except InputError as exc:
         print(f"lmgs-eval {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except TrainingDiverged as exc:
+        print(f"lmgs-eval {args.command}: training failed: {exc}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print(f"lmgs-eval {args.command}: interrupted; finished work is kept and the run can be resumed", file=sys.stderr)
         return 130

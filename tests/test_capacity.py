@@ -87,3 +87,34 @@ def test_capacity_points_never_mix_side_by_side_and_per_run_fps():
     assert [(p["fps"], p["fps_side_by_side"]) for p in mixed] == [(40.0, False), (30.0, False)]
     two_runs = points_from_records([rec(500, 40.0, 61.0), rec(900, 30.0, 45.0, run="2026-11-24T05:00:00")])["s"]
     assert [(p["fps"], p["fps_side_by_side"]) for p in two_runs] == [(40.0, False), (30.0, False)]
+
+
+def test_a_budget_whose_training_collapses_is_recorded_as_failed_and_the_rest_go_on(tmp_path, monkeypatch):
+    import lmgs_eval.protocols as protocols
+    from lmgs.train import TrainingDiverged
+    from lmgs_eval.capacity import failed_points
+
+    real = protocols.fit_render_score
+
+    def collapsing(cfg, method, subject, seed, train, driving, gt, render_rel, protocol="self", clip="test"):
+        if clip == "budget-900":
+            raise TrainingDiverged("training collapsed at step 41 (dynamic stage): the mean loss of the last 25 steps is 3.6x ...")
+        return real(cfg, method, subject, seed, train, driving, gt, render_rel, protocol, clip)
+
+    monkeypatch.setattr(protocols, "fit_render_score", collapsing)
+    rc, out, err = run_cli("capacity", "--subject", "astronaut-64px-2s", "--results", str(tmp_path), "--no-progress",
+                           "--budget", "500", "--budget", "900", *FAST)
+    assert rc == 0, err
+    recs, warnings = load_records(tmp_path)
+    assert warnings == [] and all(validate(r) == [] for r in recs)
+    bad = [r for r in recs if r["protocol"]["clip"] == "budget-900"]
+    assert len(bad) == 1 and bad[0]["status"]["state"] == "failed" and "collapsed at step 41" in bad[0]["status"]["reason"]
+    assert [p["budget"] for p in points_from_records(recs)["astronaut-64px-2s"]] == [500]  # no point made of nothing
+    assert failed_points(recs)["astronaut-64px-2s"][0]["budget"] == 900
+    assert "900 FAILED (seed 0): training diverged: training collapsed at step 41" in out
+    # run again (the cause fixed): the failed budget is retried, the good one reused
+    monkeypatch.setattr(protocols, "fit_render_score", real)
+    rc, out, err = run_cli("capacity", "--subject", "astronaut-64px-2s", "--results", str(tmp_path), "--no-progress",
+                           "--budget", "500", "--budget", "900", *FAST)
+    assert rc == 0 and "budget 500 seed 0: already in" in err and "budget 900 seed 0: already in" not in err
+    assert "FAILED" not in out and sorted(p["budget"] for p in points_from_records(load_records(tmp_path)[0])["astronaut-64px-2s"]) == [500, 900]

@@ -102,6 +102,35 @@ def test_non_finite_loss_stops_with_message(clip, monkeypatch, tmp_path):
     assert (tmp_path / "checkpoint.pt").exists()  # the last good one (step 30) is kept
 
 
+def test_collapse_guard_hand_cases():
+    from lmgs.train import CollapseGuard
+
+    g = CollapseGuard(window=4, factor=3.0)
+    assert [g.update(x, "static") for x in (0.5, 0.4, 0.3, 0.2)] == [None, None, None, None]  # falling: fine
+    assert g.best == pytest.approx(0.35)
+    assert g.update(2.0, "static") is None  # one spike: (0.4 + 0.3 + 0.2 + 2.0) / 4 = 0.725 < 3 x 0.35
+    assert g.update(2.0, "static") == pytest.approx((0.3 + 0.2 + 2.0 + 2.0) / 4 / 0.35)  # a plateau: 3.2x
+    # a new stage starts its own reference: its higher loss level is not a collapse
+    assert [g.update(x, "dynamic") for x in (5.0, 5.0, 5.0, 5.0, 5.1)] == [None] * 5
+
+
+def test_collapse_stops_with_message(clip, monkeypatch, tmp_path):
+    # a finite loss that jumps and stays (as the 16,000-Gaussian hopper run's did) stops the run
+    import lmgs.train as tr
+
+    real = tr.losses.photometric
+    calls = {"n": 0}
+
+    def jumped(a, b, lam):
+        calls["n"] += 1
+        out = real(a, b, lam)
+        return out + 5.0 if calls["n"] > 88 else out
+
+    monkeypatch.setattr(tr.losses, "photometric", jumped)
+    with pytest.raises(TrainingDiverged, match=r"collapsed at step 8[89] \(dynamic stage\).*checkpoint \(step 60\)"):
+        fit(clip, _tiny_cfg(), seed=0, progress=False, workdir=tmp_path)
+
+
 def test_resume_after_interruption(clip, monkeypatch, tmp_path):
     import lmgs.train as tr
 

@@ -139,6 +139,19 @@ def test_unknown_method_and_subject(tmp_path):
     assert rc == 2 and "unknown subject" in err and "astronaut" in err
 
 
+def test_a_training_that_diverges_is_one_line_and_exit_1(tmp_path, monkeypatch):
+    import lmgs_eval.protocols as protocols
+    from lmgs.train import TrainingDiverged
+
+    def diverge(method, train, subject, seed, progress):
+        raise TrainingDiverged("training collapsed at step 1040 (dynamic stage): the mean loss of the last 25 steps is 3.9x ...")
+
+    monkeypatch.setattr(protocols, "fit_method", diverge)
+    rc, out, err = run_cli("self", "--subject", SUBJECT, "--results", str(tmp_path), "--no-progress", *FAST)
+    assert rc == 1 and "lmgs-eval self: training failed: training collapsed at step 1040" in err
+    assert "Traceback" not in err and not [r for r in load_records(tmp_path)[0] if r["method"]["name"] == "lmgs"]  # no record made of it
+
+
 def test_timed_render_reports_the_median_of_repeats(monkeypatch):
     """FPS comes from the median of up to 3 timed renders (I/O outside), first-frame latency from the warm-up."""
     import itertools

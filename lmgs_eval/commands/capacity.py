@@ -19,7 +19,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from lmgs_eval.capacity import DEFAULT_BUDGETS, knee, points_from_records, run_capacity, tolerance_text
+    from lmgs_eval.capacity import DEFAULT_BUDGETS, failed_points, knee, points_from_records, run_capacity, tolerance_text
     from lmgs_eval.charts import capacity_charts
     from lmgs_eval.commands._common import run_config
     from lmgs_eval.errors import UserError
@@ -45,6 +45,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"{'':{len(subject) + 1}} {p['budget']:>7} {f(p['n_gaussians'], '{:d}'):>7} {f(p['psnr'], '{:.2f}'):>6} "
                   f"{f(p['lpips'], '{:.4f}'):>7} {f(p['lmd'], '{:.2f}'):>5} {f(p['fps'], '{:.1f}'):>6} {f(p['model_mb'], '{:.2f}'):>6} "
                   f"{f(p['train_seconds'], '{:.0f}'):>7}{mark}")
+        for fp in failed_points(records).get(subject, []):
+            print(f"{'':{len(subject) + 1}} {fp['budget']:>7} FAILED (seed {fp['seed']}): {fp['reason']}")
         print(f"  knee: the smallest budget with {tolerance_text()}")
     out = Path(args.out) if args.out else cfg.results / "tables"
     for f in capacity_charts(records, out):
