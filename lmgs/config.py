@@ -138,9 +138,12 @@ class DeformConfig:
         position_scale: position offsets are the MLP output times this (TalkingGaussian: 1e-2).
         zero_init: the offset MLP's last layer starts at zero, so the dynamic stage starts from
             the static stage's solution instead of random offsets (as Landmark Compensation's head).
-        bound_audio: the audio feature enters through ``tanh`` (|F_a| < 1). Without it a runaway
-            of the audio encoder (|F_a| ~ 500) threw every face Gaussian off-screen in a
-            16,000-Gaussian hopper run; off-screen Gaussians get no gradient, so it never recovered.
+        bound_audio: feed ``tanh(F_a)`` instead of :math:`F_a`. Off: tried against a runaway of
+            the audio encoder (|F_a| ~ 500 threw every face Gaussian off-screen in a 16,000-Gaussian
+            hopper run), it stopped the collapse but training then drove F_a into saturation
+            (98 % of entries with |tanh| > 0.9 on hopper seed 0) and lip sync fell (LSE-C 0.40 ->
+            0.22). ``zero_init`` alone kept that run from collapsing, and
+            :class:`lmgs.train.CollapseGuard` stops a run that still does.
     """
 
     hidden: int = 64
@@ -152,7 +155,7 @@ class DeformConfig:
     position_only: bool = False
     position_scale: float = 1e-2
     zero_init: bool = True
-    bound_audio: bool = True
+    bound_audio: bool = False
 
     @classmethod
     def quick(cls) -> "DeformConfig":

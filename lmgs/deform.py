@@ -10,10 +10,10 @@ feature (ER-NeRF, Li et al., ICCV 2023; TalkingGaussian, Li et al., ECCV 2024):
 
     a^{aud}_i = \\sigma\\big(\\mathrm{MLP}_{aud}(F_i)\\big), \\quad
     a^{exp}_i = \\sigma\\big(\\mathrm{MLP}_{exp}(F_i)\\big), \\quad
-    h_i = \\big[F_i \\,\\|\\, a^{aud}_i \\odot \\tanh(F_a) \\,\\|\\, a^{exp}_i \\odot e\\big]
+    h_i = \\big[F_i \\,\\|\\, a^{aud}_i \\odot F_a \\,\\|\\, a^{exp}_i \\odot e\\big]
 
 (``attention="softmax"`` uses a softmax over each modality's channels instead of
-:math:`\\sigma`; ``bound_audio=False`` feeds :math:`F_a` without the ``tanh``), then an MLP,
+:math:`\\sigma`; ``bound_audio=True`` feeds :math:`\\tanh(F_a)`, off by default: it saturates), then an MLP,
 whose last layer starts at zero (``zero_init``), gives the offsets
 
 .. math::

@@ -151,17 +151,17 @@ def test_deform_mouth_branch_position_only_and_audio_dependence():
     torch.testing.assert_close(net(xyz, torch.ones(8) * 3, point_features=f).d_xyz, b.d_xyz)
 
 
-def test_deform_starts_at_the_static_solution_and_bounds_the_audio():
+def test_deform_starts_at_the_static_solution_and_can_bound_the_audio():
     torch.manual_seed(0)
     xyz, lms = torch.rand(300, 3) * 2 - 1, torch.rand(68, 3) * 2 - 1
-    net = DeformNet(16, DeformConfig(), _small_tri(), GuidanceConfig())
-    out = net(xyz, torch.randn(16) * 5, lms, blink=0.7)
+    out = DeformNet(16, DeformConfig(), _small_tri(), GuidanceConfig())(xyz, torch.randn(16) * 5, lms, blink=0.7)
     # zero-initialised last layer + zero-initialised LC head: no offset at all before training
     assert torch.count_nonzero(out.d_xyz) == 0 and torch.count_nonzero(out.d_rot) == 0 and torch.count_nonzero(out.d_scale) == 0
-    old = DeformNet(16, DeformConfig(zero_init=False, bound_audio=False), _small_tri(), GuidanceConfig())
+    old = DeformNet(16, DeformConfig(zero_init=False), _small_tri(), GuidanceConfig())
     assert float(old(xyz, torch.randn(16), lms, blink=0.7).d_scale.abs().max()) > 1e-3
-    # a runaway audio feature (|F_a| ~ 500 in the collapsed run) cannot move the points further
-    # than a saturated one: tanh(1e3 v) == tanh(1e6 v) == sign(v) ...
+    # bound_audio (off by default: training saturates it): a runaway audio feature cannot move
+    # the points further than a saturated one, tanh(1e3 v) == tanh(1e6 v) == sign(v) ...
+    net = DeformNet(16, DeformConfig(bound_audio=True), _small_tri(), GuidanceConfig())
     with torch.no_grad():
         net.mlp[-1].weight.normal_(0, 0.1)
         old.load_state_dict(net.state_dict())
