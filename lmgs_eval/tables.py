@@ -406,20 +406,33 @@ BUSY_NOTE = (f"{BUSY} FPS timed on a busy or slowed host: other processes took m
              "that machine (cost.host_slowdown)")
 
 
-def flag_busy_timings(sec: Section, columns: Sequence[Column]) -> None:
-    """Mark FPS timed while other processes took more than :data:`BUSY_SHARE` of the host's CPU."""
-    col = next((c for c in columns if c.kind == "cost" and c.key == "fps"), None)
+def _flag_column(sec: Section, columns: Sequence[Column], key: str, hit: Callable[[dict], bool],
+                 describe: Callable[[list[dict], int], str]) -> list[str]:
+    """Mark with :data:`BUSY` the ``key`` cost cell of every row with a run where ``hit(cost)``.
+
+    Returns one ``"<row> <describe(hits, n_runs)>"`` per marked row, for the section's note.
+    """
+    col = next((c for c in columns if c.kind == "cost" and c.key == key), None)
     if col is None:
-        return
+        return []
     busy = []
     for row in sec.rows:
         cell = row.cells.get(col.id)
         costs = [r.get("cost") or {} for r in row.records]
-        hit = [c for c in costs if timed_busy(c)]
-        if cell is not None and cell.mean is not None and hit:
+        hits = [c for c in costs if hit(c)]
+        if cell is not None and cell.mean is not None and hits:
             cell.flag = BUSY
-            worst = max(hit, key=lambda c: (c.get("host_slowdown") or 1.0) * (1 + (c.get("others_cpu_share") or 0.0)))
-            busy.append(f"{row.label} {len(hit)}/{len(costs)} runs, worst {busy_text(worst)}")
+            busy.append(f"{row.label} {describe(hits, len(costs))}")
+    return busy
+
+
+def flag_busy_timings(sec: Section, columns: Sequence[Column]) -> None:
+    """Mark FPS timed while other processes took more than :data:`BUSY_SHARE` of the host's CPU."""
+    def worst(hits: list[dict], n: int) -> str:
+        w = max(hits, key=lambda c: (c.get("host_slowdown") or 1.0) * (1 + (c.get("others_cpu_share") or 0.0)))
+        return f"{len(hits)}/{n} runs, worst {busy_text(w)}"
+
+    busy = _flag_column(sec, columns, "fps", timed_busy, worst)
     if busy:
         sec.notes.append(f"{BUSY_NOTE}: {'; '.join(busy)}. On a quiet host these render faster.")
     flag_busy_training(sec, columns)
@@ -433,16 +446,10 @@ def trained_busy(cost: dict) -> bool:
 
 def flag_busy_training(sec: Section, columns: Sequence[Column]) -> None:
     """Mark training times measured while other processes took more than :data:`BUSY_SHARE` of the host's CPU."""
-    col = next((c for c in columns if c.kind == "cost" and c.key == "train_seconds"), None)
-    if col is None:
-        return
-    busy = []
-    for row in sec.rows:
-        cell = row.cells.get(col.id)
-        shares = [(r.get("cost") or {})["train_others_cpu_share"] for r in row.records if trained_busy(r.get("cost") or {})]
-        if cell is not None and cell.mean is not None and shares:
-            cell.flag = BUSY
-            busy.append(f"{row.label} {len(shares)}/{len(row.records)} runs, worst others {max(shares):.0%}")
+    def worst(hits: list[dict], n: int) -> str:
+        return f"{len(hits)}/{n} runs, worst others {max(c['train_others_cpu_share'] for c in hits):.0%}"
+
+    busy = _flag_column(sec, columns, "train_seconds", trained_busy, worst)
     if busy:
         sec.notes.append(f"{BUSY} Train: trained while other processes took more than {BUSY_SHARE:.0%} of the host's CPU "
                          f"(cost.train_others_cpu_share): {'; '.join(busy)}. On a quiet host these train faster.")

@@ -85,18 +85,23 @@ def test_clipped_audio_is_finite(trained, clip):
     assert out.shape[0] == len(loud) // 640
 
 
-def test_non_finite_loss_stops_with_message(clip, monkeypatch, tmp_path):
+def _alter_loss_after(monkeypatch, n: int, change):
+    """From the (n+1)-th training step on, the photometric loss goes through ``change``."""
     import lmgs.train as tr
 
     real = tr.losses.photometric
     calls = {"n": 0}
 
-    def poisoned(a, b, lam):
+    def altered(a, b, lam):
         calls["n"] += 1
         out = real(a, b, lam)
-        return out * float("nan") if calls["n"] > 45 else out
+        return change(out) if calls["n"] > n else out
 
-    monkeypatch.setattr(tr.losses, "photometric", poisoned)
+    monkeypatch.setattr(tr.losses, "photometric", altered)
+
+
+def test_non_finite_loss_stops_with_message(clip, monkeypatch, tmp_path):
+    _alter_loss_after(monkeypatch, 45, lambda x: x * float("nan"))
     with pytest.raises(TrainingDiverged, match=r"non-finite at step 45.*checkpoint"):
         fit(clip, _tiny_cfg(), seed=0, progress=False, workdir=tmp_path)
     assert (tmp_path / "checkpoint.pt").exists()  # the last good one (step 30) is kept
@@ -116,17 +121,7 @@ def test_collapse_guard_hand_cases():
 
 def test_collapse_stops_with_message(clip, monkeypatch, tmp_path):
     # a finite loss that jumps and stays (as the 16,000-Gaussian hopper run's did) stops the run
-    import lmgs.train as tr
-
-    real = tr.losses.photometric
-    calls = {"n": 0}
-
-    def jumped(a, b, lam):
-        calls["n"] += 1
-        out = real(a, b, lam)
-        return out + 5.0 if calls["n"] > 88 else out
-
-    monkeypatch.setattr(tr.losses, "photometric", jumped)
+    _alter_loss_after(monkeypatch, 88, lambda x: x + 5.0)
     with pytest.raises(TrainingDiverged, match=r"collapsed at step 8[89] \(dynamic stage\).*checkpoint \(step 60\)"):
         fit(clip, _tiny_cfg(), seed=0, progress=False, workdir=tmp_path)
 
