@@ -105,7 +105,7 @@ def run_capacity(cfg: RunConfig, budgets: Sequence[int] = DEFAULT_BUDGETS) -> li
     from lmgs_eval import results as store
     from lmgs_eval.data.registry import find_subject
     from lmgs_eval.methods import create_method, driving_from_subject, subject_to_clip
-    from lmgs_eval.protocols import fit_render_score
+    from lmgs_eval.protocols import fit_render_score, render_stem
 
     subject = find_subject(cfg.subject, cfg.data_root, progress=cfg.progress)
     train = subject_to_clip(subject, subject.train_ids, progress=cfg.progress)
@@ -134,7 +134,7 @@ def run_capacity(cfg: RunConfig, budgets: Sequence[int] = DEFAULT_BUDGETS) -> li
                 continue
             try:
                 records.append(fit_render_score(cfg, method, subject, seed, train, driving, test.frames,
-                                                f"renders/{subject.name}/capacity/lmgs-{clip}-seed{seed}.mp4", "capacity", clip))
+                                                f"renders/{subject.name}/capacity/{render_stem(info, seed)}-{clip}.mp4", "capacity", clip))
             except TrainingDiverged as exc:  # recorded as failed; the other budgets go on
                 log(f"budget {n} seed {seed}: FAILED: {exc}")
                 records.append(_failed_record(cfg, info, subject, clip, seed, f"training diverged: {exc}"))

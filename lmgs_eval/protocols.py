@@ -453,6 +453,15 @@ def _cost_block(method, fit_cost: dict | None, render_cost: dict, timings: dict 
     }
 
 
+def render_stem(info, seed: int) -> str:
+    """``<method>-<config hash[:8]>-seed<N>``: the file name of a run's render, distinct per config.
+
+    Without the hash a re-run under a changed config overwrote the render an older record
+    still points to (and hashes); the record then failed ``lmgs-eval verify``.
+    """
+    return f"{info.name.replace(':', '_')}-{info.config_hash[:8]}-seed{seed}"
+
+
 def _write_render(root: Path, rel: str, frames: np.ndarray, audio: np.ndarray) -> dict:
     """Write an mp4 with its driving audio under the store root; the artefact entry (relative path)."""
     from lmgs_eval.data.io import write_video
@@ -506,7 +515,7 @@ def run_self(cfg: RunConfig) -> list[dict]:
                 log(f"{info.name} seed {seed}: already in {cfg.results} (same config {info.config_hash}); skipped")
                 continue
             records.append(fit_render_score(cfg, method, subject, seed, train, driving, gt,
-                                            f"{renders_dir}/{info.name.replace(':', '_')}-seed{seed}.mp4"))
+                                            f"{renders_dir}/{render_stem(info, seed)}.mp4"))
     return records
 
 
@@ -726,7 +735,7 @@ def run_cross(cfg: RunConfig, audio_paths: list[str] | None = None) -> tuple[lis
                 log(f"{info.name} on clip {c.name}: {n} frames at {rc['fps']:.1f} FPS; scoring")
                 gt = c.gt_frames[:n] if c.gt_frames is not None and len(c.gt_frames) >= n else None
                 res = score_clip(frames, gt, driving.audio, reference=False, lmd=gt is not None)
-                art = {"render": _write_render(cfg.results, f"{renders_dir}/{info.name.replace(':', '_')}-seed{seed}-cross-{c.name}.mp4", frames, driving.audio)}
+                art = {"render": _write_render(cfg.results, f"{renders_dir}/{render_stem(info, seed)}-cross-{c.name}.mp4", frames, driving.audio)}
                 rec = build_record(info=info, subject=subject, protocol="cross", clip=c.name, split=c.source, n_frames=n, seed=seed,
                                    metrics=metrics_block(res), cost=_cost_block(method, fit_cost, rc), artefacts=art,
                                    notes=list(c.notes))

@@ -30,7 +30,7 @@ from lmgs_eval.errors import UserError
 from lmgs_eval.metrics.base import MetricResult, MetricSpec
 from lmgs_eval.perturb import VERSION as PERTURB_VERSION
 from lmgs_eval.perturb import Condition, make_conditions
-from lmgs_eval.protocols import (RunConfig, _cost_block, _cycle, _write_render, build_record, bundled_cross_clips,
+from lmgs_eval.protocols import (RunConfig, _cost_block, _cycle, _write_render, build_record, bundled_cross_clips, render_stem,
                                  REPEATS, fit_method, log, metrics_block, timed_render)
 
 MOUTH = slice(48, 68)
@@ -215,8 +215,7 @@ def run_stress(cfg: RunConfig, conditions: tuple[str, ...] | None = None, max_mi
                     if why is not None:
                         status = {"state": "failed", "reason": why}
                     if n <= LONG_CLIP_FRAMES:
-                        safe = info.name.replace(":", "_")
-                        art = {"render": _write_render(cfg.results, f"renders/{subject.name}/stress/{safe}-seed{seed}-{cond.name}.mp4",
+                        art = {"render": _write_render(cfg.results, f"renders/{subject.name}/stress/{render_stem(info, seed)}-{cond.name}.mp4",
                                                        frames, audio)}
                 except Exception as exc:  # a crash on one condition is a recorded failure, the suite goes on
                     if isinstance(exc, KeyboardInterrupt):

@@ -75,6 +75,24 @@ def test_table_and_verify_from_the_store(store, tmp_path):
     assert rc == 0
 
 
+def test_a_second_config_keeps_the_first_configs_render(store, tmp_path):
+    # a re-run under another config once overwrote the render an older record hashes
+    import shutil
+
+    root, _, _ = store
+    copy = tmp_path / "copy"
+    shutil.copytree(root, copy)
+    rc, _, err = run_cli("self", "--subject", SUBJECT, "--results", str(copy), "--no-progress", *FAST,
+                         "--set", "train.lambda_lips=0.5")
+    assert rc == 0, err
+    runs = [r for r in load_records(copy)[0] if r["method"]["name"] == "lmgs"]
+    assert len({r["config_hash"] for r in runs}) == 2
+    paths = {r["artefacts"]["render"]["path"] for r in runs}
+    assert len(paths) == 2 and all(r["config_hash"][:8] in r["artefacts"]["render"]["path"] for r in runs)
+    rc, out, err = run_cli("verify", str(copy))
+    assert rc == 0, out + err
+
+
 def test_verify_catches_a_changed_render(store, tmp_path):
     import shutil
 
