@@ -9,10 +9,38 @@ so that the per-frame deformation of 10k Gaussians stays well under 20 ms on 2 C
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Literal
+import copy
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any, Literal
 
 AudioKind = Literal["logmel", "mfcc", "ds", "hu", "wavlm"]
+
+
+def added_option(neutral: Any) -> Any:
+    """A field added after records existed, defaulting to ``neutral`` (the behaviour before it).
+
+    :func:`config_dict` leaves it out while it holds that value, so the config and its hash
+    (and every record and checkpoint made before the option) stay what they were.
+    """
+    return field(default=neutral, metadata={"omit_when": neutral})
+
+
+def config_dict(obj: Any) -> Any:
+    """:func:`dataclasses.asdict`, without :func:`added_option` fields at their neutral value."""
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        out = {}
+        for f in dataclasses.fields(obj):
+            v = getattr(obj, f.name)
+            if "omit_when" in f.metadata and v == f.metadata["omit_when"]:
+                continue
+            out[f.name] = config_dict(v)
+        return out
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(config_dict(x) for x in obj)
+    if isinstance(obj, dict):
+        return {k: config_dict(v) for k, v in obj.items()}
+    return copy.deepcopy(obj)
 
 
 @dataclass(frozen=True)
@@ -137,13 +165,16 @@ class DeformConfig:
         position_only: predict only position offsets (TalkingGaussian's mouth branch).
         position_scale: position offsets are the MLP output times this (TalkingGaussian: 1e-2).
         zero_init: the offset MLP's last layer starts at zero, so the dynamic stage starts from
-            the static stage's solution instead of random offsets (as Landmark Compensation's head).
-        bound_audio: feed ``tanh(F_a)`` instead of :math:`F_a`. Off: tried against a runaway of
-            the audio encoder (|F_a| ~ 500 threw every face Gaussian off-screen in a 16,000-Gaussian
-            hopper run), it stopped the collapse but training then drove F_a into saturation
-            (98 % of entries with |tanh| > 0.9 on hopper seed 0) and lip sync fell (LSE-C 0.40 ->
-            0.22). ``zero_init`` alone kept that run from collapsing, and
-            :class:`lmgs.train.CollapseGuard` stops a run that still does.
+            the static stage's solution (as Landmark Compensation's head). Off by default: it
+            keeps large budgets from collapsing (a 16,000-Gaussian hopper run whose audio encoder
+            ran away, |F_a| ~ 500, throwing the face off-screen, trained normally with it), but
+            on the default budget it cost lip sync on all 3 hopper seeds (self LSE-C 0.31 -> 0.21
+            mean; PSNR and LPIPS unchanged). Without it :class:`lmgs.train.CollapseGuard` stops
+            a run that collapses.
+        bound_audio: feed ``tanh(F_a)`` instead of :math:`F_a`. Off: it also stopped that
+            collapse, but training then drove F_a into saturation (98 % of entries with
+            |tanh| > 0.9 on hopper seed 0) and lip sync fell (LSE-C 0.40 -> 0.22).
+        (Both are :func:`added_option` fields: off, they leave the config hash as it was.)
     """
 
     hidden: int = 64
@@ -154,8 +185,8 @@ class DeformConfig:
     blink: bool = True
     position_only: bool = False
     position_scale: float = 1e-2
-    zero_init: bool = True
-    bound_audio: bool = False
+    zero_init: bool = added_option(False)
+    bound_audio: bool = added_option(False)
 
     @classmethod
     def quick(cls) -> "DeformConfig":

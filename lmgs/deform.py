@@ -13,8 +13,8 @@ feature (ER-NeRF, Li et al., ICCV 2023; TalkingGaussian, Li et al., ECCV 2024):
     h_i = \\big[F_i \\,\\|\\, a^{aud}_i \\odot F_a \\,\\|\\, a^{exp}_i \\odot e\\big]
 
 (``attention="softmax"`` uses a softmax over each modality's channels instead of
-:math:`\\sigma`; ``bound_audio=True`` feeds :math:`\\tanh(F_a)`, off by default: it saturates), then an MLP,
-whose last layer starts at zero (``zero_init``), gives the offsets
+:math:`\\sigma`; ``bound_audio=True`` feeds :math:`\\tanh(F_a)`, off by default: it saturates), then an MLP
+(whose last layer starts at zero with ``zero_init=True``) gives the offsets
 
 .. math::
 

@@ -74,7 +74,9 @@ class LMGSConfig:
     size: int = 256
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        from lmgs.config import config_dict
+
+        return config_dict(self)
 
     def hash(self) -> str:
         blob = json.dumps(self.to_dict(), sort_keys=True, default=str).encode()

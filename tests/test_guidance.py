@@ -154,10 +154,10 @@ def test_deform_mouth_branch_position_only_and_audio_dependence():
 def test_deform_starts_at_the_static_solution_and_can_bound_the_audio():
     torch.manual_seed(0)
     xyz, lms = torch.rand(300, 3) * 2 - 1, torch.rand(68, 3) * 2 - 1
-    out = DeformNet(16, DeformConfig(), _small_tri(), GuidanceConfig())(xyz, torch.randn(16) * 5, lms, blink=0.7)
+    out = DeformNet(16, DeformConfig(zero_init=True), _small_tri(), GuidanceConfig())(xyz, torch.randn(16) * 5, lms, blink=0.7)
     # zero-initialised last layer + zero-initialised LC head: no offset at all before training
     assert torch.count_nonzero(out.d_xyz) == 0 and torch.count_nonzero(out.d_rot) == 0 and torch.count_nonzero(out.d_scale) == 0
-    old = DeformNet(16, DeformConfig(zero_init=False), _small_tri(), GuidanceConfig())
+    old = DeformNet(16, DeformConfig(), _small_tri(), GuidanceConfig())  # the default keeps PyTorch's init
     assert float(old(xyz, torch.randn(16), lms, blink=0.7).d_scale.abs().max()) > 1e-3
     # bound_audio (off by default: training saturates it): a runaway audio feature cannot move
     # the points further than a saturated one, tanh(1e3 v) == tanh(1e6 v) == sign(v) ...
@@ -173,3 +173,25 @@ def test_deform_starts_at_the_static_solution_and_can_bound_the_audio():
     # ... while without the bound the offsets grow with the feature
     grow = old(xyz, v * 1e3, lms, blink=0.7).d_xyz.abs().max() / old(xyz, v, lms, blink=0.7).d_xyz.abs().max()
     assert float(grow) > 50
+
+
+def test_added_options_leave_the_config_hash_as_it_was():
+    import dataclasses
+    import hashlib
+    import json
+
+    from lmgs.config import config_dict
+    from lmgs.presets import quick
+
+    cfg = quick()
+    d = cfg.to_dict()
+    assert "zero_init" not in d["deform_face"] and "bound_audio" not in d["deform_mouth"]
+    # at their neutral values the dict is asdict() without them: records made before the options keep their hash
+    plain = dataclasses.asdict(cfg)
+    for part in ("deform_face", "deform_mouth"):
+        del plain[part]["zero_init"], plain[part]["bound_audio"]
+    assert d == plain
+    assert cfg.hash() == hashlib.sha256(json.dumps(plain, sort_keys=True, default=str).encode()).hexdigest()[:16]
+    on = cfg.replace(**{"deform_face.zero_init": True})
+    assert on.to_dict()["deform_face"]["zero_init"] is True and on.hash() != cfg.hash()
+    assert config_dict(DeformConfig(bound_audio=True))["bound_audio"] is True
