@@ -20,8 +20,10 @@ from __future__ import annotations
 
 import csv
 import io
+import math
 import pickle
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -49,14 +51,13 @@ class CollapseGuard:
 
     def __init__(self, window: int = COLLAPSE_WINDOW, factor: float = COLLAPSE_FACTOR):
         self.window, self.factor = int(window), float(factor)
-        self.stage, self.buf, self.best = None, [], float("inf")
+        self.stage, self.buf, self.best = None, deque(maxlen=self.window), float("inf")
 
     def update(self, loss: float, stage: str) -> float | None:
         if stage != self.stage:  # each stage has its own loss terms and level
-            self.stage, self.buf, self.best = stage, [], float("inf")
+            self.stage, self.best = stage, float("inf")
+            self.buf.clear()
         self.buf.append(float(loss))
-        if len(self.buf) > self.window:
-            self.buf.pop(0)
         if len(self.buf) < self.window:
             return None
         mean = sum(self.buf) / self.window
@@ -304,12 +305,13 @@ def fit(
         if lip_boxes is not None and dynamic and t.lambda_lips > 0:
             y0, y1, x0, x1 = lip_boxes[i]
             loss = loss + t.lambda_lips * (r.rgb[y0:y1, x0:x1] - gt[y0:y1, x0:x1]).abs().mean()
-        if not torch.isfinite(loss):
+        loss_value = float(loss.detach())  # one device sync per step, shared by the checks and the curve
+        if not math.isfinite(loss_value):
             if bar is not None:
                 bar.close()
             where = f"; the last good checkpoint is {ckpt}" if ckpt is not None and ckpt.exists() else ""
             raise TrainingDiverged(f"loss became non-finite at step {step} (frame {i}){where}")
-        ratio = guard.update(float(loss.detach()), "dynamic" if dynamic else "static")
+        ratio = guard.update(loss_value, "dynamic" if dynamic else "static")
         if ratio is not None:
             if bar is not None:
                 bar.close()
@@ -339,11 +341,11 @@ def fit(
             last_psnr = _psnr(r.rgb.detach(), gt)
             if not np.isnan(r.se_fraction):
                 last_frac = r.se_fraction
-            curve_rows.append({"step": step, "stage": "dynamic" if dynamic else "static", "loss": float(loss.detach()), "psnr": last_psnr,
+            curve_rows.append({"step": step, "stage": "dynamic" if dynamic else "static", "loss": loss_value, "psnr": last_psnr,
                                "n_face": len(model.face), "n_mouth": len(model.mouth), "se_fraction": r.se_fraction,
                                "seconds": time.perf_counter() - t_start})
             if bar is not None:
-                bar.set_postfix(loss=f"{float(loss.detach()):.4f}", psnr=f"{last_psnr:.2f}", n=model.n_gaussians())
+                bar.set_postfix(loss=f"{loss_value:.4f}", psnr=f"{last_psnr:.2f}", n=model.n_gaussians())
         if bar is not None:
             bar.update(1)
         if ckpt is not None and (step + 1) % t.checkpoint_every == 0 and step + 1 < total:

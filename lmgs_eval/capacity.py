@@ -11,6 +11,7 @@ from __future__ import annotations
 from typing import Any, Sequence
 
 from lmgs_eval.protocols import RunConfig, log
+from lmgs_eval.results import is_failed
 
 DEFAULT_BUDGETS = (500, 1000, 2000, 5000, 10000, 20000)
 # (metric, higher is better, kind, amount): within `amount` of the best, absolute or relative.
@@ -51,6 +52,11 @@ def knee(points: Sequence[dict[str, Any]]) -> dict[str, Any] | None:
     return pts[-1]
 
 
+def _budget(rec: dict) -> int:
+    """The Gaussian budget of a capacity record (its clip is ``budget-<N>``)."""
+    return int(rec["protocol"]["clip"].split("-", 1)[1])
+
+
 def points_from_records(records: Sequence[dict]) -> dict[str, list[dict[str, Any]]]:
     """Per subject, one point per capacity record: budget, count, quality and cost.
 
@@ -60,10 +66,10 @@ def points_from_records(records: Sequence[dict]) -> dict[str, list[dict[str, Any
     """
     raw: dict[str, list[tuple[dict[str, Any], Any, Any, Any]]] = {}
     for r in records:
-        if r["protocol"]["name"] != "capacity" or (r.get("status") or {}).get("state") == "failed":
+        if r["protocol"]["name"] != "capacity" or is_failed(r):
             continue
         m, c = r["metrics"], r.get("cost") or {}
-        point = {"budget": int(r["protocol"]["clip"].split("-", 1)[1]), "n_gaussians": c.get("n_gaussians"),
+        point = {"budget": _budget(r), "n_gaussians": c.get("n_gaussians"),
                  "psnr": m.get("psnr", {}).get("value"), "lpips": m.get("lpips", {}).get("value"),
                  "lmd": m.get("lmd", {}).get("value"), "model_mb": c.get("model_mb"),
                  "train_seconds": c.get("train_seconds"), "seed": r["seed"]}
@@ -80,9 +86,8 @@ def failed_points(records: Sequence[dict]) -> dict[str, list[dict[str, Any]]]:
     """Per subject, the capacity runs that failed: ``{"budget", "seed", "reason"}``."""
     out: dict[str, list[dict[str, Any]]] = {}
     for r in records:
-        if r["protocol"]["name"] == "capacity" and (r.get("status") or {}).get("state") == "failed":
-            out.setdefault(r["subject"]["name"], []).append(
-                {"budget": int(r["protocol"]["clip"].split("-", 1)[1]), "seed": r["seed"], "reason": r["status"].get("reason", "")})
+        if r["protocol"]["name"] == "capacity" and is_failed(r):
+            out.setdefault(r["subject"]["name"], []).append({"budget": _budget(r), "seed": r["seed"], "reason": r["status"].get("reason", "")})
     return out
 
 
@@ -101,7 +106,7 @@ def run_capacity(cfg: RunConfig, budgets: Sequence[int] = DEFAULT_BUDGETS) -> li
     """Train ``lmgs`` at each budget on the subject, score it, record it (resumable)."""
     from lmgs.init import face_area_px
     from lmgs.strategy import budget_from_face_area
-    from lmgs.train import TrainingDiverged
+    from lmgs.errors import TrainingDiverged
     from lmgs_eval import results as store
     from lmgs_eval.data.registry import find_subject
     from lmgs_eval.methods import create_method, driving_from_subject, subject_to_clip
@@ -128,8 +133,7 @@ def run_capacity(cfg: RunConfig, budgets: Sequence[int] = DEFAULT_BUDGETS) -> li
             info = method.describe()
             clip = f"budget-{n}"
             trained.append((n, seed, method))
-            old = None if cfg.force else store.find_record(cfg.results, info.name, subject.name, "capacity", clip, seed, info.config_hash)
-            if old is not None and (old.get("status") or {}).get("state") != "failed":  # a failed budget is retried
+            if not cfg.force and store.find_finished(cfg.results, info.name, subject.name, "capacity", clip, seed, info.config_hash):
                 log(f"budget {n} seed {seed}: already in {cfg.results}; skipped")
                 continue
             try:
@@ -169,8 +173,8 @@ def retime_side_by_side(cfg: RunConfig, subject, train, driving, trained: Sequen
     recorded, away = [], set()
     for budget, seed, method in trained:
         info = method.describe()
-        rec = store.find_record(cfg.results, info.name, subject.name, "capacity", f"budget-{budget}", seed, info.config_hash)
-        if rec is not None and (rec.get("status") or {}).get("state") != "failed":
+        rec = store.find_finished(cfg.results, info.name, subject.name, "capacity", f"budget-{budget}", seed, info.config_hash)
+        if rec is not None:
             recorded.append((budget, seed, method, rec))
             if not (model_dir(subject, info.name, info.config_hash, seed) / "model.pt").exists():
                 away.add(budget)

@@ -555,6 +555,18 @@ def snapshot_records(records: Iterable[Mapping[str, Any]], dst: str | os.PathLik
     return Path(dst)
 
 
+def is_failed(rec: Mapping[str, Any]) -> bool:
+    """True for a run recorded as failed (``status.state == "failed"``; no status means ok)."""
+    return (rec.get("status") or {}).get("state") == "failed"
+
+
+def find_finished(root: str | os.PathLike, method: str, subject: str, protocol: str, clip: str, seed: int,
+                  config_hash: str) -> dict[str, Any] | None:
+    """:func:`find_record`, but a failed run counts as not done: it is retried (the failure may have been fixed)."""
+    rec = find_record(root, method, subject, protocol, clip, seed, config_hash)
+    return None if rec is None or is_failed(rec) else rec
+
+
 def find_record(root: str | os.PathLike, method: str, subject: str, protocol: str, clip: str, seed: int,
                 config_hash: str) -> dict[str, Any] | None:
     """The stored record for this run, or None (so an interrupted run can resume).

@@ -239,7 +239,6 @@ def run_stress(cfg: RunConfig, conditions: tuple[str, ...] | None = None, max_mi
 
 def _done(root, method: str, subject: str, clip: str, seed: int, ch: str) -> bool:
     """A finished record (a failed run is retried: the failure may have been fixed)."""
-    from lmgs_eval.results import find_record
+    from lmgs_eval.results import find_finished
 
-    r = find_record(root, method, subject, "stress", clip, seed, ch)
-    return r is not None and (r.get("status") or {}).get("state") != "failed"
+    return find_finished(root, method, subject, "stress", clip, seed, ch) is not None
