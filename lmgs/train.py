@@ -208,7 +208,8 @@ def fit(
         feats_np = compute_features(clip.audio, 16000, cfg.audio, n_frames=n)
     else:
         if not clip.audio_features or cfg.audio.frontend not in clip.audio_features:
-            raise InputError(f"audio front end '{cfg.audio.frontend}' needs precomputed features the subject does not have")
+            raise InputError(f"audio front end '{cfg.audio.frontend}' needs precomputed features the subject does not have "
+                             f"(in the ER-NeRF / TalkingGaussian layout: aud_{cfg.audio.frontend}.npy)")
         feats_np = frontend_from_array(cfg.audio.frontend, clip.audio_features[cfg.audio.frontend])
     feats = torch.from_numpy(np.ascontiguousarray(feats_np, dtype=np.float32)).to(dev)
 

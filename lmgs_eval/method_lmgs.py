@@ -8,10 +8,17 @@ import numpy as np
 
 from lmgs_eval.methods import MethodInfo, register
 
-STANDINS = (
-    "audio front end: log-mel computed in the project (WavLM cannot be had offline)",
-    "audio-to-landmark: a per-subject temporal CNN trained on the training split (GeneFace's pretrained model cannot be had offline)",
-)
+LANDMARK_STANDIN = ("audio-to-landmark: a per-subject temporal CNN trained on the training split (GeneFace's pretrained "
+                    "model cannot be had offline)")
+FRONTEND_STANDINS = {  # front ends computed here in place of the paper's WavLM; precomputed ones are the subject's own
+    "logmel": "audio front end: log-mel computed in the project (WavLM cannot be had offline)",
+    "mfcc": "audio front end: MFCC computed in the project (WavLM cannot be had offline)",
+}
+
+
+def standins(frontend: str) -> tuple[str, ...]:
+    """What stands in for the paper's parts under this audio front end."""
+    return tuple(x for x in (FRONTEND_STANDINS.get(frontend), LANDMARK_STANDIN) if x)
 
 # Named variants for Tables III and IV: dotted config changes on the quick preset.
 VARIANTS: dict[str, dict] = {
@@ -22,6 +29,11 @@ VARIANTS: dict[str, dict] = {
     "lmgs-no-lc": {"guidance.lc": False},
     "lmgs-no-gr": {"gr": False},
     "lmgs-base": {"guidance.se": False, "guidance.lc": False, "gr": False},
+    # Table IV's audio rows: "w/o Audio Encoder" (mean over the window, one linear layer) and
+    # "Replacing Audio Net with DS" (the subject's precomputed DeepSpeech features, aud_ds.npy:
+    # real ER-NeRF / TalkingGaussian subjects have them, the bundled ones do not).
+    "lmgs-no-ae": {"audio.use_encoder": False},
+    "lmgs-ds": {"audio.frontend": "ds"},
 }
 
 
@@ -61,8 +73,12 @@ class LMGSMethod:
         return self.model.render(driving, timings=timings)
 
     def describe(self) -> MethodInfo:
-        g = self.cfg.guidance
+        g, a = self.cfg.guidance, self.cfg.audio
         parts = ["SE" if g.se else "no SE", "LC" if g.lc else "no LC", "GR" if self.cfg.gr else "no GR", f"theta={g.theta:g}"]
+        if not a.use_encoder:
+            parts.append("no Audio Encoder")
+        if a.frontend != "logmel":
+            parts.append(f"audio front end {a.frontend}")
         return MethodInfo(
             name=self.variant,
             display_name="Ours (lmgs)" if self.variant == "lmgs" else f"lmgs ({', '.join(parts)})",
@@ -72,7 +88,7 @@ class LMGSMethod:
                 f"({self.cfg.train.static_steps} static + {self.cfg.train.dynamic_steps} dynamic steps, preset "
                 f"'{self.cfg.preset}'); {', '.join(parts)}."
             ),
-            standins=STANDINS,
+            standins=standins(a.frontend),
             config=self.cfg.to_dict(),
             config_hash=self.cfg.hash(),
             variant=None if self.variant == "lmgs" else self.variant.removeprefix("lmgs-"),

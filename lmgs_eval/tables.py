@@ -7,7 +7,8 @@ and CSV. The layouts follow the paper (``paper.tex``):
 * Table I, self-driven: PSNR↑, LPIPS↓, LMD↓, LSE-D↓, LSE-C↑ with the Ground Truth row,
   plus the cost columns FPS↑, training time, Gaussians, model MB.
 * Table II, cross-driven: Audio A / B x LSE-D / LSE-C.
-* Table III, the θ sweep of Spatial Enhancement; Table IV, the SE / LC / GR ablation.
+* Table III, the θ sweep of Spatial Enhancement; Table IV, the component ablation (the audio
+  front end and Audio Encoder rows, then SE / LC / GR).
 * Calibration (does each metric separate the ground truth from its negative controls?),
   stability (change from the clean condition under stress), status (ok / failed per
   method x subject, in the manner of nerfbaselines).
@@ -27,6 +28,7 @@ scorers, method components) and each method's description.
 from __future__ import annotations
 
 import csv
+import functools
 import io
 from collections import defaultdict
 from collections.abc import Callable, Iterable, Sequence
@@ -694,12 +696,23 @@ def table_theta(records: Sequence[Record], metrics: Sequence[str] = ("lpips", "l
                  _common_notes(used, cols, methods=False), label_header="θ")
 
 
-def _ablation_label(r: Record) -> str:
-    g = _guidance(r)
+def _ablation_label(r: Record, full_frontend: str | None = None) -> str:
+    """The row of Table IV: the audio rows of the paper, then what of SE / LC / GR is off."""
+    g, audio = _guidance(r), r["config"].get("audio") or {}
+    parts = []
+    frontend = audio.get("frontend")
+    if frontend == "ds" and full_frontend != "ds":
+        parts.append("Replacing Audio Net with DS")
+    elif frontend and full_frontend and frontend != full_frontend:
+        parts.append(f"Audio front end {frontend}")
+    if audio.get("use_encoder", True) is False:
+        parts.append("w/o Audio Encoder")
     off = [n for n, on in (("SE", g.get("se", True)), ("LC", g.get("lc", True)), ("GR", r["config"].get("gr", True)))
            if not on]
     if off:
-        return "w/o " + ", ".join(off)
+        parts.append("w/o " + ", ".join(off))
+    if parts:
+        return ", ".join(parts)
     return "Full model" if not is_variant(r) else (r["method"]["display_name"] or r["method"]["name"])
 
 
@@ -711,12 +724,14 @@ def table_ablation(records: Sequence[Record], metrics: Sequence[str] = ("lmd", "
     for subject, recs in _by_subject(_lmgs_self(records)).items():
         full = [r for r in recs if not is_variant(r)]
         theta = _guidance(full[0])["theta"] if full else 0.6
+        frontend = (full[0]["config"].get("audio") or {}).get("frontend") if full else None
         recs = [r for r in recs if _guidance(r)["theta"] == theta]
-        if len({_ablation_label(r) for r in recs}) < 2:
+        label = functools.partial(_ablation_label, full_frontend=frontend)
+        if len({label(r) for r in recs}) < 2:
             continue
-        order = {"w/o SE": 0, "w/o LC": 1, "w/o GR": 2}
-        rows = sorted(_rows(recs, label=_ablation_label),
-                      key=lambda row: (row.label == "Full model", order.get(row.label, 3), row.label))
+        order = {"Replacing Audio Net with DS": 0, "w/o Audio Encoder": 1, "w/o SE": 2, "w/o LC": 3, "w/o GR": 4}
+        rows = sorted(_rows(recs, label=label),
+                      key=lambda row: (row.label == "Full model", order.get(row.label, 5), row.label))
         for row in rows:
             _fill(row, cols)
             g, gr = _guidance(row.records[0]), row.records[0]["config"].get("gr", True)

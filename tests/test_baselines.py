@@ -83,6 +83,10 @@ def test_methods_command_lists_every_method_with_its_config_hash():
         info = create_method(name, preset="quick").describe()
         assert (rows[name]["family"], rows[name]["config_hash"]) == (info.family, info.config_hash)
     assert rows["lmgs-no-se"]["variant"] and not rows["lmgs"]["variant"]
+    # The DS row reads the subject's own DeepSpeech features: no front-end stand-in to name.
+    ours, ds = create_method("lmgs").describe(), create_method("lmgs-ds").describe()
+    assert any("log-mel" in s for s in ours.standins) and not any("front end" in s for s in ds.standins)
+    assert any("GeneFace" in s for s in ds.standins) and "audio front end ds" in ds.display_name
 
 
 @pytest.mark.parametrize("name", ALL)

@@ -160,3 +160,30 @@ def test_ablation_switches_are_configs(clip):
     assert model.predictor is None and np.isnan(report.se_fraction)
     assert model.face_deform.lc is None
     assert config_from_dict(cfg.to_dict()) == cfg and cfg.hash() != _tiny_cfg().hash()
+
+
+def test_ds_front_end_drives_the_model_from_the_subjects_features(clip):
+    """The paper's "Replacing Audio Net with DS" row: the model reads aud_ds.npy, not the waveform."""
+    cfg = _tiny_cfg(**{"audio.frontend": "ds"})
+    with pytest.raises(InputError, match="'ds' needs precomputed features"):
+        fit(clip, cfg, seed=0, progress=False)
+    rng = np.random.default_rng(1)
+    ds = rng.normal(size=(len(clip.frames), 16, 29)).astype(np.float32)
+    model, _ = fit(dataclasses.replace(clip, audio_features={"ds": ds}), cfg, seed=0, progress=False)
+    w2c = model.train_w2c.numpy()
+    same = model.render(DrivingAudio(audio=clip.audio, w2c=w2c, audio_features={"ds": ds}))
+    quiet = model.render(DrivingAudio(audio=np.zeros_like(clip.audio), w2c=w2c, audio_features={"ds": ds}))
+    other = model.render(DrivingAudio(audio=clip.audio, w2c=w2c, audio_features={"ds": ds[::-1].copy()}))
+    assert np.array_equal(same, quiet)  # the waveform is not what drives it
+    assert np.abs(same.astype(int) - other).max() > 0  # the DS features are
+    with pytest.raises(InputError, match="precomputed 'ds' audio features"):
+        model.render(DrivingAudio(audio=clip.audio, w2c=w2c))
+
+
+def test_without_audio_encoder_the_window_is_averaged(clip):
+    """The paper's "w/o Audio Encoder" row: no convolutions, a mean over the window and one linear layer."""
+    model, _ = fit(clip, _tiny_cfg(**{"audio.use_encoder": False}), seed=0, progress=False)
+    enc = model.audio_net.encoder
+    assert not any(isinstance(m, torch.nn.Conv1d) for m in enc.modules())
+    out = model.render(DrivingAudio(audio=clip.audio, w2c=model.train_w2c.numpy()))
+    assert out.shape[0] == len(clip.frames) and np.isfinite(out).all()

@@ -190,6 +190,28 @@ def test_table3_theta_and_table4_ablation():
     assert T.table_theta(recs + [degs]).markdown() == md3
 
 
+
+def test_table4_has_the_papers_audio_rows_first():
+    """The paper's Table IV starts with "Replacing Audio Net with DS" and "w/o Audio Encoder"."""
+    recs = copy.deepcopy(fixture_records())
+    for r in recs:
+        if r["method"]["name"].startswith("lmgs"):
+            r["config"]["audio"] = {"frontend": "logmel", "use_encoder": True}
+    base = next(r for r in recs if r["method"]["name"] == "lmgs-no-gr")
+    for name, audio in (("lmgs-ds", {"frontend": "ds", "use_encoder": True}),
+                        ("lmgs-no-ae", {"frontend": "logmel", "use_encoder": False})):
+        r = copy.deepcopy(base)
+        r["method"].update(name=name, display_name=name, variant=name.removeprefix("lmgs-"))
+        r["config"] = {**r["config"], "gr": True, "audio": audio}
+        recs.append(r)
+    md4 = T.table_ablation(recs).markdown()
+    order = [ln.split("|")[1].strip() for ln in md4.splitlines()
+             if ln.startswith(("| w/o", "| Full", "| Replacing"))]
+    assert order == ["Replacing Audio Net with DS", "w/o Audio Encoder", "w/o SE", "w/o LC", "w/o GR", "Full model"]
+    assert _row(md4, "w/o Audio Encoder")[1:4] == ["✓", "✓", "✓"]
+    # Neither audio row is a θ row of Table III.
+    assert T.table_theta(recs).markdown() == T.table_theta(fixture_records()).markdown()
+
 def _calibration_store(constant: bool) -> list[dict]:
     lse_c_gt = [5.0] * 20 if constant else items(8.5, 0.4, 1)
     recs = [record("gt", "Ground Truth", "ground-truth", 0, {
