@@ -545,7 +545,7 @@ def fit_render_score(cfg: RunConfig, method, subject, seed: int, train, driving:
     notes = list(subject.notes)
     if timings.get("se_fraction") is not None:
         theta = (info.config.get("guidance") or {}).get("theta")
-        notes.append(f"spatial enhancement selected {100 * timings['se_fraction']:.1f}% of face points on average"
+        notes.append(store.SE_NOTE.format(pct=100 * timings["se_fraction"])
                      + (f" (theta = {theta:g}; the paper reports about 20% at 0.6)" if theta is not None else ""))
     rec = build_record(info=info, subject=subject, protocol=protocol, clip=clip, split="test", n_frames=len(frames),
                        seed=seed, metrics=metrics_block(res), cost=_cost_block(method, fit_cost, rc, timings or None),

@@ -555,6 +555,20 @@ def snapshot_records(records: Iterable[Mapping[str, Any]], dst: str | os.PathLik
     return Path(dst)
 
 
+# The self protocol notes how many face points Spatial Enhancement selected (lmgs and its variants).
+SE_NOTE = "spatial enhancement selected {pct:.1f}% of face points on average"
+_SE_NOTE_RE = re.compile(r"spatial enhancement selected ([0-9.]+)% of face points on average")
+
+
+def se_fraction(rec: Mapping[str, Any]) -> float | None:
+    """The share of face points Spatial Enhancement selected in this run (0..1), from its note; None if absent."""
+    for note in rec.get("notes") or ():
+        m = _SE_NOTE_RE.match(note)
+        if m:
+            return float(m.group(1)) / 100.0
+    return None
+
+
 def is_failed(rec: Mapping[str, Any]) -> bool:
     """True for a run recorded as failed (``status.state == "failed"``; no status means ok)."""
     return (rec.get("status") or {}).get("state") == "failed"

@@ -37,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from lmgs_eval.results import se_fraction
 from lmgs_eval.stats import ALPHA, CI, bootstrap_ci_seeds, mean_over_seeds, paired_test
 
 Record = dict[str, Any]
@@ -679,7 +680,7 @@ def table_theta(records: Sequence[Record], metrics: Sequence[str] = ("lpips", "l
         if g.get("se", True) and g.get("lc", True) and r["config"].get("gr", True) and \
                 (not variant or variant.startswith("theta")):
             use.append(r)
-    cols = _metric_cols(metrics)
+    cols = [Column("se_points", "Points enhanced", "se_points", "text"), *_metric_cols(metrics)]
     sections = []
     for subject, recs in _by_subject(use).items():
         if len({_guidance(r)["theta"] for r in recs}) < 2:
@@ -688,6 +689,9 @@ def table_theta(records: Sequence[Record], metrics: Sequence[str] = ("lpips", "l
                       key=lambda row: (_guidance(row.records[0])["theta"], row.label))
         for row in rows:
             _fill(row, cols)
+            # What θ does: the share of face points Spatial Enhancement selected (paper: about 20 % at 0.6).
+            fr = [f for f in (se_fraction(r) for r in row.records) if f is not None]
+            row.cells["se_points"] = Cell(text=f"{100 * float(np.mean(fr)):.0f}%" if fr else "–")
         sec = Section(_subject_title(recs), rows)
         rank_section(sec, cols)
         sections.append(sec)

@@ -173,7 +173,18 @@ def test_table3_theta_and_table4_ablation():
     md3 = T.table_theta(recs).markdown()
     labels = [ln.split("|")[1].strip() for ln in md3.splitlines() if ln.startswith("| 0.")]
     assert labels == ["0.4", "0.6", "0.8"]
-    assert _row(md3, "0.6")[1].startswith("**")
+    assert _row(md3, "θ")[1] == "Points enhanced" and _row(md3, "0.6")[1] == "–"  # no note, no number
+    assert _row(md3, "0.6")[2].startswith("**")
+    # The share of points SE selected comes from the self protocol's note, averaged over seeds.
+    from lmgs_eval.results import SE_NOTE, se_fraction
+
+    noted = copy.deepcopy(recs)
+    for r in noted:
+        if r["method"]["name"] == "lmgs" and r["protocol"]["name"] == "self":
+            r["notes"] = [SE_NOTE.format(pct=70.0 + 2 * r["seed"]) + " (theta = 0.6; the paper reports about 20% at 0.6)"]
+    assert se_fraction({"notes": ["other", "spatial enhancement selected 73.3% of face points on average (theta = 0.6)"]}) \
+        == pytest.approx(0.733) and se_fraction({"notes": []}) is None
+    assert _row(T.table_theta(noted).markdown(), "0.6")[1] == "71%"  # seeds 0 and 1: 70 % and 72 %
     md4 = T.table_ablation(recs).markdown()
     order = [ln.split("|")[1].strip() for ln in md4.splitlines() if ln.startswith("| w/o") or ln.startswith("| Full")]
     assert order == ["w/o SE", "w/o LC", "w/o GR", "Full model"]
