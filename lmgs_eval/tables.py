@@ -690,8 +690,11 @@ def table_theta(records: Sequence[Record], metrics: Sequence[str] = ("lpips", "l
         for row in rows:
             _fill(row, cols)
             # What θ does: the share of face points Spatial Enhancement selected (paper: about 20 % at 0.6).
-            fr = [f for f in (se_fraction(r) for r in row.records) if f is not None]
-            row.cells["se_points"] = Cell(text=f"{100 * float(np.mean(fr)):.0f}%" if fr else "–")
+            fr = [100 * f for f in (se_fraction(r) for r in row.records) if f is not None]
+            text = f"{np.mean(fr):.1f}%" if fr else "–"
+            if len(fr) > 1:
+                text += f" ({min(fr):.1f}-{max(fr):.1f})"  # the range over seeds: how stable θ's selection is
+            row.cells["se_points"] = Cell(text=text)
         sec = Section(_subject_title(recs), rows)
         rank_section(sec, cols)
         sections.append(sec)

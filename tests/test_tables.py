@@ -184,7 +184,7 @@ def test_table3_theta_and_table4_ablation():
             r["notes"] = [SE_NOTE.format(pct=70.0 + 2 * r["seed"]) + " (theta = 0.6; the paper reports about 20% at 0.6)"]
     assert se_fraction({"notes": ["other", "spatial enhancement selected 73.3% of face points on average (theta = 0.6)"]}) \
         == pytest.approx(0.733) and se_fraction({"notes": []}) is None
-    assert _row(T.table_theta(noted).markdown(), "0.6")[1] == "71%"  # seeds 0 and 1: 70 % and 72 %
+    assert _row(T.table_theta(noted).markdown(), "0.6")[1] == "71.0% (70.0-72.0)"  # seeds 0 and 1: mean (range)
     md4 = T.table_ablation(recs).markdown()
     order = [ln.split("|")[1].strip() for ln in md4.splitlines() if ln.startswith("| w/o") or ln.startswith("| Full")]
     assert order == ["w/o SE", "w/o LC", "w/o GR", "Full model"]
