@@ -304,7 +304,8 @@ def render_sheets(records: Sequence[dict[str, Any]], root: str | Path, out_dir: 
     (its lowest seed), ``frames`` test frames each, labelled with the method and its PSNR.
 
     Renders are read from store ``root`` (``artefacts.render.path``); a record whose video is
-    not on this machine (made elsewhere) is left out and the sheet says how many were.
+    not on this machine (made elsewhere) is left out and the sheet says how many were. The
+    ablation variants of Tables III / IV are left out too: the sheet is of the compared methods.
     """
     import matplotlib
 
@@ -316,7 +317,8 @@ def render_sheets(records: Sequence[dict[str, Any]], root: str | Path, out_dir: 
     root, out_dir = Path(root), Path(out_dir)
     by_subject: dict[str, dict[str, dict]] = {}
     for r in records:
-        if r["protocol"]["name"] != "self" or (r.get("status") or {}).get("state", "ok") != "ok":
+        if r["protocol"]["name"] != "self" or (r.get("status") or {}).get("state", "ok") != "ok" \
+                or r["method"].get("variant"):
             continue
         row = by_subject.setdefault(r["subject"]["name"], {})
         name = r["method"]["name"]

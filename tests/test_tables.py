@@ -364,7 +364,8 @@ def test_render_sheet_shows_each_methods_video_and_leaves_out_those_not_here(tmp
     from lmgs_eval.data.io import write_video
 
     recs = [r for r in fixture_records() if r["protocol"]["name"] == "self"]
-    colours = {"gt": (0.9, 0.9, 0.9), "lmgs": (0.9, 0.1, 0.1), "talkinggaussian": (0.1, 0.1, 0.9)}
+    colours = {"gt": (0.9, 0.9, 0.9), "lmgs": (0.9, 0.1, 0.1), "talkinggaussian": (0.1, 0.1, 0.9),
+               "lmgs-no-se": (0.1, 0.9, 0.1)}  # an ablation variant: a Tables III / IV row, not on the sheet
     for r in recs:
         name = r["method"]["name"]
         if name not in colours or r["seed"] != 0:
@@ -383,6 +384,8 @@ def test_render_sheet_shows_each_methods_video_and_leaves_out_those_not_here(tmp
     rows_red, rows_blue = np.flatnonzero(red.any(1)), np.flatnonzero(blue.any(1))
     assert red.sum() > 5 * 64 * 40 and blue.sum() > 5 * 64 * 40  # five frames of each method
     assert rows_red.max() < rows_blue.min()  # "Ours (lmgs)" sorts before "TalkingGaussian" within 3DGS
+    green = (img[..., 1] > 180) & (img[..., 0] < 80) & (img[..., 2] < 80)
+    assert not green.any()
     n_methods = len({r["method"]["name"] for r in recs})
     assert n_methods > 3  # so some rows are missing: the fixture's other methods have no video here
     assert C.render_sheets([r for r in recs if r["method"]["name"] == "ernerf"], tmp_path, tmp_path / "none") == []
