@@ -230,7 +230,7 @@ def capacity_charts(records: Sequence[dict[str, Any]], out_dir: str | Path) -> l
     of Gaussians (log); a dashed line at the knee (:func:`lmgs_eval.capacity.knee`) and a
     dotted one at the count of the ``lmgs`` self-driven run (the quick preset's default).
     """
-    from lmgs_eval.capacity import failed_points, knee, points_from_records, tolerance_text
+    from lmgs_eval.capacity import budget_means, failed_points, knee, points_from_records, tolerance_text
 
     per_subject = points_from_records(records)
     failed = failed_points(records)
@@ -247,16 +247,7 @@ def capacity_charts(records: Sequence[dict[str, Any]], out_dir: str | Path) -> l
               ("fps", "FPS ↑", 1), ("model_mb", "model MB ↓", 1), ("train_seconds", "training min ↓", 1 / 60))
     files = []
     for subject, pts in sorted(per_subject.items()):
-        by_budget: dict[int, list[dict]] = {}
-        for p in pts:
-            by_budget.setdefault(p["budget"], []).append(p)
-        mean = []
-        for b, ps in sorted(by_budget.items()):
-            row = {"budget": b}
-            for k in ("n_gaussians", "psnr", "lpips", "lmd", "fps", "model_mb", "train_seconds"):
-                vals = [q[k] for q in ps if q.get(k) is not None]
-                row[k] = float(np.mean(vals)) if vals else None
-            mean.append(row)
+        mean = budget_means(pts)
         k_pt = knee(mean)
         default = [r["cost"].get("n_gaussians") for r in records if r["protocol"]["name"] == "self"
                    and r["method"]["name"] == "lmgs" and r["subject"]["name"] == subject and (r.get("cost") or {}).get("n_gaussians")]

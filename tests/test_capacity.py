@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from conftest import run_cli
-from lmgs_eval.capacity import knee, points_from_records
+from lmgs_eval.capacity import budget_means, knee, points_from_records
 from lmgs_eval.results import load_records, validate
 
 FAST = ["--set", "train.static_steps=30", "--set", "train.dynamic_steps=30", "--set", "train.landmark_steps=10",
@@ -29,6 +29,20 @@ def test_knee_is_the_smallest_budget_within_tolerance_of_the_best():
     assert knee([_p(b, p, l, None) for b, p, l, _ in [(5000, 30.0, 0.04, 0), (500, 29.9, 0.0401, 0)]])["budget"] == 500
     assert knee([]) is None
 
+
+
+def test_the_knee_is_taken_on_the_means_over_seeds():
+    # Hopper's capacity runs of 2026-11-24 (PSNR, LPIPS, LMD per budget and seed).
+    runs = [(4000, 0, 26.99, 0.0269, 1.28), (4000, 1, 27.78, 0.0220, 1.17), (6534, 0, 27.26, 0.0245, 1.29),
+            (6534, 1, 28.05, 0.0195, 1.16), (10000, 0, 27.21, 0.0231, 1.25), (10000, 1, 28.21, 0.0173, 1.26)]
+    pts = [{**_p(b, ps, lp, lm), "seed": s} for b, s, ps, lp, lm in runs]
+    means = budget_means(pts)
+    assert [m["budget"] for m in means] == [4000, 6534, 10000] and {m["n_seeds"] for m in means} == {2}
+    assert means[1]["psnr"] == pytest.approx(27.655) and means[1]["lpips"] == pytest.approx(0.0220)
+    # LPIPS 0.0220 > 0.0202 x 1.05: the default is not within tolerance of 10,000 on the means
+    assert knee(means)["budget"] == 10000
+    # On single seeds the best is one lucky run (seed 1 at 10,000), and no other run comes near it.
+    assert knee(pts)["budget"] == 10000 and knee(pts)["seed"] == 1
 
 def test_capacity_command_records_each_budget(tmp_path):
     rc, out, err = run_cli("capacity", "--subject", "astronaut-64px-2s", "--results", str(tmp_path), "--no-progress",

@@ -19,7 +19,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from lmgs_eval.capacity import DEFAULT_BUDGETS, failed_points, knee, points_from_records, run_capacity, tolerance_text
+    from lmgs_eval.capacity import (DEFAULT_BUDGETS, budget_means, failed_points, knee, points_from_records, run_capacity,
+                                    tolerance_text)
     from lmgs_eval.charts import capacity_charts
     from lmgs_eval.commands._common import run_config
     from lmgs_eval.errors import UserError
@@ -37,17 +38,26 @@ def run(args: argparse.Namespace) -> int:
     pts = points_from_records(records)
     for subject, ps in pts.items():
         print(f"{subject}: {'budget':>7} {'Gauss.':>7} {'PSNR':>6} {'LPIPS':>7} {'LMD':>5} {'FPS':>6} {'MB':>6} {'train s':>7}")
-        k = knee(ps)
-        for p in sorted(ps, key=lambda p: (p["budget"], p["seed"])):
+        means = budget_means(ps)
+        k = knee(means)
+        several = any(m["n_seeds"] > 1 for m in means)
+
+        def row(head, p, mark=""):
             def f(v, fmt):
                 return fmt.format(v) if isinstance(v, (int, float)) else "-"
-            mark = "  <- knee" if p is k else ""
-            print(f"{'':{len(subject) + 1}} {p['budget']:>7} {f(p['n_gaussians'], '{:d}'):>7} {f(p['psnr'], '{:.2f}'):>6} "
+            print(f"{head:>{len(subject) + 1}} {p['budget']:>7} {f(p['n_gaussians'], '{:.0f}'):>7} {f(p['psnr'], '{:.2f}'):>6} "
                   f"{f(p['lpips'], '{:.4f}'):>7} {f(p['lmd'], '{:.2f}'):>5} {f(p['fps'], '{:.1f}'):>6} {f(p['model_mb'], '{:.2f}'):>6} "
                   f"{f(p['train_seconds'], '{:.0f}'):>7}{mark}")
+
+        for p in sorted(ps, key=lambda p: (p["budget"], p["seed"])):
+            row(f"s{p['seed']}" if several else "", p, "" if several or k is None or p["budget"] != k["budget"] else "  <- knee")
+        if several:
+            for m in means:
+                row("mean", m, f"  ({m['n_seeds']} seed{'s' if m['n_seeds'] > 1 else ''})"
+                    + ("  <- knee" if k is not None and m["budget"] == k["budget"] else ""))
         for fp in failed_points(records).get(subject, []):
             print(f"{'':{len(subject) + 1}} {fp['budget']:>7} FAILED (seed {fp['seed']}): {fp['reason']}")
-        print(f"  knee: the smallest budget with {tolerance_text()}")
+        print(f"  knee: the smallest budget with {tolerance_text()}" + (", on the means over seeds" if several else ""))
     out = Path(args.out) if args.out else cfg.results / "tables"
     for f in capacity_charts(records, out):
         if f.suffix == ".png":
