@@ -10,6 +10,8 @@ from __future__ import annotations
 
 from typing import Any, Sequence
 
+import numpy as np
+
 from lmgs_eval.protocols import RunConfig, log
 from lmgs_eval.results import is_failed
 
@@ -58,8 +60,6 @@ def budget_means(points: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     The knee is taken on these (:func:`knee`), never on single seeds: on hopper the seed moves
     PSNR by 0.8 dB at a fixed budget, more than the tolerance.
     """
-    import numpy as np
-
     by_budget: dict[int, list[dict[str, Any]]] = {}
     for p in points:
         by_budget.setdefault(p["budget"], []).append(p)

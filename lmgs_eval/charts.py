@@ -308,8 +308,7 @@ def render_sheets(records: Sequence[dict[str, Any]], root: str | Path, out_dir: 
     root, out_dir = Path(root), Path(out_dir)
     by_subject: dict[str, dict[str, dict]] = {}
     for r in records:
-        if r["protocol"]["name"] != "self" or (r.get("status") or {}).get("state", "ok") != "ok" \
-                or r["method"].get("variant"):
+        if r["protocol"]["name"] != "self" or not T.is_ok(r) or T.is_variant(r):
             continue
         row = by_subject.setdefault(r["subject"]["name"], {})
         name = r["method"]["name"]

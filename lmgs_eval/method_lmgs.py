@@ -20,6 +20,7 @@ def standins(frontend: str) -> tuple[str, ...]:
     """What stands in for the paper's parts under this audio front end."""
     return tuple(x for x in (FRONTEND_STANDINS.get(frontend), LANDMARK_STANDIN) if x)
 
+
 # Named variants for Tables III and IV: dotted config changes on the quick preset.
 VARIANTS: dict[str, dict] = {
     "lmgs": {},

@@ -557,7 +557,7 @@ def snapshot_records(records: Iterable[Mapping[str, Any]], dst: str | os.PathLik
 
 # The self protocol notes how many face points Spatial Enhancement selected (lmgs and its variants).
 SE_NOTE = "spatial enhancement selected {pct:.1f}% of face points on average"
-_SE_NOTE_RE = re.compile(r"spatial enhancement selected ([0-9.]+)% of face points on average")
+_SE_NOTE_RE = re.compile(re.escape(SE_NOTE).replace(re.escape("{pct:.1f}"), "([0-9.]+)"))
 
 
 def se_fraction(rec: Mapping[str, Any]) -> float | None:

@@ -16,6 +16,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", help="folder for the chart (default RESULTS/tables)")
 
 
+def _print_row(width: int, head: str, p: dict, mark: str) -> None:
+    """One line of the capacity table: a run (``head`` its seed) or a budget's mean over seeds."""
+    def f(v, fmt):
+        return fmt.format(v) if isinstance(v, (int, float)) else "-"
+    print(f"{head:>{width}} {p['budget']:>7} {f(p['n_gaussians'], '{:.0f}'):>7} {f(p['psnr'], '{:.2f}'):>6} "
+          f"{f(p['lpips'], '{:.4f}'):>7} {f(p['lmd'], '{:.2f}'):>5} {f(p['fps'], '{:.1f}'):>6} {f(p['model_mb'], '{:.2f}'):>6} "
+          f"{f(p['train_seconds'], '{:.0f}'):>7}{mark}")
+
+
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
@@ -40,21 +49,15 @@ def run(args: argparse.Namespace) -> int:
         print(f"{subject}: {'budget':>7} {'Gauss.':>7} {'PSNR':>6} {'LPIPS':>7} {'LMD':>5} {'FPS':>6} {'MB':>6} {'train s':>7}")
         means = budget_means(ps)
         k = knee(means)
+        knee_mark = {k["budget"]: "  <- knee"} if k is not None else {}
+        width = len(subject) + 1
         several = any(m["n_seeds"] > 1 for m in means)
-
-        def row(head, p, mark=""):
-            def f(v, fmt):
-                return fmt.format(v) if isinstance(v, (int, float)) else "-"
-            print(f"{head:>{len(subject) + 1}} {p['budget']:>7} {f(p['n_gaussians'], '{:.0f}'):>7} {f(p['psnr'], '{:.2f}'):>6} "
-                  f"{f(p['lpips'], '{:.4f}'):>7} {f(p['lmd'], '{:.2f}'):>5} {f(p['fps'], '{:.1f}'):>6} {f(p['model_mb'], '{:.2f}'):>6} "
-                  f"{f(p['train_seconds'], '{:.0f}'):>7}{mark}")
-
         for p in sorted(ps, key=lambda p: (p["budget"], p["seed"])):
-            row(f"s{p['seed']}" if several else "", p, "" if several or k is None or p["budget"] != k["budget"] else "  <- knee")
-        if several:
+            _print_row(width, f"s{p['seed']}" if several else "", p, "" if several else knee_mark.get(p["budget"], ""))
+        if several:  # the knee is marked on the means
             for m in means:
-                row("mean", m, f"  ({m['n_seeds']} seed{'s' if m['n_seeds'] > 1 else ''})"
-                    + ("  <- knee" if k is not None and m["budget"] == k["budget"] else ""))
+                seeds = f"  ({m['n_seeds']} seed{'s' if m['n_seeds'] > 1 else ''})"
+                _print_row(width, "mean", m, seeds + knee_mark.get(m["budget"], ""))
         for fp in failed_points(records).get(subject, []):
             print(f"{'':{len(subject) + 1}} {fp['budget']:>7} FAILED (seed {fp['seed']}): {fp['reason']}")
         print(f"  knee: the smallest budget with {tolerance_text()}" + (", on the means over seeds" if several else ""))
