@@ -60,20 +60,28 @@ def scale_invariant_depth(depth: torch.Tensor, ref: torch.Tensor, mask: torch.Te
     return (d**2).mean() - d.mean() ** 2
 
 
-def normal_loss(normal: torch.Tensor, ref: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """:math:`\\sum_{ij} (1 - N_{ij} \\cdot \\tilde N_{ij})` over ``mask`` (a sum, as the paper writes it)."""
+def normal_loss(normal: torch.Tensor, ref: torch.Tensor, mask: torch.Tensor, reduce: str = "sum") -> torch.Tensor:
+    """:math:`\\sum_{ij} (1 - N_{ij} \\cdot \\tilde N_{ij})` over ``mask``.
+
+    ``reduce="sum"`` is the paper's formula; ``"mean"`` divides by the masked pixel count (the
+    per-pixel normal terms of 2DGS / PGSR), so its weight does not grow with the face's area.
+    """
     n = F.normalize(normal, dim=-1, eps=1e-6)
-    dots = (n * ref).sum(-1)
-    return (1.0 - dots)[mask].sum()
+    err = (1.0 - (n * ref).sum(-1))[mask]
+    if reduce == "sum":
+        return err.sum()
+    if reduce == "mean":
+        return err.mean() if err.numel() else err.sum()
+    raise ValueError(f"normal_loss: reduce must be 'sum' or 'mean', not {reduce!r}")
 
 
 def geometry(
     depth: torch.Tensor, normal: torch.Tensor, alpha: torch.Tensor, ref_depth: torch.Tensor, ref_normal: torch.Tensor,
-    lambda_d: float = 1e-4, lambda_n: float = 1e-4,
+    lambda_d: float = 1e-4, lambda_n: float = 1e-4, normal_reduce: str = "sum",
 ) -> torch.Tensor:
     """The Geometry Regularizer on pixels where both the render and the reference have a surface.
 
     ``depth`` is the alpha-normalised expected depth ``[H, W, 1]``; ``normal`` ``[H, W, 3]``.
     """
     mask = (alpha[..., 0] > 0.5) & (ref_depth > 0)
-    return lambda_d * scale_invariant_depth(depth[..., 0], ref_depth, mask) + lambda_n * normal_loss(normal, ref_normal, mask)
+    return lambda_d * scale_invariant_depth(depth[..., 0], ref_depth, mask) + lambda_n * normal_loss(normal, ref_normal, mask, normal_reduce)

@@ -13,7 +13,7 @@ import hashlib
 import json
 from dataclasses import dataclass, field
 
-from lmgs.config import AudioConfig, DeformConfig, GuidanceConfig, TriplaneConfig
+from lmgs.config import AudioConfig, DeformConfig, GuidanceConfig, TriplaneConfig, added_option
 
 
 @dataclass(frozen=True)
@@ -28,6 +28,10 @@ class TrainConfig:
         lr_nets: AdamW rate of the networks (audio encoder, tri-planes, deformation, guidance).
         lambda_dssim: weight of D-SSIM (3DGS: 0.2).
         lambda_depth, lambda_normal: Geometry Regularizer weights (paper: 1e-4 each).
+        normal_reduce: ``sum`` (the paper: the normal term summed over the face's pixels, so
+            at 1e-4 it weighs about 1.4-1.8 per-pixel units on the bundled subjects and
+            dominates the image loss) or ``mean`` (per pixel; variant ``lmgs-gr-mean``).
+            An :func:`~lmgs.config.added_option`: at ``sum`` the config hash is as before.
         lambda_mouth: weight keeping the face transparent inside the mouth mask.
         lambda_lips: weight of an extra L1 term on the box around the lips (landmarks 48-67),
             TalkingGaussian's region emphasis: lip motion covers few pixels of the frame.
@@ -57,6 +61,11 @@ class TrainConfig:
     densify_every: int = 100
     densify_until: float = 0.6
     checkpoint_every: int = 500
+    normal_reduce: str = added_option("sum")
+
+    def __post_init__(self) -> None:
+        if self.normal_reduce not in ("sum", "mean"):
+            raise ValueError(f"train.normal_reduce must be 'sum' or 'mean', not {self.normal_reduce!r}")
 
 
 @dataclass(frozen=True)
@@ -127,7 +136,7 @@ def preset(name: str) -> LMGSConfig:
 
 def config_from_dict(d: dict) -> LMGSConfig:
     """Rebuild a config from :meth:`LMGSConfig.to_dict` (checkpoints, results files)."""
-    from lmgs.config import AudioConfig, DeformConfig, GuidanceConfig, TriplaneConfig
+    from lmgs.config import AudioConfig, DeformConfig, GuidanceConfig, TriplaneConfig, added_option
 
     def make(cls, v):
         fields = {f.name for f in dataclasses.fields(cls)}

@@ -302,7 +302,8 @@ def fit(
         if use_geo and dynamic:
             ref_d = torch.from_numpy(clip.depth[i].astype(np.float32)).to(dev)
             ref_n = torch.from_numpy(clip.normal[i].astype(np.float32) / 127.0).to(dev)
-            loss = loss + losses.geometry(r.depth, r.normal, r.face_alpha, ref_d, ref_n, t.lambda_depth, t.lambda_normal)
+            loss = loss + losses.geometry(r.depth, r.normal, r.face_alpha, ref_d, ref_n, t.lambda_depth, t.lambda_normal,
+                                          t.normal_reduce)
         if lip_boxes is not None and dynamic and t.lambda_lips > 0:
             y0, y1, x0, x1 = lip_boxes[i]
             loss = loss + t.lambda_lips * (r.rgb[y0:y1, x0:x1] - gt[y0:y1, x0:x1]).abs().mean()

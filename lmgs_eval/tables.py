@@ -718,6 +718,9 @@ def _ablation_label(r: Record, full_frontend: str | None = None) -> str:
            if not on]
     if off:
         parts.append("w/o " + ", ".join(off))
+    train = r["config"].get("train") or {}
+    if r["config"].get("gr", True) and train.get("normal_reduce", "sum") != "sum":  # not in the paper: an added row
+        parts.append(f"GR, normal term per pixel ({train.get('normal_reduce')}, λ_N = {train.get('lambda_normal'):g})")
     if parts:
         return ", ".join(parts)
     return "Full model" if not is_variant(r) else (r["method"]["display_name"] or r["method"]["name"])

@@ -190,8 +190,13 @@ def test_added_options_leave_the_config_hash_as_it_was():
     plain = dataclasses.asdict(cfg)
     for part in ("deform_face", "deform_mouth"):
         del plain[part]["zero_init"], plain[part]["bound_audio"]
+    del plain["train"]["normal_reduce"]
     assert d == plain
     assert cfg.hash() == hashlib.sha256(json.dumps(plain, sort_keys=True, default=str).encode()).hexdigest()[:16]
     on = cfg.replace(**{"deform_face.zero_init": True})
     assert on.to_dict()["deform_face"]["zero_init"] is True and on.hash() != cfg.hash()
     assert config_dict(DeformConfig(bound_audio=True))["bound_audio"] is True
+    mean = cfg.replace(**{"train.normal_reduce": "mean"})
+    assert mean.to_dict()["train"]["normal_reduce"] == "mean" and mean.hash() != cfg.hash()
+    with pytest.raises(ValueError, match="normal_reduce"):
+        cfg.replace(**{"train.normal_reduce": "max"})

@@ -220,6 +220,16 @@ def test_table4_has_the_papers_audio_rows_first():
              if ln.startswith(("| w/o", "| Full", "| Replacing"))]
     assert order == ["Replacing Audio Net with DS", "w/o Audio Encoder", "w/o SE", "w/o LC", "w/o GR", "Full model"]
     assert _row(md4, "w/o Audio Encoder")[1:4] == ["✓", "✓", "✓"]
+    # An added GR weighting (not in the paper) gets its own row after the paper's, GR ticked.
+    r = copy.deepcopy(base)
+    r["method"].update(name="lmgs-gr-mean", display_name="lmgs-gr-mean", variant="gr-mean")
+    r["config"] = {**r["config"], "gr": True, "audio": {"frontend": "logmel", "use_encoder": True},
+                   "train": {"normal_reduce": "mean", "lambda_normal": 0.05}}
+    md4 = T.table_ablation(recs + [r]).markdown()
+    label = "GR, normal term per pixel (mean, λ_N = 0.05)"
+    assert _row(md4, label)[1:4] == ["✓", "✓", "✓"]
+    rows = [ln.split("|")[1].strip() for ln in md4.splitlines() if ln.startswith("| ")]
+    assert rows.index("w/o GR") < rows.index(label) < rows.index("Full model")
     # Neither audio row is a θ row of Table III.
     assert T.table_theta(recs).markdown() == T.table_theta(fixture_records()).markdown()
 
