@@ -123,117 +123,227 @@ def to_16k(cond: Condition) -> tuple[np.ndarray, list[str]]:
     return to_mono_16k(cond.audio, cond.sample_rate, f"condition {cond.name}")
 
 
+def _context(cfg: RunConfig, long_seconds: float) -> dict:
+    """What every method's run shares: the subject, its test clip, the conditions, the landmark
+    backend and the ground truth's landmarks; built once per process (a worker of ``jobs`` > 1
+    keeps it across the methods it runs)."""
+    from lmgs_eval.data.registry import find_subject
+    from lmgs_eval.methods import subject_to_clip
+    from lmgs_eval.metrics.landmarks import DlibBackend
+
+    key = (cfg.subject, cfg.data_root, float(long_seconds))
+    if key not in _CONTEXTS:
+        subject = find_subject(cfg.subject, cfg.data_root, progress=cfg.progress)
+        test = subject_to_clip(subject, subject.test_ids, progress=cfg.progress)
+        clips = bundled_cross_clips(subject) if subject.bundled else []
+        other = clips[0] if clips else None
+        conds = make_conditions(test.audio, seed=0, other_voice=None if other is None else other.audio,
+                                long_seconds=long_seconds)
+        backend = DlibBackend()
+        gt_lms = backend.landmarks(test.frames.astype(np.float32) / 255.0)
+        _CONTEXTS.clear()  # one subject per process at a time
+        _CONTEXTS[key] = {"subject": subject, "test": test, "other": other, "conds": conds, "backend": backend,
+                          "gt_lms": gt_lms, "gt_found": float(np.isfinite(gt_lms).all(axis=(1, 2)).mean()),
+                          "other_gt_lms": None, "train": None}
+    return _CONTEXTS[key]
+
+
+_CONTEXTS: dict = {}
+
+
 def run_stress(cfg: RunConfig, conditions: tuple[str, ...] | None = None, max_minutes: float = 15.0,
-               long_seconds: float = 300.0) -> tuple[list[dict], list[str]]:
+               long_seconds: float = 300.0, jobs: int = 1) -> tuple[list[dict], list[str]]:
     """The stability suite for every method and seed; returns (records written, messages).
 
     ``max_minutes``: a condition whose predicted rendering time (frames / clean FPS) is
     longer is not run and is reported (never recorded as a failure it did not have).
+    ``jobs`` > 1 runs that many (method, seed) suites at once in worker processes, each with
+    its share of the CPU threads; their costs are then measured beside each other and the
+    records say so.
     """
-    from lmgs_eval import results as store
-    from lmgs_eval.data.registry import find_subject
-    from lmgs_eval.methods import create_method, driving_from_subject, subject_to_clip
-    from lmgs_eval.metrics.landmarks import DlibBackend, lmd_result
-    from lmgs_eval.protocols import score_clip
-
-    subject = find_subject(cfg.subject, cfg.data_root, progress=cfg.progress)
-    test = subject_to_clip(subject, subject.test_ids, progress=cfg.progress)
-    clips = bundled_cross_clips(subject) if subject.bundled else []
-    other = clips[0] if clips else None
-    conds = make_conditions(test.audio, seed=0, other_voice=None if other is None else other.audio, long_seconds=long_seconds)
+    if jobs < 1:
+        raise UserError(f"--jobs must be at least 1, got {jobs}")
+    ctx = _context(cfg, long_seconds)
+    conds = ctx["conds"]
     if conditions:
         unknown = sorted(set(conditions) - {c.name for c in conds})
         if unknown:
             raise UserError(f"unknown condition(s) {', '.join(unknown)}; known: {', '.join(c.name for c in conds)}")
         conds = [c for c in conds if c.name in conditions or c.name == "clean"]
-    backend = DlibBackend()
-    gt_lms = backend.landmarks(test.frames.astype(np.float32) / 255.0)
-    gt_found = float(np.isfinite(gt_lms).all(axis=(1, 2)).mean())
-    other_gt_lms = None
-    messages, records = [], []
-    train = None
+    pairs = [(name, seed) for name in cfg.methods for seed in cfg.seeds]
+    records, messages = [], []
+    try:
+        if jobs > 1 and len(pairs) > 1:
+            _CONTEXTS.clear()  # the workers build their own
+            return _run_parallel(cfg, pairs, conditions, max_minutes, long_seconds, min(jobs, len(pairs)))
+        for name, seed in pairs:
+            recs, msgs = _stress_one(cfg, ctx, conds, name, seed, max_minutes)
+            records += recs
+            messages += msgs
+        return records, messages
+    finally:
+        _CONTEXTS.clear()  # the training clip is large: not kept past the suite
+
+
+def _run_parallel(cfg: RunConfig, pairs, conditions, max_minutes: float, long_seconds: float,
+                  jobs: int) -> tuple[list[dict], list[str]]:
+    """Each (method, seed) suite in a worker process (spawned: no forked torch threads)."""
+    import dataclasses
+    import multiprocessing
+    import os
+    import pickle
+    from concurrent.futures import ProcessPoolExecutor
+
+    from lmgs_eval import methods
+
+    methods._load_builtin()
+    shipped = {}  # methods registered at run time (not by an import) go to the workers with the task
     for name in cfg.methods:
-        for seed in cfg.seeds:
-            method = create_method(name, **{"preset": cfg.preset, **cfg.method_options})
-            info = method.describe()
-            ch = f"{info.config_hash}-stress{PERTURB_VERSION}"
-            todo = [c for c in conds if cfg.force or not _done(cfg.results, info.name, subject.name, c.name, seed, ch)]
-            if not todo:
-                log(f"{info.name} seed {seed}: stress conditions already in {cfg.results}; skipped")
-                continue
-            if train is None:
-                train = subject_to_clip(subject, subject.train_ids, progress=cfg.progress)
-            fit_cost = fit_method(method, train, subject, seed, cfg.progress)
-            clean_fps = None
-            for cond in sorted(todo, key=lambda c: c.name != "clean"):
-                t0 = time.perf_counter()
-                try:
-                    audio, driving, notes = condition_driving(cond, test)
-                except UserError as exc:
-                    messages.append(f"{info.name}: {exc}")
-                    continue
-                n = driving.n_frames
-                if clean_fps and n / clean_fps > 60 * max_minutes:
-                    messages.append(f"{info.name} / {cond.name}: not run, {n} frames at {clean_fps:.1f} FPS would take "
-                                    f"{n / clean_fps / 60:.0f} min (> --max-minutes {max_minutes:g})")
-                    continue
-                status, metrics, art, rc = None, {}, {}, {}
-                try:
-                    if cond.name == "clean":
-                        driving = driving_from_subject(subject, subject.test_ids, test)
-                    # the clean clip is timed like the self protocol (median of repeats); a perturbed
-                    # clip once: its FPS is a cost column, and the repeats would double the suite's time
-                    frames, rc = timed_render(method, driving, repeats=REPEATS if cond.name == "clean" else 1)
-                    if cond.name == "clean":
-                        clean_fps = rc.get("fps")
-                    why = check_output(frames, n, audio)
-                    if why is None:
-                        lms = landmarks_u8(backend, frames)
-                        res = {"jitter": jitter_result(lms)}
-                        res["lse"] = lse_u8(frames, audio)
-                        so = silence_open_result(lms, cond.silent_spans)
-                        if so is not None:
-                            res["silence_open"] = so
-                        gl = None
-                        if cond.aligned and n <= len(gt_lms):
-                            gl = gt_lms[:n]
-                        elif cond.name == "other-voice" and other is not None and other.gt_frames is not None:
-                            if other_gt_lms is None:
-                                other_gt_lms = backend.landmarks(other.gt_frames.astype(np.float32) / 255.0)
-                            gl = other_gt_lms[:n] if len(other_gt_lms) >= n else None
-                        if gl is not None:
-                            res["lmd"] = lmd_result(lms, gl)
-                        if cond.name == "clean":  # the reference-based metrics too (no audio: LSE is above)
-                            res.update({k: v for k, v in score_clip(frames, test.frames, None, lmd=False).items() if k != "lse"})
-                        metrics = metrics_block(res)
-                        found = float(np.isfinite(lms).all(axis=(1, 2)).mean())
-                        if gt_found >= 0.5 and found < 0.5:  # only when dlib finds the ground truth's face
-                            why = f"no face detected in {100 * (1 - found):.0f}% of frames"
-                        elif gt_found < 0.5:
-                            notes = list(notes) + [f"no-face check off: dlib finds a face in only {100 * gt_found:.0f}% "
-                                                   "of the ground-truth test frames"]
-                    if why is not None:
-                        status = {"state": "failed", "reason": why}
-                    if n <= LONG_CLIP_FRAMES:
-                        art = {"render": _write_render(cfg.results, f"renders/{subject.name}/stress/{render_stem(info, seed)}-{cond.name}.mp4",
-                                                       frames, audio)}
-                except Exception as exc:  # a crash on one condition is a recorded failure, the suite goes on
-                    if isinstance(exc, KeyboardInterrupt):
-                        raise
-                    status = {"state": "failed", "reason": f"crash: {exc.__class__.__name__}: {str(exc)[:200]}"}
-                    notes = list(notes) + ["traceback: " + traceback.format_exc(limit=3).replace("\n", " | ")[-600:]]
-                cost = _cost_block(method, fit_cost, rc) if rc else {}
-                cost["wall_seconds"] = time.perf_counter() - t0
-                rec = build_record(info=info, subject=subject, protocol="stress", clip=cond.name, split=cond.description,
-                                   n_frames=n, seed=seed, metrics=metrics, cost=cost, artefacts=art,
-                                   notes=list(notes) + [f"perturbation set v{PERTURB_VERSION}: {cond.description}"])
-                rec["config_hash"] = ch
-                if status is not None:
-                    rec["status"] = status
-                store.write_record(cfg.results, rec)
-                records.append(rec)
-                state = "FAILED: " + status["reason"] if status else "ok"
-                log(f"{info.name} / {cond.name}: {n} frames, {state} [{cost['wall_seconds']:.0f} s]")
+        factory = methods._REGISTRY.get(name)
+        try:
+            shipped[name] = pickle.loads(pickle.dumps(factory)) if factory is not None else None
+        except Exception:
+            shipped[name] = None  # a built-in: the worker registers it by importing its module
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    threads = max(1, cores // jobs)
+    note = (f"run with --jobs {jobs} ({threads} thread(s) each): beside other methods' stress runs, so its FPS "
+            "and wall time are contended")
+    log(f"stress: {len(pairs)} method/seed suites in {jobs} worker processes, {threads} thread(s) each")
+    sub = dataclasses.replace(cfg, progress=False)
+    records, messages = [], []
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn"),
+                             initializer=_worker_init, initargs=(threads,)) as pool:
+        futures = [pool.submit(_worker, dataclasses.replace(sub, methods=(name,), seeds=(seed,)), conditions,
+                               max_minutes, long_seconds, note, {name: shipped.get(name)}) for name, seed in pairs]
+        bar = None
+        if cfg.progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=len(futures), desc="stress suites", unit="suite", leave=False)
+        for fut in futures:  # in submission order: the records come back as a serial run lists them
+            recs, msgs = fut.result()
+            records += recs
+            messages += msgs
+            if bar is not None:
+                bar.update(1)
+        if bar is not None:
+            bar.close()
+    return records, messages
+
+
+def _worker_init(threads: int) -> None:
+    import torch
+
+    torch.set_num_threads(threads)
+
+
+def _worker(cfg: RunConfig, conditions, max_minutes: float, long_seconds: float, note: str,
+            factories: dict) -> tuple[list[dict], list[str]]:
+    from lmgs_eval import methods
+
+    methods._load_builtin()
+    for name, factory in factories.items():
+        if factory is not None and name not in methods._REGISTRY:
+            methods._REGISTRY[name] = factory
+    ctx = _context(cfg, long_seconds)
+    conds = [c for c in ctx["conds"] if not conditions or c.name in conditions or c.name == "clean"]
+    (name,), (seed,) = cfg.methods, cfg.seeds
+    return _stress_one(cfg, ctx, conds, name, seed, max_minutes, note=note)
+
+
+def _stress_one(cfg: RunConfig, ctx: dict, conds, name: str, seed: int, max_minutes: float,
+                note: str | None = None) -> tuple[list[dict], list[str]]:
+    """Every condition of ``conds`` for one method and seed (resumable: finished ones are skipped)."""
+    from lmgs_eval import results as store
+    from lmgs_eval.methods import create_method, driving_from_subject, subject_to_clip
+    from lmgs_eval.metrics.landmarks import lmd_result
+    from lmgs_eval.protocols import score_clip
+
+    subject, test, other, backend = ctx["subject"], ctx["test"], ctx["other"], ctx["backend"]
+    gt_lms, gt_found = ctx["gt_lms"], ctx["gt_found"]
+    messages, records = [], []
+    method = create_method(name, **{"preset": cfg.preset, **cfg.method_options})
+    info = method.describe()
+    ch = f"{info.config_hash}-stress{PERTURB_VERSION}"
+    todo = [c for c in conds if cfg.force or not _done(cfg.results, info.name, subject.name, c.name, seed, ch)]
+    if not todo:
+        log(f"{info.name} seed {seed}: stress conditions already in {cfg.results}; skipped")
+        return records, messages
+    if ctx["train"] is None:
+        ctx["train"] = subject_to_clip(subject, subject.train_ids, progress=cfg.progress)
+    fit_cost = fit_method(method, ctx["train"], subject, seed, cfg.progress)
+    clean_fps = None
+    for cond in sorted(todo, key=lambda c: c.name != "clean"):
+        t0 = time.perf_counter()
+        try:
+            audio, driving, notes = condition_driving(cond, test)
+        except UserError as exc:
+            messages.append(f"{info.name}: {exc}")
+            continue
+        if note:
+            notes = list(notes) + [note]
+        n = driving.n_frames
+        if clean_fps and n / clean_fps > 60 * max_minutes:
+            messages.append(f"{info.name} / {cond.name}: not run, {n} frames at {clean_fps:.1f} FPS would take "
+                            f"{n / clean_fps / 60:.0f} min (> --max-minutes {max_minutes:g})")
+            continue
+        status, metrics, art, rc = None, {}, {}, {}
+        try:
+            if cond.name == "clean":
+                driving = driving_from_subject(subject, subject.test_ids, test)
+            # the clean clip is timed like the self protocol (median of repeats); a perturbed
+            # clip once: its FPS is a cost column, and the repeats would double the suite's time
+            frames, rc = timed_render(method, driving, repeats=REPEATS if cond.name == "clean" else 1)
+            if cond.name == "clean":
+                clean_fps = rc.get("fps")
+            why = check_output(frames, n, audio)
+            if why is None:
+                lms = landmarks_u8(backend, frames)
+                res = {"jitter": jitter_result(lms)}
+                res["lse"] = lse_u8(frames, audio)
+                so = silence_open_result(lms, cond.silent_spans)
+                if so is not None:
+                    res["silence_open"] = so
+                gl = None
+                if cond.aligned and n <= len(gt_lms):
+                    gl = gt_lms[:n]
+                elif cond.name == "other-voice" and other is not None and other.gt_frames is not None:
+                    if ctx["other_gt_lms"] is None:
+                        ctx["other_gt_lms"] = backend.landmarks(other.gt_frames.astype(np.float32) / 255.0)
+                    gl = ctx["other_gt_lms"][:n] if len(ctx["other_gt_lms"]) >= n else None
+                if gl is not None:
+                    res["lmd"] = lmd_result(lms, gl)
+                if cond.name == "clean":  # the reference-based metrics too (no audio: LSE is above)
+                    res.update({k: v for k, v in score_clip(frames, test.frames, None, lmd=False).items() if k != "lse"})
+                metrics = metrics_block(res)
+                found = float(np.isfinite(lms).all(axis=(1, 2)).mean())
+                if gt_found >= 0.5 and found < 0.5:  # only when dlib finds the ground truth's face
+                    why = f"no face detected in {100 * (1 - found):.0f}% of frames"
+                elif gt_found < 0.5:
+                    notes = list(notes) + [f"no-face check off: dlib finds a face in only {100 * gt_found:.0f}% "
+                                           "of the ground-truth test frames"]
+            if why is not None:
+                status = {"state": "failed", "reason": why}
+            if n <= LONG_CLIP_FRAMES:
+                art = {"render": _write_render(cfg.results, f"renders/{subject.name}/stress/{render_stem(info, seed)}-{cond.name}.mp4",
+                                               frames, audio)}
+        except Exception as exc:  # a crash on one condition is a recorded failure, the suite goes on
+            if isinstance(exc, KeyboardInterrupt):
+                raise
+            status = {"state": "failed", "reason": f"crash: {exc.__class__.__name__}: {str(exc)[:200]}"}
+            notes = list(notes) + ["traceback: " + traceback.format_exc(limit=3).replace("\n", " | ")[-600:]]
+        cost = _cost_block(method, fit_cost, rc) if rc else {}
+        cost["wall_seconds"] = time.perf_counter() - t0
+        rec = build_record(info=info, subject=subject, protocol="stress", clip=cond.name, split=cond.description,
+                           n_frames=n, seed=seed, metrics=metrics, cost=cost, artefacts=art,
+                           notes=list(notes) + [f"perturbation set v{PERTURB_VERSION}: {cond.description}"])
+        rec["config_hash"] = ch
+        if status is not None:
+            rec["status"] = status
+        store.write_record(cfg.results, rec)
+        records.append(rec)
+        state = "FAILED: " + status["reason"] if status else "ok"
+        log(f"{info.name} / {cond.name}: {n} frames, {state} [{cost['wall_seconds']:.0f} s]")
     return records, messages
 
 

@@ -3,12 +3,14 @@ recorded as failed without stopping the suite, and the stress metrics match hand
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from lmgs_eval import methods
+from lmgs_eval.errors import UserError
 from lmgs_eval.methods import MethodInfo
 from lmgs_eval.perturb import make_conditions
 from lmgs_eval.protocols import RunConfig
@@ -50,6 +52,14 @@ class _Toy:
 
     def cost(self):
         return {"n_params": 0, "model_mb": 0.0}
+
+
+class ToyOk(_Toy):  # module-level: a worker process of jobs > 1 receives the class by reference
+    mode = "ok"
+
+
+class ToyRaise(_Toy):
+    mode = "raise"
 
 
 def _register(monkeypatch, mode):
@@ -149,3 +159,25 @@ def test_stress_lse_of_uint8_frames_equals_lse_of_float_frames(monkeypatch):
     long_want = lse(frames.astype(np.float32) / 255.0, audio, detect_every=5)
     assert long_got.values == long_want.values
     assert any("every 5th frame" in n for n in long_got.notes)
+
+
+def test_jobs_run_the_suites_in_worker_processes_with_the_same_results(monkeypatch, tmp_path):
+    monkeypatch.setitem(methods._REGISTRY, "toy-ok", ToyOk)
+    monkeypatch.setitem(methods._REGISTRY, "toy-raise", ToyRaise)
+    conds = ("silence", "noise-snr10")
+    cfg = RunConfig(subject=SUBJECT, methods=("toy-ok", "toy-raise"), progress=False)
+    serial, _ = run_stress(dataclasses.replace(cfg, results=tmp_path / "serial"), conds, long_seconds=60.0)
+    par, messages = run_stress(dataclasses.replace(cfg, results=tmp_path / "jobs"), conds, long_seconds=60.0, jobs=2)
+    assert messages == []
+    key = [(r["method"]["name"], r["protocol"]["clip"]) for r in serial]
+    assert [(r["method"]["name"], r["protocol"]["clip"]) for r in par] == key and len(key) == 6
+    for a, b in zip(serial, par):
+        assert {k: v["value"] for k, v in a["metrics"].items()} == {k: v["value"] for k, v in b["metrics"].items()}
+        assert a.get("status") == b.get("status")
+        assert any("--jobs 2" in n and "contended" in n for n in b["notes"])
+        assert not any("--jobs" in n for n in a["notes"])
+    assert par[4]["status"]["reason"].startswith("crash: ValueError: cannot handle silence")  # toy-raise / silence
+    recs, warnings = load_records(tmp_path / "jobs")
+    assert warnings == [] and len(recs) == 6 and all(validate(r) == [] for r in recs)
+    with pytest.raises(UserError, match="--jobs"):
+        run_stress(cfg, conds, jobs=0)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import time
 
 HELP = "stability suite: drive trained models with silence, noise, clipping, speed/pitch changes, another voice, a long clip..."
 
@@ -16,6 +17,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="run only these conditions (repeatable; clean always runs); default: the whole set")
     p.add_argument("--max-minutes", type=float, default=15.0,
                    help="skip (and report) a condition whose predicted rendering time at the clean FPS is longer (default 15)")
+    p.add_argument("--jobs", type=int, default=1, metavar="N",
+                   help="run N method/seed suites at once in worker processes, the CPU threads shared out "
+                        "(default 1; their FPS and wall times are then measured beside each other, and say so)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -23,7 +27,9 @@ def run(args: argparse.Namespace) -> int:
     from lmgs_eval.stress import run_stress
 
     cfg = run_config(args)
-    records, messages = run_stress(cfg, tuple(args.conditions or ()), args.max_minutes)
+    t0 = time.perf_counter()
+    records, messages = run_stress(cfg, tuple(args.conditions or ()), args.max_minutes, jobs=args.jobs)
+    wall = time.perf_counter() - t0
     for m in messages:
         print(f"lmgs-eval stress: {m}", file=sys.stderr)
     if records:
@@ -40,6 +46,7 @@ def run(args: argparse.Namespace) -> int:
                   f"{v('lse_c', '{:.3f}'):>7} {v('lmd', '{:.2f}'):>6} {v('jitter', '{:.3f}'):>7} {v('silence_open', '{:.2f}'):>8} "
                   f"{(r.get('cost') or {}).get('fps') or 0:>6.1f}  {st}")
         n_fail = sum(1 for r in records if r.get("status", {}).get("state") == "failed")
-        print(f"{len(records)} condition runs, {n_fail} failed; `lmgs-eval table` writes the stability tables and heat-maps")
+        print(f"{len(records)} condition runs, {n_fail} failed, {wall / 60:.1f} min wall (jobs {args.jobs}); "
+              "`lmgs-eval table` writes the stability tables and heat-maps")
     print(f"results: {cfg.results.resolve()}")
     return 0
