@@ -151,6 +151,20 @@ def _context(cfg: RunConfig, long_seconds: float) -> dict:
 _CONTEXTS: dict = {}
 
 
+class _Lazy:
+    """An object made on first attribute access (the training clip: about a minute to load)."""
+
+    def __init__(self, make):
+        self._make, self._obj = make, None
+
+    def __getattr__(self, name):
+        if name.startswith("__"):
+            raise AttributeError(name)
+        if self._obj is None:
+            self._obj = self._make()
+        return getattr(self._obj, name)
+
+
 def run_stress(cfg: RunConfig, conditions: tuple[str, ...] | None = None, max_minutes: float = 15.0,
                long_seconds: float = 300.0, jobs: int = 1) -> tuple[list[dict], list[str]]:
     """The stability suite for every method and seed; returns (records written, messages).
@@ -269,8 +283,8 @@ def _stress_one(cfg: RunConfig, ctx: dict, conds, name: str, seed: int, max_minu
     if not todo:
         log(f"{info.name} seed {seed}: stress conditions already in {cfg.results}; skipped")
         return records, messages
-    if ctx["train"] is None:
-        ctx["train"] = subject_to_clip(subject, subject.train_ids, progress=cfg.progress)
+    if ctx["train"] is None:  # loaded only if a method trains (or reads it): a cached model does not
+        ctx["train"] = _Lazy(lambda: subject_to_clip(subject, subject.train_ids, progress=cfg.progress))
     fit_cost = fit_method(method, ctx["train"], subject, seed, cfg.progress)
     clean_fps = None
     for cond in sorted(todo, key=lambda c: c.name != "clean"):

@@ -181,3 +181,26 @@ def test_jobs_run_the_suites_in_worker_processes_with_the_same_results(monkeypat
     assert warnings == [] and len(recs) == 6 and all(validate(r) == [] for r in recs)
     with pytest.raises(UserError, match="--jobs"):
         run_stress(cfg, conds, jobs=0)
+
+
+class ToyCached(_Toy):  # a method whose model is already trained: fit() does not read the clip
+    mode = "cached"
+
+    def fit(self, clip, *, seed, workdir, progress=True):
+        self.shape = (64, 64, 3)
+
+
+def test_the_training_clip_is_loaded_only_when_a_method_reads_it(monkeypatch, tmp_path):
+    import lmgs_eval.methods as M
+
+    loads = []
+    real = M.subject_to_clip
+    monkeypatch.setattr(M, "subject_to_clip", lambda subject, ids, **kw: loads.append(len(ids)) or real(subject, ids, **kw))
+    monkeypatch.setitem(methods._REGISTRY, "toy-cached", ToyCached)
+    monkeypatch.setitem(methods._REGISTRY, "toy-ok", ToyOk)
+    cfg = RunConfig(subject=SUBJECT, methods=("toy-cached",), results=tmp_path, progress=False)
+    recs, _ = run_stress(cfg, ("silence",), long_seconds=60.0)
+    n_test = recs[0]["protocol"]["n_frames"]
+    assert len(recs) == 2 and loads == [n_test]  # the test clip only
+    run_stress(dataclasses.replace(cfg, methods=("toy-ok",)), ("silence",), long_seconds=60.0)
+    assert len(loads) == 3 and loads[2] > n_test  # the toy that fits reads the training clip
