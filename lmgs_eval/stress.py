@@ -157,12 +157,24 @@ class _Lazy:
     def __init__(self, make):
         self._make, self._obj = make, None
 
+    def _get(self):
+        if self._obj is None:
+            self._obj = self._make()
+        return self._obj
+
     def __getattr__(self, name):
         if name.startswith("__"):
             raise AttributeError(name)
-        if self._obj is None:
-            self._obj = self._make()
-        return getattr(self._obj, name)
+        return getattr(self._get(), name)
+
+    def __len__(self) -> int:  # special methods are looked up on the type, not through __getattr__
+        return len(self._get())
+
+    def __getitem__(self, key):
+        return self._get()[key]
+
+    def __iter__(self):
+        return iter(self._get())
 
 
 def run_stress(cfg: RunConfig, conditions: tuple[str, ...] | None = None, max_minutes: float = 15.0,

@@ -33,6 +33,7 @@ class _Toy:
                           config_hash=f"toy{self.mode}")
 
     def fit(self, clip, *, seed, workdir, progress=True):
+        assert len(clip) == clip.frames.shape[0]  # as the baselines' fit does (len of a lazily loaded clip too)
         self.shape = clip.frames.shape[1:]
 
     def render(self, driving):
