@@ -246,14 +246,20 @@ def _run_parallel(cfg: RunConfig, pairs, conditions, max_minutes: float, long_se
             from tqdm import tqdm
 
             bar = tqdm(total=len(futures), desc="stress suites", unit="suite", leave=False)
-        for fut in futures:  # in submission order: the records come back as a serial run lists them
-            recs, msgs = fut.result()
-            records += recs
-            messages += msgs
+        try:
+            for fut in futures:  # in submission order: the records come back as a serial run lists them
+                recs, msgs = fut.result()
+                records += recs
+                messages += msgs
+                if bar is not None:
+                    bar.update(1)
+        except BaseException:  # an error or Ctrl-C: no queued suite starts (the running ones finish first)
+            for fut in futures:
+                fut.cancel()
+            raise
+        finally:
             if bar is not None:
-                bar.update(1)
-        if bar is not None:
-            bar.close()
+                bar.close()
     return records, messages
 
 
