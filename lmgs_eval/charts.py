@@ -240,6 +240,7 @@ def capacity_charts(records: Sequence[dict[str, Any]], out_dir: str | Path) -> l
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FixedLocator, FuncFormatter, NullFormatter
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -261,6 +262,11 @@ def capacity_charts(records: Sequence[dict[str, Any]], out_dir: str | Path) -> l
                 ys = [r[key] * scale for r in mean if r.get(key) is not None]
                 ax.plot(xs, ys, "o-", color=FAMILY_COLOURS["3DGS"])
                 ax.set_xscale("log")
+                # ticks at the measured counts only: a range under a decade otherwise gets
+                # overlapping minor-tick labels
+                ax.xaxis.set_major_locator(FixedLocator(xs))
+                ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v / 1000:.1f}k" if v >= 1000 else f"{v:.0f}"))
+                ax.xaxis.set_minor_formatter(NullFormatter())
                 ax.set_title(label)
                 ax.set_xlabel("Gaussians (log)")
                 if k_pt is not None:
