@@ -136,7 +136,7 @@ def preset(name: str) -> LMGSConfig:
 
 def config_from_dict(d: dict) -> LMGSConfig:
     """Rebuild a config from :meth:`LMGSConfig.to_dict` (checkpoints, results files)."""
-    from lmgs.config import AudioConfig, DeformConfig, GuidanceConfig, TriplaneConfig, added_option
+    from lmgs.config import AudioConfig, DeformConfig, GuidanceConfig, TriplaneConfig
 
     def make(cls, v):
         fields = {f.name for f in dataclasses.fields(cls)}

@@ -79,11 +79,12 @@ class LMGSMethod:
 
     def describe(self) -> MethodInfo:
         g, a = self.cfg.guidance, self.cfg.audio
-        parts = ["SE" if g.se else "no SE", "LC" if g.lc else "no LC", "GR" if self.cfg.gr else "no GR", f"theta={g.theta:g}"]
+        t = self.cfg.train
+        gr = "no GR" if not self.cfg.gr else "GR" if t.normal_reduce == "sum" else \
+            f"GR (normal term per-pixel {t.normal_reduce}, weight {t.lambda_normal:g})"
+        parts = ["SE" if g.se else "no SE", "LC" if g.lc else "no LC", gr, f"theta={g.theta:g}"]
         if not a.use_encoder:
             parts.append("no Audio Encoder")
-        if self.cfg.gr and self.cfg.train.normal_reduce != "sum":
-            parts[2] = f"GR (normal term per-pixel {self.cfg.train.normal_reduce}, weight {self.cfg.train.lambda_normal:g})"
         if a.frontend != "logmel":
             parts.append(f"audio front end {a.frontend}")
         return MethodInfo(

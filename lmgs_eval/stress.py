@@ -151,6 +151,16 @@ def _context(cfg: RunConfig, long_seconds: float) -> dict:
 _CONTEXTS: dict = {}
 
 
+def _selected(conds: list[Condition], names) -> list[Condition]:
+    """The conditions asked for (all when ``names`` is empty), clean always among them."""
+    if not names:
+        return list(conds)
+    unknown = sorted(set(names) - {c.name for c in conds})
+    if unknown:
+        raise UserError(f"unknown condition(s) {', '.join(unknown)}; known: {', '.join(c.name for c in conds)}")
+    return [c for c in conds if c.name in names or c.name == "clean"]
+
+
 class _Lazy:
     """An object made on first attribute access (the training clip: about a minute to load)."""
 
@@ -190,12 +200,7 @@ def run_stress(cfg: RunConfig, conditions: tuple[str, ...] | None = None, max_mi
     if jobs < 1:
         raise UserError(f"--jobs must be at least 1, got {jobs}")
     ctx = _context(cfg, long_seconds)
-    conds = ctx["conds"]
-    if conditions:
-        unknown = sorted(set(conditions) - {c.name for c in conds})
-        if unknown:
-            raise UserError(f"unknown condition(s) {', '.join(unknown)}; known: {', '.join(c.name for c in conds)}")
-        conds = [c for c in conds if c.name in conditions or c.name == "clean"]
+    conds = _selected(ctx["conds"], conditions)
     pairs = [(name, seed) for name in cfg.methods for seed in cfg.seeds]
     records, messages = [], []
     try:
@@ -227,7 +232,8 @@ def _run_parallel(cfg: RunConfig, pairs, conditions, max_minutes: float, long_se
     for name in cfg.methods:
         factory = methods._REGISTRY.get(name)
         try:
-            shipped[name] = pickle.loads(pickle.dumps(factory)) if factory is not None else None
+            pickle.dumps(factory)  # a class goes by reference; a built-in's lambda does not pickle
+            shipped[name] = factory
         except Exception:
             shipped[name] = None  # a built-in: the worker registers it by importing its module
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
@@ -278,7 +284,7 @@ def _worker(cfg: RunConfig, conditions, max_minutes: float, long_seconds: float,
         if factory is not None and name not in methods._REGISTRY:
             methods._REGISTRY[name] = factory
     ctx = _context(cfg, long_seconds)
-    conds = [c for c in ctx["conds"] if not conditions or c.name in conditions or c.name == "clean"]
+    conds = _selected(ctx["conds"], conditions)
     (name,), (seed,) = cfg.methods, cfg.seeds
     return _stress_one(cfg, ctx, conds, name, seed, max_minutes, note=note)
 

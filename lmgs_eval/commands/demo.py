@@ -66,17 +66,16 @@ def run_full(args: argparse.Namespace) -> int:
     stages = []
     for subject in FULL_SUBJECTS:
         for m in FULL_METHODS:
-            stages.append((f"{subject} / {m}", subject, m, FULL_SEEDS.get(m, (0,)), "self+cross"))
+            stages.append((f"{subject} / {m}", subject, (m,), FULL_SEEDS.get(m, (0,)), "self+cross"))
     for v in FULL_VARIANTS:
-        stages.append((f"{VARIANT_SUBJECT} / {v}", VARIANT_SUBJECT, v, (0,), "self"))
+        stages.append((f"{VARIANT_SUBJECT} / {v}", VARIANT_SUBJECT, (v,), (0,), "self"))
     # one stage: the four suites two at a time (--jobs 2), which is what keeps them under 30 min on 2 cores
     stages.append((f"{STRESS_SUBJECT} / stress ({', '.join(FULL_STRESS)})", STRESS_SUBJECT, FULL_STRESS, (0,), "stress"))
-    stages.append(("astronaut / capacity", "astronaut", "lmgs", (0,), "capacity"))
+    stages.append(("astronaut / capacity", "astronaut", ("lmgs",), (0,), "capacity"))
     failures = []
-    for k, (label, subject, m, seeds, what) in enumerate(stages, 1):
+    for k, (label, subject, methods, seeds, what) in enumerate(stages, 1):
         log(f"[bench] {k}/{len(stages)} {label} ({what}) [{(time.perf_counter() - t0) / 60:.0f} min]")
-        cfg = RunConfig(subject=subject, methods=m if isinstance(m, tuple) else (m,), seeds=seeds, results=results,
-                        data_root=args.data_root,
+        cfg = RunConfig(subject=subject, methods=methods, seeds=seeds, results=results, data_root=args.data_root,
                         progress=not args.no_progress)
         try:
             if what == "self+cross":
