@@ -146,7 +146,7 @@ class LMGSConfigMethod:
         return out
 
 
-@register("talkinggaussian")
+@register("talkinggaussian", scene_budget=True)
 class TalkingGaussian(LMGSConfigMethod):
     name = "talkinggaussian"
     display_name = "TalkingGaussian"
@@ -159,7 +159,7 @@ class TalkingGaussian(LMGSConfigMethod):
     )
 
 
-@register("degstalk")
+@register("degstalk", scene_budget=True)
 class DEGSTalk(LMGSConfigMethod):
     name = "degstalk"
     display_name = "DEGSTalk"
@@ -254,7 +254,7 @@ def _composite(res, background: torch.Tensor) -> torch.Tensor:
     return res.rgb + (1 - res.alpha) * background
 
 
-@register("gaussiantalker")
+@register("gaussiantalker", scene_budget=True)
 class GaussianTalker(Adapter):
     name = "gaussiantalker"
     display_name = "GaussianTalker"

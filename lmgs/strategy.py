@@ -45,7 +45,8 @@ class Strategy:
 def budget_from_face_area(face_area_px: float, density: float = 0.12, lo: int = 500, hi: int = 50000) -> int:
     """Gaussians a face needs: ``density`` per pixel of face area, clamped to ``[lo, hi]``.
 
-    ``density`` is the knee found by ``lmgs-eval capacity`` on the bundled subjects.
+    ``density`` is the knee found by ``lmgs-eval capacity`` (the quick preset's: astronaut's;
+    a subject whose knee lies elsewhere carries its own).
     """
     return int(min(hi, max(lo, round(face_area_px * density))))
 

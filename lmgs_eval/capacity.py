@@ -139,18 +139,26 @@ def run_capacity(cfg: RunConfig, budgets: Sequence[int] = DEFAULT_BUDGETS) -> li
     driving = driving_from_subject(subject, subject.test_ids, test)
     area = face_area_px(train)
     base = dict(cfg.method_options.get("overrides", {}))
-    probe = create_method("lmgs", **{**cfg.method_options, "preset": cfg.preset})
-    density = probe.cfg.train.budget_density
+    opts0 = {**cfg.method_options, "preset": cfg.preset}
+    density = create_method("lmgs", subject=subject, **opts0).cfg.train.budget_density
+    preset_density = create_method("lmgs", **opts0).cfg.train.budget_density
     default = budget_from_face_area(area, density)
-    budgets = sorted(set(budgets) | {default})  # the preset's own budget is always a point (same config: reused)
+    # Budgets that are a density of their own (the preset's, the subject's knee) are trained at
+    # exactly that density, so their configs, and trained models, are those of the other protocols.
+    preset_budget = budget_from_face_area(area, preset_density)
+    exact = {preset_budget: preset_density, default: density}
+    budgets = sorted(set(budgets) | set(exact))  # the default (and the preset's) budget is always a point
+    why = "" if density == preset_density else f", this subject's knee; the preset's {preset_density:g} gives {preset_budget}"
     log(f"capacity on {subject.name}: face area {area:.0f} px; budgets {', '.join(map(str, budgets))} "
-        f"(default {default} = {density:g} x face area)")
+        f"(default {default} = {density:g} x face area{why})")
     records, trained = [], []
     for n in budgets:
         for seed in cfg.seeds:
-            over = {**base} if n == default else {**base, "train.budget_density": round(n / area, 6)}
+            over = {**base, "train.budget_density": exact.get(n, round(n / area, 6))}
+            if n == default:
+                over = {**base}  # the default: as every other protocol builds it
             opts = {**{k: v for k, v in cfg.method_options.items() if k != "overrides"}, "overrides": over, "preset": cfg.preset}
-            method = create_method("lmgs", **opts)
+            method = create_method("lmgs", subject=subject, **opts)
             info = method.describe()
             clip = f"budget-{n}"
             trained.append((n, seed, method))

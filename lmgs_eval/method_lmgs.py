@@ -44,12 +44,15 @@ VARIANTS: dict[str, dict] = {
 class LMGSMethod:
     """Adapter of :mod:`lmgs` to the toolkit's fit / render / describe protocol."""
 
-    def __init__(self, variant: str = "lmgs", preset: str = "quick", overrides: dict | None = None, device: str | None = None):
+    def __init__(self, variant: str = "lmgs", preset: str = "quick", overrides: dict | None = None, device: str | None = None,
+                 budget_density: float | None = None):
         from lmgs.presets import preset as make_preset
 
         self.variant = variant
+        # a subject's knee density (create_method); an explicit --set train.budget_density wins
+        density = {} if budget_density is None else {"train.budget_density": float(budget_density)}
         try:
-            self.cfg = make_preset(preset).replace(**{**VARIANTS[variant], **(overrides or {})})
+            self.cfg = make_preset(preset).replace(**{**VARIANTS[variant], **density, **(overrides or {})})
         except (TypeError, AttributeError, ValueError) as exc:
             from lmgs_eval.errors import UserError
 
@@ -110,5 +113,5 @@ class LMGSMethod:
 
 
 for _name in VARIANTS:
-    register(_name)(lambda _v=_name, **kw: LMGSMethod(_v, **kw))
+    register(_name, scene_budget=True)(lambda _v=_name, **kw: LMGSMethod(_v, **kw))
 

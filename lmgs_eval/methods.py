@@ -64,15 +64,24 @@ class TalkingHead(Protocol):
 
 # ----------------------------------------------------------------------------- registry
 _REGISTRY: dict[str, Callable[..., TalkingHead]] = {}
+# Methods whose Gaussian count is ``budget_density`` x face area (the lmgs backbone family):
+# they take a subject's own knee density, all alike, so a comparison between them stays fair.
+_SCENE_BUDGET: set[str] = set()
 
 
-def register(name: str) -> Callable:
-    """Decorator registering a method factory under ``name`` (duplicates are rejected)."""
+def register(name: str, *, scene_budget: bool = False) -> Callable:
+    """Decorator registering a method factory under ``name`` (duplicates are rejected).
+
+    ``scene_budget``: the factory takes ``budget_density`` (Gaussians per face pixel), which
+    :func:`create_method` sets from a subject that has its own (:attr:`Subject.budget_density`).
+    """
 
     def deco(factory):
         if name in _REGISTRY:
             raise ValueError(f"method '{name}' registered twice")
         _REGISTRY[name] = factory
+        if scene_budget:
+            _SCENE_BUDGET.add(name)
         return factory
 
     return deco
@@ -95,8 +104,13 @@ def list_methods() -> list[str]:
     return sorted(_REGISTRY) + ["external:NAME"]
 
 
-def create_method(name: str, **options) -> TalkingHead:
-    """Build a method by name; ``external:NAME`` scores renders made by any other code."""
+def create_method(name: str, subject: Subject | None = None, **options) -> TalkingHead:
+    """Build a method by name; ``external:NAME`` scores renders made by any other code.
+
+    With ``subject``, a method sized by face area (``register(..., scene_budget=True)``) takes
+    the subject's knee density when it has one and ``options`` set none; the density is in the
+    method's config, so its hash, and the records and model cache, follow it.
+    """
     _load_builtin()
     if name.startswith("external:"):
         from lmgs_eval.external import ExternalRenders
@@ -104,7 +118,16 @@ def create_method(name: str, **options) -> TalkingHead:
         return ExternalRenders(name.split(":", 1)[1], **options)
     if name not in _REGISTRY:
         raise UserError(f"unknown method '{name}'; known: {', '.join(list_methods())}")
+    density = None if subject is None else subject.budget_density
+    if density is not None and name in _SCENE_BUDGET:
+        options.setdefault("budget_density", density)
     return _REGISTRY[name](**options)
+
+
+def scene_budget_methods() -> list[str]:
+    """The registered methods that size their Gaussians by face area (and take a subject's knee)."""
+    _load_builtin()
+    return sorted(_SCENE_BUDGET)
 
 
 # ----------------------------------------------------------------------------- conversion

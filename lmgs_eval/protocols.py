@@ -332,6 +332,30 @@ def metrics_block(results: dict) -> dict:
 
 
 # ----------------------------------------------------------------------------- records
+def _config_value(config, key: str):
+    """The first ``key`` in a nested config dict (depth first), or None."""
+    if isinstance(config, dict):
+        if key in config:
+            return config[key]
+        for v in config.values():
+            found = _config_value(v, key)
+            if found is not None:
+                return found
+    return None
+
+
+def budget_notes(info, subject) -> list[str]:
+    """A record's note when its method was sized by the subject's own knee density."""
+    from lmgs.presets import TrainConfig
+
+    d = getattr(subject, "budget_density", None)
+    if d is None or _config_value(info.config, "budget_density") != d:
+        return []
+    return [f"Gaussian budget: {d:g} per pixel of face area, this subject's capacity knee (lmgs_eval.data.registry."
+            f"KNEE_DENSITY), not the quick preset's {TrainConfig.budget_density:g}; every method sized by face area "
+            "takes it on this subject"]
+
+
 def _subject_block(subject) -> dict:
     return {
         "name": subject.name,
@@ -412,6 +436,7 @@ def build_record(*, info, subject, protocol: str, clip: str, split: str, n_frame
         method["control"] = control
     if getattr(info, "variant", None) is not None:
         method["variant"] = info.variant
+    notes = [*notes, *budget_notes(info, subject)]
     return make_record(
         method=method,
         subject=_subject_block(subject),
@@ -509,7 +534,7 @@ def run_self(cfg: RunConfig) -> list[dict]:
                 opts["renders"] = cfg.renders
             else:
                 opts.setdefault("preset", cfg.preset)
-            method = create_method(name, **opts)
+            method = create_method(name, subject=subject, **opts)
             info = method.describe()
             if not cfg.force and store.find_record(cfg.results, info.name, subject.name, "self", "test", seed, info.config_hash):
                 log(f"{info.name} seed {seed}: already in {cfg.results} (same config {info.config_hash}); skipped")
@@ -717,7 +742,7 @@ def run_cross(cfg: RunConfig, audio_paths: list[str] | None = None) -> tuple[lis
             errors.append(f"{name}: cross-driven renders of external methods are scored with `lmgs-eval score --pred`")
             continue
         for seed in cfg.seeds:
-            method = create_method(name, **{"preset": cfg.preset, **cfg.method_options})
+            method = create_method(name, subject=subject, **{"preset": cfg.preset, **cfg.method_options})
             info = method.describe()
             todo = [c for c in clips if cfg.force or not store.find_record(cfg.results, info.name, subject.name, "cross", c.name, seed, info.config_hash)]
             if not todo:

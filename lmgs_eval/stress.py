@@ -300,7 +300,7 @@ def _stress_one(cfg: RunConfig, ctx: dict, conds, name: str, seed: int, max_minu
     subject, test, other, backend = ctx["subject"], ctx["test"], ctx["other"], ctx["backend"]
     gt_lms, gt_found = ctx["gt_lms"], ctx["gt_found"]
     messages, records = [], []
-    method = create_method(name, **{"preset": cfg.preset, **cfg.method_options})
+    method = create_method(name, subject=subject, **{"preset": cfg.preset, **cfg.method_options})
     info = method.describe()
     ch = f"{info.config_hash}-stress{PERTURB_VERSION}"
     todo = [c for c in conds if cfg.force or not _done(cfg.results, info.name, subject.name, c.name, seed, ch)]

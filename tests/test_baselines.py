@@ -196,3 +196,31 @@ def test_lmgs_configured_baselines_train_with_their_budget_density(name):
     other = create_method(name, preset="quick", budget_density=0.12)
     assert other.cfg.train.budget_density == 0.12
     assert other.describe().config_hash != base.describe().config_hash
+
+
+def test_a_subject_knee_density_reaches_every_method_sized_by_face_area_and_no_other():
+    """Every method whose config has a budget density is registered as sized by face area (so a
+    subject's knee cannot miss one of them), takes the subject's density, and an explicit one wins."""
+    from types import SimpleNamespace
+
+    from lmgs_eval.methods import list_methods, scene_budget_methods
+    from lmgs_eval.protocols import _config_value
+
+    knee = SimpleNamespace(budget_density=0.55)
+    sized = set(scene_budget_methods())
+    assert {"lmgs", "lmgs-base", "talkinggaussian", "degstalk", "gaussiantalker"} <= sized
+    for name in (n for n in list_methods() if not n.startswith("external:")):
+        plain = create_method(name, preset="quick").describe()
+        on_subject = create_method(name, subject=knee, preset="quick").describe()
+        if _config_value(plain.config, "budget_density") is None:
+            assert name not in sized and on_subject.config_hash == plain.config_hash, name
+            continue
+        assert name in sized, f"{name} sizes by face area but is not registered scene_budget=True"
+        assert _config_value(on_subject.config, "budget_density") == 0.55, name
+        assert on_subject.config_hash != plain.config_hash, name
+    # an explicit density (CLI --set, capacity's budgets) wins over the subject's
+    assert create_method("talkinggaussian", subject=knee, budget_density=0.2).cfg.train.budget_density == 0.2
+    lm = create_method("lmgs", subject=knee, overrides={"train.budget_density": 0.3})
+    assert lm.cfg.train.budget_density == 0.3
+    assert create_method("lmgs", subject=SimpleNamespace(budget_density=None)).describe().config_hash == \
+        create_method("lmgs").describe().config_hash

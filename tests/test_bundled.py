@@ -196,3 +196,15 @@ def test_dlib_agrees_with_ground_truth_landmarks(tmp_path):
         errs.append(e.mean())
         mouth.append(e[48:68].mean())
     assert np.mean(errs) < 4.0 and np.mean(mouth) < 4.0
+
+
+def test_only_the_measured_bundled_subject_has_its_own_knee_density():
+    from lmgs_eval.data.registry import KNEE_DENSITY, BundledSpec, knee_density
+
+    meta = {"bundled": True, "name": "hopper", "size": 256, "seconds": 60.0, "seed": 0}
+    assert knee_density(meta) == KNEE_DENSITY[BundledSpec("hopper")] == 0.548559
+    assert knee_density({**meta, "size": 64, "seconds": 2.0}) is None  # a variant's knee was never measured
+    assert knee_density({**meta, "seed": 1}) is None
+    assert knee_density({**meta, "name": "astronaut"}) is None  # at the preset's density
+    assert knee_density({**meta, "bundled": False}) is None  # a real subject named hopper
+    assert knee_density({"bundled": True, "name": "hopper"}) is None  # meta without the build spec

@@ -132,3 +132,35 @@ def test_a_budget_whose_training_collapses_is_recorded_as_failed_and_the_rest_go
                            "--budget", "500", "--budget", "900", *FAST)
     assert rc == 0 and "budget 500 seed 0: already in" in err and "budget 900 seed 0: already in" not in err
     assert "FAILED" not in out and sorted(p["budget"] for p in points_from_records(load_records(tmp_path)[0])["astronaut-64px-2s"]) == [500, 900]
+
+
+def test_a_subject_knee_density_is_the_default_of_capacity_and_of_the_other_protocols(tmp_path, monkeypatch):
+    """A bundled subject with its own knee (as hopper): capacity's default budget is that knee,
+    trained with the very config `self` builds; the preset's budget is trained at the preset's
+    exact density (so its models are the ones made before the knee was known)."""
+    from lmgs.presets import TrainConfig
+    from lmgs_eval.data import registry
+    from lmgs_eval.methods import create_method
+
+    monkeypatch.setitem(registry.KNEE_DENSITY, registry.BundledSpec("astronaut", 64, 2.0), 0.8)
+    subject = registry.find_subject("astronaut-64px-2s", progress=False)
+    assert subject.budget_density == 0.8
+    rc, out, err = run_cli("capacity", "--subject", "astronaut-64px-2s", "--results", str(tmp_path), "--no-progress",
+                           "--budget", "500", *FAST)
+    assert rc == 0, err
+    # face area 870 px: 0.8 x 870 = 696 (the default); the preset's 0.358 x 870 clamps to 500
+    assert "(default 696 = 0.8 x face area, this subject's knee; the preset's 0.358438 gives 500)" in err
+    recs = {r["protocol"]["clip"]: r for r in load_records(tmp_path)[0]}
+    assert sorted(recs) == ["budget-500", "budget-696"]
+    knee_rec, preset_rec = recs["budget-696"], recs["budget-500"]
+    assert knee_rec["config"]["train"]["budget_density"] == 0.8
+    assert any("this subject's capacity knee" in n for n in knee_rec["notes"])
+    assert preset_rec["config"]["train"]["budget_density"] == TrainConfig.budget_density
+    assert not any("capacity knee" in n for n in preset_rec["notes"])
+    over = {"overrides": {"train.static_steps": 30, "train.dynamic_steps": 30, "train.landmark_steps": 10, "train.densify_every": 20}}
+    assert preset_rec["config_hash"] == create_method("lmgs", **over).describe().config_hash
+    rc, _, err = run_cli("self", "--subject", "astronaut-64px-2s", "--results", str(tmp_path / "self"), "--no-progress", *FAST)
+    assert rc == 0, err
+    self_rec = next(r for r in load_records(tmp_path / "self")[0] if r["method"]["name"] == "lmgs")
+    assert self_rec["config_hash"] == knee_rec["config_hash"]
+    assert self_rec["cost"]["n_gaussians"] == knee_rec["cost"]["n_gaussians"]  # the capacity run's model, reloaded

@@ -65,6 +65,30 @@ class BundledSpec:
         )
 
 
+# Gaussians per pixel of face area at the capacity knee of a bundled subject, where it is not
+# the quick preset's (lmgs.presets.TrainConfig.budget_density, the knee of astronaut). hopper:
+# `lmgs-eval capacity --subject hopper --budget 4000 --budget 10000 --seed 0 --seed 1 --seed 2`
+# (2026-11-23/24): the knee is a 10,000-Gaussian face budget (LPIPS 0.0199 against 0.0215 at
+# the preset's 6,534, lower on every seed; PSNR and LMD within tolerance); 0.548559 x hopper's
+# face area = 10,000, the exact density of that run, so its models are this subject's models.
+# Only the built size and length it was measured at: the knee of a 64-pixel variant is unknown.
+KNEE_DENSITY = {BundledSpec("hopper"): 0.548559}
+
+
+def knee_density(meta: dict) -> float | None:
+    """The capacity-knee budget density of a bundled subject (from its ``meta.json``), or None.
+
+    None means the preset's own density applies (real subjects, astronaut, sized variants).
+    """
+    if not meta.get("bundled"):
+        return None
+    try:
+        spec = BundledSpec(str(meta["name"]), int(meta["size"]), float(meta["seconds"]), int(meta.get("seed", 0)))
+    except (KeyError, TypeError, ValueError):
+        return None
+    return KNEE_DENSITY.get(spec)
+
+
 def _generator_version() -> str:
     from lmgs_eval.data import bundled
 

@@ -65,6 +65,17 @@ class Subject:
 
     # ------------------------------------------------------------------ sizes
     @property
+    def budget_density(self) -> float | None:
+        """Gaussians per face pixel at this subject's capacity knee, when it is not the preset's.
+
+        Set for the bundled subjects whose measured knee is not at the quick preset's density (:data:`lmgs_eval.data.registry.KNEE_DENSITY`); None otherwise. Methods that
+        size their Gaussians by face area take it (:func:`lmgs_eval.methods.create_method`).
+        """
+        from lmgs_eval.data.registry import knee_density
+
+        return knee_density(self.meta) if self.bundled else None
+
+    @property
     def n_frames(self) -> int:
         return int(self.c2w.shape[0])
 
