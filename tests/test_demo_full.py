@@ -1,0 +1,54 @@
+"""`lmgs-eval demo --full` (make bench): every stage is run once, as listed, and a failing stage
+is reported without stopping the rest. The protocols themselves are replaced by recorders here
+(each has its own end-to-end tests); what is checked is the wiring of the benchmark."""
+
+from __future__ import annotations
+
+import argparse
+
+from lmgs_eval.capacity import DEFAULT_BUDGETS
+
+
+def test_bench_runs_each_stage_once_and_a_failing_stage_does_not_stop_the_rest(tmp_path, monkeypatch, capsys):
+    import lmgs_eval.capacity as capacity
+    import lmgs_eval.protocols as protocols
+    import lmgs_eval.stress as stress
+    from lmgs_eval.commands import demo, table
+
+    calls = []
+
+    def self_(cfg):
+        calls.append(("self", cfg.subject, cfg.methods, cfg.seeds))
+        return []
+
+    def cross(cfg):
+        calls.append(("cross", cfg.subject, cfg.methods, cfg.seeds))
+        return [], (["no cross clips"] if cfg.methods == ("wav2lip",) and cfg.subject == "hopper" else [])
+
+    def stress_(cfg, jobs=1):
+        calls.append(("stress", cfg.subject, cfg.methods, jobs))
+        raise RuntimeError("worker died")
+
+    def capacity_(cfg, budgets):
+        calls.append(("capacity", cfg.subject, tuple(budgets)))
+
+    monkeypatch.setattr(protocols, "run_self", self_)
+    monkeypatch.setattr(protocols, "run_cross", cross)
+    monkeypatch.setattr(stress, "run_stress", stress_)
+    monkeypatch.setattr(capacity, "run_capacity", capacity_)
+    monkeypatch.setattr(table, "run", lambda a: calls.append(("table", a.out, a.records)))
+    args = argparse.Namespace(results=str(tmp_path / "results"), out=str(tmp_path / "tables"), data_root=None, no_progress=True)
+    rc = demo.run_full(args)
+    out = capsys.readouterr().out
+    assert rc == 1  # two stages failed, and the benchmark says so
+    assert "failed: hopper / wav2lip: no cross clips" in out and "RuntimeError: worker died" in out
+    for subject in demo.FULL_SUBJECTS:
+        for m in demo.FULL_METHODS:
+            seeds = demo.FULL_SEEDS.get(m, (0,))
+            assert calls.count(("self", subject, (m,), seeds)) == 1 and calls.count(("cross", subject, (m,), seeds)) == 1
+    for v in demo.FULL_VARIANTS:
+        assert calls.count(("self", demo.VARIANT_SUBJECT, (v,), (0,))) == 1
+    assert ("stress", demo.STRESS_SUBJECT, demo.FULL_STRESS, 2) in calls
+    # the stages after the failed stress stage still ran: capacity on both subjects, then the tables
+    assert calls[-3:] == [("capacity", "astronaut", DEFAULT_BUDGETS), ("capacity", "hopper", (4000, 10000, 16000)),
+                          ("table", tmp_path / "tables", tmp_path / "tables" / "records")]
