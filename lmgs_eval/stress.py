@@ -29,7 +29,7 @@ from lmgs.types import DrivingAudio
 from lmgs_eval.errors import UserError
 from lmgs_eval.metrics.base import MetricResult, MetricSpec
 from lmgs_eval.perturb import VERSION as PERTURB_VERSION
-from lmgs_eval.perturb import Condition, make_conditions
+from lmgs_eval.perturb import SR, Condition, make_conditions
 from lmgs_eval.protocols import (RunConfig, _cost_block, _cycle, _write_render, build_record, bundled_cross_clips, render_stem,
                                  REPEATS, fit_method, log, metrics_block, timed_render)
 
@@ -199,14 +199,18 @@ def run_stress(cfg: RunConfig, conditions: tuple[str, ...] | None = None, max_mi
     """
     if jobs < 1:
         raise UserError(f"--jobs must be at least 1, got {jobs}")
+    pairs = [(name, seed) for name in cfg.methods for seed in cfg.seeds]
+    if jobs > 1 and len(pairs) > 1:
+        # The workers build the context (subject, clips, conditions, ground-truth landmarks)
+        # themselves; here only the names are checked, on conditions made from half a second of
+        # zeros (a subject without a second voice rejects other-voice in its worker).
+        half = np.zeros(SR // 2, np.float32)
+        _selected(make_conditions(half, seed=0, other_voice=half, long_seconds=long_seconds), conditions)
+        return _run_parallel(cfg, pairs, conditions, max_minutes, long_seconds, min(jobs, len(pairs)))
     ctx = _context(cfg, long_seconds)
     conds = _selected(ctx["conds"], conditions)
-    pairs = [(name, seed) for name in cfg.methods for seed in cfg.seeds]
     records, messages = [], []
     try:
-        if jobs > 1 and len(pairs) > 1:
-            _CONTEXTS.clear()  # the workers build their own
-            return _run_parallel(cfg, pairs, conditions, max_minutes, long_seconds, min(jobs, len(pairs)))
         for name, seed in pairs:
             recs, msgs = _stress_one(cfg, ctx, conds, name, seed, max_minutes)
             records += recs

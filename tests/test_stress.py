@@ -168,6 +168,12 @@ def test_jobs_run_the_suites_in_worker_processes_with_the_same_results(monkeypat
     conds = ("silence", "noise-snr10")
     cfg = RunConfig(subject=SUBJECT, methods=("toy-ok", "toy-raise"), progress=False)
     serial, _ = run_stress(dataclasses.replace(cfg, results=tmp_path / "serial"), conds, long_seconds=60.0)
+    # with jobs > 1 the workers build the context (subject, conditions, landmarks); the parent only checks names
+    import lmgs_eval.stress as stress_mod
+
+    monkeypatch.setattr(stress_mod, "_context", lambda *a, **k: pytest.fail("the parent built the stress context"))
+    with pytest.raises(UserError, match="unknown condition.*gargle"):
+        run_stress(cfg, ("silence", "gargle"), jobs=2)
     par, messages = run_stress(dataclasses.replace(cfg, results=tmp_path / "jobs"), conds, long_seconds=60.0, jobs=2)
     assert messages == []
     key = [(r["method"]["name"], r["protocol"]["clip"]) for r in serial]
