@@ -144,7 +144,7 @@ def test_a_subject_knee_density_is_the_default_of_capacity_and_of_the_other_prot
 
     monkeypatch.setitem(registry.KNEE_DENSITY, registry.BundledSpec("astronaut", 64, 2.0), 0.8)
     subject = registry.find_subject("astronaut-64px-2s", progress=False)
-    assert subject.budget_density == 0.8
+    assert subject.budget_density == 0.8 and subject.describe()["budget_density"] == 0.8
     rc, out, err = run_cli("capacity", "--subject", "astronaut-64px-2s", "--results", str(tmp_path), "--no-progress",
                            "--budget", "500", *FAST)
     assert rc == 0, err

@@ -45,6 +45,9 @@ def run(args: argparse.Namespace) -> int:
           f"[{time.perf_counter() - t0:.1f} s]")
     if subject.bundled:
         print(f"  stand-in: {subject.meta.get('standin', 'synthetic bundled subject')}")
+    if subject.budget_density is not None:
+        print(f"  Gaussian budget: {subject.budget_density:g} per face pixel for the methods sized by face area "
+              "(this subject's capacity knee, not the quick preset's)")
     for note in subject.notes:
         print(f"  note: {note}")
     if args.preview:

@@ -178,5 +178,6 @@ class Subject:
             "geometry": self.has_geometry,
             "bundled": self.bundled,
             "standin": self.meta.get("standin") if self.bundled else None,
+            "budget_density": self.budget_density,
             "notes": list(self.notes),
         }
