@@ -626,9 +626,25 @@ def check_artefacts(root: str | os.PathLike, record: Mapping[str, Any], imported
             continue
         checked += 1
         if not p.is_file():
+            p = package_file(p) or p
+        if not p.is_file():
             out.append(f"{role} {p}: missing")
             continue
         now = sha256_file(p)
         if now != a["sha256"]:
             out.append(f"{role} {p}: changed (recorded sha256 {a['sha256'][:12]}, now {now[:12]})")
     return out, checked
+
+
+def package_file(path: Path) -> Path | None:
+    """The file of this ``lmgs_eval`` checkout at the place ``path`` had in the checkout it was
+    recorded from (the bundled metric weights: a record made in another clone or worktree names
+    that one's absolute path); None when ``path`` is not inside an ``lmgs_eval`` folder or this
+    checkout lacks the file. The caller still compares the sha256, so a different file is caught.
+    """
+    parts = Path(path).parts
+    if "lmgs_eval" not in parts:
+        return None
+    i = len(parts) - 1 - parts[::-1].index("lmgs_eval")
+    here = Path(__file__).resolve().parent.joinpath(*parts[i + 1:])
+    return here if here.is_file() else None

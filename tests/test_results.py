@@ -330,6 +330,28 @@ def test_verify_catches_changed_render_and_missing_weights(tmp_path, capsys):
     assert "1 of 4 records" in out
 
 
+def test_verify_finds_the_bundled_weights_of_a_record_made_in_another_checkout(tmp_path, capsys):
+    """A record made in another clone names that clone's weights; verify hashes this clone's file
+    at the same place in the package (same bytes: unchanged; other bytes: changed)."""
+    import lmgs_eval
+
+    ours = Path(lmgs_eval.__file__).resolve().parent / "metrics" / "weights" / "bundled_sync.onnx"
+    elsewhere = tmp_path / "gone" / "clone" / "lmgs_eval" / "metrics" / "weights" / "bundled_sync.onnx"
+    recs = fixture_records()[:1]
+    recs[0]["artefacts"] = {"weights:sync": {"path": str(elsewhere), "sha256": R.sha256_file(ours)}}
+    write_store(tmp_path / "a", recs)
+    assert cli_main(["verify", str(tmp_path / "a")]) == 0
+    assert "1 artefacts checked: all inputs unchanged" in capsys.readouterr().out
+    recs[0]["artefacts"]["weights:sync"]["sha256"] = "0" * 64
+    write_store(tmp_path / "b", recs)
+    assert cli_main(["verify", str(tmp_path / "b")]) == 1
+    assert f"weights:sync {ours}: changed (recorded sha256 000000000000" in capsys.readouterr().out
+    recs[0]["artefacts"]["weights:sync"]["path"] = str(tmp_path / "gone" / "lmgs_eval" / "no-such.onnx")
+    write_store(tmp_path / "c", recs)
+    assert cli_main(["verify", str(tmp_path / "c")]) == 1
+    assert "no-such.onnx: missing" in capsys.readouterr().out
+
+
 def test_verify_of_a_missing_store_is_a_user_error(tmp_path, capsys):
     assert cli_main(["verify", str(tmp_path / "nope")]) == 2
     assert "nope" in capsys.readouterr().err
