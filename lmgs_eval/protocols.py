@@ -347,11 +347,12 @@ def _config_value(config, key: str):
 def budget_notes(info, subject) -> list[str]:
     """A record's note when its method was sized by the subject's own knee density."""
     from lmgs.presets import TrainConfig
+    from lmgs_eval.results import BUDGET_NOTE
 
     d = getattr(subject, "budget_density", None)
     if d is None or _config_value(info.config, "budget_density") != d:
         return []
-    return [f"Gaussian budget: {d:g} per pixel of face area, this subject's capacity knee (lmgs_eval.data.registry."
+    return [f"{BUDGET_NOTE}{d:g} per pixel of face area, this subject's capacity knee (lmgs_eval.data.registry."
             f"KNEE_DENSITY), not the quick preset's {TrainConfig.budget_density:g}; every method sized by face area "
             "takes it on this subject"]
 

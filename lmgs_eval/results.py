@@ -556,6 +556,8 @@ def snapshot_records(records: Iterable[Mapping[str, Any]], dst: str | os.PathLik
 
 
 # The self protocol notes how many face points Spatial Enhancement selected (lmgs and its variants).
+# A record's note when its method was sized by the subject's own knee density (protocols.budget_notes).
+BUDGET_NOTE = "Gaussian budget: "
 SE_NOTE = "spatial enhancement selected {pct:.1f}% of face points on average"
 _SE_NOTE_RE = re.compile(re.escape(SE_NOTE).replace(re.escape("{pct:.1f}"), "([0-9.]+)"))
 

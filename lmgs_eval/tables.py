@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from lmgs_eval.results import se_fraction
+from lmgs_eval.results import BUDGET_NOTE, se_fraction
 from lmgs_eval.stats import ALPHA, CI, bootstrap_ci_seeds, mean_over_seeds, paired_test
 
 Record = dict[str, Any]
@@ -571,6 +571,16 @@ def _common_notes(records: Sequence[Record], columns: Sequence[Column], methods:
         if s["bundled"] or s["standin"]:
             notes.append(f"Subject {s['name']}: {'bundled, synthetic' if s['bundled'] else 'stand-in'}"
                          f"{': ' + s['standin'] if s['standin'] else ''} (not a real recording).")
+        sized: dict[str, list[str]] = {}  # the subject's own Gaussian budget, and the rows that used it
+        for q in records:
+            for n in q.get("notes") or ():
+                if q["subject"]["name"] == s["name"] and n.startswith(BUDGET_NOTE):
+                    names = sized.setdefault(n, [])
+                    label = q["method"]["display_name"] or q["method"]["name"]
+                    if label not in names:
+                        names.append(label)
+        for n, names in sized.items():
+            notes.append(f"Subject {s['name']}: {n} ({', '.join(sorted(names))}).")
     if methods:
         done = set()
         for r in sorted(records, key=lambda r: r["method"]["name"]):

@@ -145,6 +145,24 @@ def test_footnotes_name_standins_backends_and_descriptions():
     assert "Cost measured on Test CPU, 2 threads, no GPU." in md
 
 
+def test_a_subject_own_gaussian_budget_is_named_with_the_rows_that_used_it():
+    from lmgs_eval.results import BUDGET_NOTE
+
+    recs = fixture_records()
+    note = f"{BUDGET_NOTE}0.55 per pixel of face area, this subject's capacity knee"
+    for r in recs:
+        if r["method"]["name"] in ("lmgs", "talkinggaussian"):
+            r["notes"] = [note]
+    other = copy.deepcopy([r for r in recs if r["method"]["name"] == "lmgs" and r["protocol"]["name"] == "self"])
+    for r in other:  # another subject, at the preset's budget: nothing to say
+        r["subject"] = dict(r["subject"], name="may", bundled=False, standin=None)
+        r["notes"] = []
+    md = T.table_self(recs + other).markdown()
+    assert f"- Subject astronaut: {note} (Ours (lmgs), TalkingGaussian)." in md
+    assert md.count(BUDGET_NOTE) == 1
+    assert BUDGET_NOTE not in T.table_self(fixture_records()).markdown()
+
+
 def test_per_subject_sections():
     recs = fixture_records()
     other = []
