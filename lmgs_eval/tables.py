@@ -843,12 +843,13 @@ def table_stability(records: Sequence[Record], metric: str = "lse_c", clean: str
     cols = [Column(f"{c}.{metric}", c, metric, "metric", None, digits, rank=False) for c in conds]
     cols.append(Column("failures", "failed runs", "failures", "text"))
     cols.append(Column("suite_min", "suite wall (min)", "suite_min", "text"))
-    sections = []
+    sections, absolute = [], set()
     for subject, recs in _by_subject(use).items():
         rows = sorted(_rows(recs), key=_order)
         for row in rows:
             row.ranked = False
-            base = metric_cell([r for r in row.records if r["protocol"]["clip"] == clean and is_ok(r)], metric)
+            clean_ok = [r for r in row.records if r["protocol"]["clip"] == clean and is_ok(r)]
+            base = metric_cell(clean_ok, metric)
             n_fail = 0
             for c in conds:
                 here = [r for r in row.records if r["protocol"]["clip"] == c]
@@ -857,6 +858,9 @@ def table_stability(records: Sequence[Record], metric: str = "lse_c", clean: str
                 cell = metric_cell([r for r in here if is_ok(r)], metric)
                 if cell.mean is not None and base.mean is not None:
                     cell.mean -= base.mean
+                    cell.ci = None
+                elif cell.mean is not None and clean_ok:
+                    absolute.add(c)  # not measured on the clean clip (mouth opening in silence): the value itself
                     cell.ci = None
                 elif cell.mean is not None:
                     cell.mean = None
@@ -871,8 +875,11 @@ def table_stability(records: Sequence[Record], metric: str = "lse_c", clean: str
             row.cells["suite_min"] = Cell(text=f"{sum(walls) / 60:.1f}" if all(w is not None for w in walls) else "–")
         sections.append(Section(_subject_title(recs), rows))
     arrow = "↑" if hib else "↓"
+    notes = _common_notes(use, _metric_cols([metric]), methods=False)
+    if absolute:
+        notes.append(f"{', '.join(sorted(absolute))}: {label} itself, not a change: it is not measured on the clean clip.")
     return Table(f"stability_{metric}", f"Stability: change of {label}{arrow} from the clean condition", cols,
-                 sections, _common_notes(use, _metric_cols([metric]), methods=False))
+                 sections, notes)
 
 
 # The paper's Table I (self-driven, mean over Obama, May and Lieu): PSNR, LPIPS, LMD, LSE-D, LSE-C.

@@ -283,6 +283,13 @@ def test_stability_and_status_tables():
     tg = _row(md, "TalkingGaussian")
     assert tg[1] == "1 failed: out of memory" and tg[4] == "1"
     assert tg[2].startswith("-0.8") and tg[3].startswith("-4.0")
+    # a metric only the silence condition has (mouth opening): its value itself, said so; no clean run at all: said so
+    sil = next(r for r in recs if r["method"]["name"] == "talkinggaussian" and r["protocol"]["clip"] == "silence")
+    sil["metrics"]["silence_open"] = dict(sil["metrics"]["lse_c"], value=2.5, per_item=None, higher_is_better=False)
+    md = T.table_stability(recs, "silence_open").markdown()
+    assert _row(md, "TalkingGaussian")[3].startswith("2.5") and "silence: " in md and "not measured on the clean clip" in md
+    no_clean = [r for r in copy.deepcopy(recs) if not (r["protocol"]["name"] == "stress" and r["protocol"]["clip"] == "clean")]
+    assert _row(T.table_stability(no_clean, "silence_open").markdown(), "TalkingGaussian")[3] == "no clean run"
     st = T.table_status(recs).markdown()
     assert _row(st, "TalkingGaussian")[1] == "7 ok, 1 failed: out of memory (stress:long-300s); paper's order 10/10"
     assert _row(st, "ER-NeRF")[1] == "ok (4); paper's order 10/10"
