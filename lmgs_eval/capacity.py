@@ -154,9 +154,8 @@ def run_capacity(cfg: RunConfig, budgets: Sequence[int] = DEFAULT_BUDGETS) -> li
     records, trained = [], []
     for n in budgets:
         for seed in cfg.seeds:
-            over = {**base, "train.budget_density": exact.get(n, round(n / area, 6))}
-            if n == default:
-                over = {**base}  # the default: as every other protocol builds it
+            # the default as every other protocol builds it; any other budget at its density
+            over = {**base} if n == default else {**base, "train.budget_density": exact.get(n, round(n / area, 6))}
             opts = {**{k: v for k, v in cfg.method_options.items() if k != "overrides"}, "overrides": over, "preset": cfg.preset}
             method = create_method("lmgs", subject=subject, **opts)
             info = method.describe()

@@ -562,6 +562,12 @@ def _common_notes(records: Sequence[Record], columns: Sequence[Column], methods:
         if standins:
             note += f"; STAND-IN: {'; '.join(x.rstrip('.') for x in sorted(standins))}"
         notes.append(note + ".")
+    # a subject's own Gaussian budget (a record note), and the rows that used it
+    sized: dict[tuple[str, str], set[str]] = defaultdict(set)
+    for r in records:
+        for n in r.get("notes") or ():
+            if n.startswith(BUDGET_NOTE):
+                sized[(r["subject"]["name"], n)].add(r["method"]["display_name"] or r["method"]["name"])
     seen = set()
     for r in records:
         s = r["subject"]
@@ -571,16 +577,9 @@ def _common_notes(records: Sequence[Record], columns: Sequence[Column], methods:
         if s["bundled"] or s["standin"]:
             notes.append(f"Subject {s['name']}: {'bundled, synthetic' if s['bundled'] else 'stand-in'}"
                          f"{': ' + s['standin'] if s['standin'] else ''} (not a real recording).")
-        sized: dict[str, list[str]] = {}  # the subject's own Gaussian budget, and the rows that used it
-        for q in records:
-            for n in q.get("notes") or ():
-                if q["subject"]["name"] == s["name"] and n.startswith(BUDGET_NOTE):
-                    names = sized.setdefault(n, [])
-                    label = q["method"]["display_name"] or q["method"]["name"]
-                    if label not in names:
-                        names.append(label)
-        for n, names in sized.items():
-            notes.append(f"Subject {s['name']}: {n} ({', '.join(sorted(names))}).")
+        for (name, n), labels in sized.items():
+            if name == s["name"]:
+                notes.append(f"Subject {name}: {n} ({', '.join(sorted(labels))}).")
     if methods:
         done = set()
         for r in sorted(records, key=lambda r: r["method"]["name"]):

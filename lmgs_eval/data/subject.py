@@ -68,8 +68,9 @@ class Subject:
     def budget_density(self) -> float | None:
         """Gaussians per face pixel at this subject's capacity knee, when it is not the preset's.
 
-        Set for the bundled subjects whose measured knee is not at the quick preset's density (:data:`lmgs_eval.data.registry.KNEE_DENSITY`); None otherwise. Methods that
-        size their Gaussians by face area take it (:func:`lmgs_eval.methods.create_method`).
+        Set for the bundled subjects whose measured knee is not at the quick preset's density
+        (:data:`lmgs_eval.data.registry.KNEE_DENSITY`); None otherwise. Methods that size their
+        Gaussians by face area take it (:func:`lmgs_eval.methods.create_method`).
         """
         from lmgs_eval.data.registry import knee_density
 
