@@ -226,20 +226,9 @@ def _run_parallel(cfg: RunConfig, pairs, conditions, max_minutes: float, long_se
     import dataclasses
     import multiprocessing
     import os
-    import pickle
     from concurrent.futures import ProcessPoolExecutor
 
-    from lmgs_eval import methods
-
-    methods._load_builtin()
-    shipped = {}  # methods registered at run time (not by an import) go to the workers with the task
-    for name in cfg.methods:
-        factory = methods._REGISTRY.get(name)
-        try:
-            pickle.dumps(factory)  # a class goes by reference; a built-in's lambda does not pickle
-            shipped[name] = factory
-        except Exception:
-            shipped[name] = None  # a built-in: the worker registers it by importing its module
+    shipped = _ship(cfg.methods)
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     threads = max(1, cores // jobs)
     note = (f"run with --jobs {jobs} ({threads} thread(s) each): beside other methods' stress runs, so its FPS "
@@ -273,6 +262,40 @@ def _run_parallel(cfg: RunConfig, pairs, conditions, max_minutes: float, long_se
     return records, messages
 
 
+def _ship(names) -> dict:
+    """What a spawned worker needs to build methods registered at run time (not by an import).
+
+    name -> (factory, scene_budget) for such a method, so that in a worker it takes a subject's
+    knee density as a serial run does; None for a built-in (the worker registers it, flag and
+    all, by importing its module: a built-in's lambda does not pickle, a class goes by reference).
+    """
+    import pickle
+
+    from lmgs_eval import methods
+
+    methods._load_builtin()
+    shipped = {}
+    for name in names:
+        factory = methods._REGISTRY.get(name)
+        try:
+            pickle.dumps(factory)
+            shipped[name] = (factory, name in methods._SCENE_BUDGET)
+        except Exception:
+            shipped[name] = None
+    return shipped
+
+
+def _adopt(shipped: dict) -> None:
+    """In a worker: register what :func:`_ship` sent, with its flag."""
+    from lmgs_eval import methods
+
+    methods._load_builtin()
+    for name, item in shipped.items():
+        if item is not None and name not in methods._REGISTRY:
+            factory, scene_budget = item
+            methods.register(name, scene_budget=scene_budget)(factory)
+
+
 def _worker_init(threads: int) -> None:
     import torch
 
@@ -280,13 +303,8 @@ def _worker_init(threads: int) -> None:
 
 
 def _worker(cfg: RunConfig, conditions, max_minutes: float, long_seconds: float, note: str,
-            factories: dict) -> tuple[list[dict], list[str]]:
-    from lmgs_eval import methods
-
-    methods._load_builtin()
-    for name, factory in factories.items():
-        if factory is not None and name not in methods._REGISTRY:
-            methods._REGISTRY[name] = factory
+            shipped: dict) -> tuple[list[dict], list[str]]:
+    _adopt(shipped)
     ctx = _context(cfg, long_seconds)
     conds = _selected(ctx["conds"], conditions)
     (name,), (seed,) = cfg.methods, cfg.seeds

@@ -190,6 +190,33 @@ def test_jobs_run_the_suites_in_worker_processes_with_the_same_results(monkeypat
         run_stress(cfg, conds, jobs=0)
 
 
+class ToySized(_Toy):  # sized by face area, like the lmgs backbone family
+    mode = "sized"
+
+    def __init__(self, preset: str = "quick", budget_density=None, **_):
+        super().__init__(preset)
+        self.budget_density = budget_density
+
+
+def test_a_method_registered_at_run_time_keeps_its_scene_budget_flag_in_a_worker(monkeypatch):
+    import pickle
+    import types
+
+    from lmgs_eval import stress as stress_mod
+
+    monkeypatch.setitem(methods._REGISTRY, "toy-sized", ToySized)
+    monkeypatch.setattr(methods, "_SCENE_BUDGET", methods._SCENE_BUDGET | {"toy-sized"})
+    shipped = pickle.loads(pickle.dumps(stress_mod._ship(("toy-sized", "lmgs"))))  # as the pool sends it
+    assert shipped["lmgs"] is None  # a built-in is registered (flag and all) by the worker's import
+    # a fresh worker process: the run-time method is neither registered nor flagged there
+    monkeypatch.delitem(methods._REGISTRY, "toy-sized")
+    monkeypatch.setattr(methods, "_SCENE_BUDGET", methods._SCENE_BUDGET - {"toy-sized"})
+    stress_mod._adopt(shipped)
+    knee = types.SimpleNamespace(budget_density=0.55)
+    assert methods.create_method("toy-sized", subject=knee).budget_density == 0.55  # as a serial run
+    assert methods.create_method("toy-sized", subject=knee, budget_density=0.3).budget_density == 0.3
+
+
 class ToyCached(_Toy):  # a method whose model is already trained: fit() does not read the clip
     mode = "cached"
 
