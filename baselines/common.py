@@ -41,6 +41,26 @@ def preset_of(cls, name: str):
     return maker()
 
 
+def configured(cls, preset: str, options: dict, method: str):
+    """The preset's schedule (``cls.<preset>()``) with ``options`` applied.
+
+    Options name the schedule's fields (``budget_density=0.5``), or come from the CLI's ``--set``
+    as ``overrides={"train.budget_density": 0.5}`` (the ``train.`` prefix of lmgs's keys is
+    accepted; a ``--set`` value wins over a field given directly). An unknown name is a one-line
+    error listing the method's settings.
+    """
+    budget = preset_of(cls, preset)
+    changes = {k: v for k, v in options.items() if k != "overrides"}
+    for key, value in (options.get("overrides") or {}).items():
+        changes[key.removeprefix("train.")] = value
+    fields = sorted(f.name for f in dataclasses.fields(budget))
+    unknown = sorted(set(changes) - set(fields))
+    if unknown:
+        raise InputError(f"method '{method}' has no setting {', '.join(repr(k) for k in unknown)}; "
+                         f"its settings: {', '.join(fields)}")
+    return dataclasses.replace(budget, **changes) if changes else budget
+
+
 def audio_windows(audio: np.ndarray, n_frames: int) -> torch.Tensor:
     """Log-mel windows ``[T, 16, 80]`` for ``n_frames`` frames (silence-padded, never truncated)."""
     from lmgs.audio import compute_features
@@ -186,8 +206,7 @@ class Adapter:
     standins: tuple[str, ...] = ()
 
     def __init__(self, preset: str = "quick", device: str | None = None, **overrides):
-        budget = preset_of(self.budget_cls, preset)
-        self.cfg = dataclasses.replace(budget, **overrides) if overrides else budget
+        self.cfg = configured(self.budget_cls, preset, overrides, self.name)
         self.preset = preset
         self.device = device
         self.model = None

@@ -32,12 +32,12 @@ from torch import nn
 from baselines.common import (
     Adapter,
     audio_windows,
+    configured,
     cost_of,
     driving_background,
     driving_w2c,
     mean_background,
     n_frames_of,
-    preset_of,
     progress_bar,
     seed_all,
     to_u8,
@@ -97,9 +97,7 @@ class LMGSConfigMethod:
         from lmgs.presets import quick
 
         self.preset = preset
-        self.budget = preset_of(GSBudget, preset)
-        if overrides:
-            self.budget = dataclasses.replace(self.budget, **overrides)
+        self.budget = configured(GSBudget, preset, overrides, self.name)
         t = self.budget
         cfg = quick()
         train = dataclasses.replace(cfg.train, static_steps=t.static_steps, dynamic_steps=t.dynamic_steps,

@@ -60,7 +60,7 @@ def pareto_front(xs: Sequence[float], ys: Sequence[float], x_higher: bool = True
 
 def _points(records: Sequence[dict[str, Any]], cost_key: str, metric: str) -> list[dict[str, Any]]:
     use = [r for r in records if r["protocol"]["name"] == "self" and T.is_ok(r) and not T.is_variant(r)
-           and r["method"]["family"] not in ("control", "ground-truth")]
+           and r["method"]["family"] not in ("control", "ground-truth", "reference")]
     pts = []
     for subject, recs in T._by_subject(use).items():
         for row in T._rows(recs):
@@ -314,7 +314,7 @@ def render_sheets(records: Sequence[dict[str, Any]], root: str | Path, out_dir: 
     root, out_dir = Path(root), Path(out_dir)
     by_subject: dict[str, dict[str, dict]] = {}
     for r in records:
-        if r["protocol"]["name"] != "self" or not T.is_ok(r) or T.is_variant(r):
+        if r["protocol"]["name"] != "self" or not T.is_ok(r) or T.is_variant(r) or r["method"]["family"] == "reference":
             continue
         row = by_subject.setdefault(r["subject"]["name"], {})
         name = r["method"]["name"]

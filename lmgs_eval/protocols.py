@@ -526,6 +526,7 @@ def run_self(cfg: RunConfig) -> list[dict]:
         store.write_record(cfg.results, rec)
         records.append(rec)
 
+    records += run_plate_reference(cfg, subject, test)
     records += run_controls(cfg, subject, gt, test.audio, train.audio)
 
     for name in cfg.methods:
@@ -543,6 +544,53 @@ def run_self(cfg: RunConfig) -> list[dict]:
             records.append(fit_render_score(cfg, method, subject, seed, train, driving, gt,
                                             f"{renders_dir}/{render_stem(info, seed)}.mp4"))
     return records
+
+
+PLATE_VERSION = "1"
+PLATE_DESCRIPTION = (
+    "the test frames inside the subject's head mask (parsing, head colour) composited on its plate (torso_imgs over "
+    "bc.jpg) outside it, as every method's head is: what a renderer drawing the head exactly, and nothing outside "
+    "the head mask, would score. Well below the Ground Truth, it says the frames show something outside the head "
+    "that the plate does not (a method that also paints there can score above it)")
+
+
+def plate_composite(clip) -> np.ndarray | None:
+    """``uint8 [N, H, W, 3]``: the clip's frames inside its head masks, its plate outside (None without masks)."""
+    if clip.head_masks is None:
+        return None
+    return np.where(clip.head_masks[..., None], clip.frames, clip.backgrounds)
+
+
+def plate_reference_psnr(subject) -> float | None:
+    """Mean PSNR (dB) of :func:`plate_composite` on the test split, or None without head masks."""
+    from lmgs_eval.methods import subject_to_clip
+    from lmgs_eval.metrics.image import psnr
+
+    test = subject_to_clip(subject, subject.test_ids)
+    frames = plate_composite(test)
+    return None if frames is None else float(psnr(frames / 255.0, test.frames / 255.0).value)
+
+
+def run_plate_reference(cfg: RunConfig, subject, test) -> list[dict]:
+    """Table I's reference row "GT head on plate" (skipped without head masks or when in the store)."""
+    from lmgs_eval import results as store
+    from lmgs_eval.methods import MethodInfo
+
+    info = MethodInfo("plate-reference", "GT head on plate", "reference", PLATE_DESCRIPTION,
+                      config={"version": PLATE_VERSION}, config_hash=f"plate-v{PLATE_VERSION}")
+    if not cfg.force and store.find_record(cfg.results, info.name, subject.name, "self", "test", 0, info.config_hash):
+        return []
+    frames = plate_composite(test)
+    if frames is None:
+        log(f"no head masks (parsing/) in {subject.name}: no 'GT head on plate' reference row")
+        return []
+    log("scoring the ground truth's head on the plate (reference row)")
+    res = score_clip(frames, test.frames, test.audio)
+    art = {"render": _write_render(cfg.results, f"renders/{subject.name}/plate-reference.mp4", frames, test.audio)}
+    rec = build_record(info=info, subject=subject, protocol="self", clip="test", split="test", n_frames=len(frames),
+                       seed=0, metrics=metrics_block(res), cost={}, artefacts=art, notes=list(subject.notes))
+    store.write_record(cfg.results, rec)
+    return [rec]
 
 
 def fit_render_score(cfg: RunConfig, method, subject, seed: int, train, driving: DrivingAudio, gt: np.ndarray, render_rel: str,

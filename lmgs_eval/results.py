@@ -71,7 +71,7 @@ from lmgs_eval.errors import UserError
 from lmgs_eval.paths import atomic_dir, atomic_write_text
 
 SCHEMA_VERSION = "1"
-FAMILIES = ("2D", "NeRF", "3DGS", "external", "ground-truth", "control")
+FAMILIES = ("2D", "NeRF", "3DGS", "external", "ground-truth", "reference", "control")
 PROTOCOLS = ("self", "cross", "stress", "calibration", "capacity")
 
 _STR = {"type": "string"}

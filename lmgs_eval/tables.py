@@ -54,8 +54,10 @@ METRICS: dict[str, tuple[str, bool, int]] = {
     "jitter": ("Jitter (px)", False, 3),
     "silence_open": ("Open in silence (px)", False, 2),
 }
-FAMILY_ORDER = ("ground-truth", "2D", "NeRF", "3DGS", "external", "control")
+FAMILY_ORDER = ("ground-truth", "reference", "2D", "NeRF", "3DGS", "external", "control")
 OURS = "lmgs"
+UNRANKED = ("ground-truth", "reference")
+"""Table I's rows above the rule: the ground truth and the protocol's reference composite."""
 TIE = "†"
 MIXED = "‡"
 BUSY = "§"
@@ -635,9 +637,9 @@ def table_self(records: Sequence[Record], metrics: Sequence[str] = ("psnr", "lpi
         rows = sorted(_rows(recs), key=_order)
         for k, row in enumerate(rows):
             _fill(row, cols)
-            row.ranked = row.family != "ground-truth"
-            row.rule_before = (row.method == OURS) or (k > 0 and rows[k - 1].family == "ground-truth")
-            if row.family == "ground-truth":
+            row.ranked = row.family not in UNRANKED
+            row.rule_before = (row.method == OURS) or (row.ranked and k > 0 and rows[k - 1].family in UNRANKED)
+            if row.family in UNRANKED:
                 for c in COST_COLUMNS:
                     row.cells.pop(c.id, None)
         sec = Section(_subject_title(recs), rows)

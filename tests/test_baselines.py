@@ -198,6 +198,28 @@ def test_lmgs_configured_baselines_train_with_their_budget_density(name):
     assert other.describe().config_hash != base.describe().config_hash
 
 
+@pytest.mark.parametrize("name,field,value", [("talkinggaussian", "budget_density", 0.2), ("gaussiantalker", "budget_density", 0.2),
+                                              ("ernerf", "steps", 10), ("wav2lip", "steps", 10)])
+def test_the_clis_set_reaches_a_baselines_schedule_and_an_unknown_key_is_one_line(name, field, value):
+    # `lmgs-eval self --method NAME --set KEY=VALUE` hands the method overrides={KEY: VALUE} (it raised a TypeError)
+    from types import SimpleNamespace
+
+    from lmgs.errors import InputError
+    from lmgs_eval.commands._common import parse_overrides
+
+    want = create_method(name, preset="quick", **{field: value}).describe()
+    assert want.config_hash != create_method(name, preset="quick").describe().config_hash
+    for key in (field, f"train.{field}"):
+        assert create_method(name, preset="quick", **parse_overrides([f"{key}={value}"])).describe().config_hash == \
+            want.config_hash, key
+    if field == "budget_density":  # --set wins over a subject's knee density
+        knee = SimpleNamespace(budget_density=0.55)
+        assert create_method(name, subject=knee, preset="quick", **parse_overrides([f"train.{field}={value}"])) \
+            .describe().config_hash == want.config_hash
+    with pytest.raises(InputError, match=f"method '{name}' has no setting 'nope'; its settings: .*{field}"):
+        create_method(name, preset="quick", **parse_overrides(["nope=1"]))
+
+
 def test_a_subject_knee_density_reaches_every_method_sized_by_face_area_and_no_other():
     """Every method whose config has a budget density is registered as sized by face area (so a
     subject's knee cannot miss one of them), takes the subject's density, and an explicit one wins."""

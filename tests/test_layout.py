@@ -206,3 +206,19 @@ def test_cli_broken_subject_is_listed_not_fatal(tmp_path):
     rc, out, _ = run_cli("subjects", "--json", "--data-root", str(tmp_path))
     rows = {r["name"]: r for r in json.loads(out)["subjects"]}
     assert rc == 0 and rows["broken"]["status"].startswith("error:")
+
+
+def test_cli_prepare_reports_the_ground_truth_head_on_the_plate(tmp_path):
+    import cv2
+
+    info = make_ernerf_folder(tmp_path / "mine")
+    size = info["size"]
+    for i in range(info["n"]):
+        p = np.full((size, size, 3), 255, np.uint8)
+        p[:, : size // 2] = (0, 0, 255)  # parsing's head colour (BGR red) on the left half
+        cv2.imwrite(str(tmp_path / "mine" / "parsing" / f"{i}.png"), p)
+    rc, out, err = run_cli("prepare", "--subject", str(tmp_path / "mine"))
+    # the left half is the frame (uniform 40 + 10 i), the right half the plate: bc.jpg (black), no torso_imgs
+    want = np.mean([10 * np.log10(255**2 / ((40 + 10 * i) ** 2 / 2)) for i in range(info["cut"], info["n"])])
+    assert rc == 0, err
+    assert f"PSNR {want:.2f} dB" in out and "GT head on plate" in out

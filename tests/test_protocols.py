@@ -37,7 +37,7 @@ def test_self_writes_valid_records_renders_and_rows(store):
         "control:gt-other-audio", "control:still-frame"]
     assert all(r["protocol"]["name"] == "calibration" and r["method"]["control"]["targets"] for r in controls)
     by = {r["method"]["name"]: r for r in records if r["method"]["family"] != "control"}
-    assert set(by) == {"ground-truth", "lmgs"}
+    assert set(by) == {"ground-truth", "plate-reference", "lmgs"}
     for r in by.values():
         render = root / r["artefacts"]["render"]["path"]
         assert render.exists() and render.stat().st_size > 0
@@ -56,6 +56,34 @@ def test_self_writes_valid_records_renders_and_rows(store):
     assert 0 < lm["metrics"]["psnr"]["value"] < 100 and by["ground-truth"]["metrics"]["psnr"]["value"] == 100.0
     assert by["ground-truth"]["metrics"]["lpips"]["value"] == pytest.approx(0.0, abs=1e-6)
     assert "Ground Truth" in out and "Ours (lmgs)" in out
+
+
+def test_the_plate_reference_row_is_the_ground_truth_head_on_the_subjects_plate(store):
+    # recomputed from the subject's files (parsing, torso_imgs, bc.jpg, gt_imgs) with skimage's PSNR
+    from skimage.metrics import peak_signal_noise_ratio
+
+    from lmgs_eval.data.io import to_u8
+    from lmgs_eval.data.registry import find_subject
+
+    root, out, _ = store
+    ref = next(r for r in load_records(root)[0] if r["method"]["name"] == "plate-reference")
+    assert ref["method"]["family"] == "reference" and ref["protocol"]["name"] == "self"
+    subject = find_subject(SUBJECT, None, progress=False)
+    bc = subject.background()
+    want = []
+    for i in subject.test_ids:
+        gt = to_u8(subject.frame(i))
+        torso = subject.torso(i)
+        plate = to_u8(torso[..., :3] * torso[..., 3:] + bc * (1 - torso[..., 3:]))
+        head = np.all(subject.parsing(i) == (255, 0, 0), axis=-1)
+        assert 0 < head.mean() < 1
+        comp = np.where(head[..., None], gt, plate)
+        want.append(peak_signal_noise_ratio(gt, comp, data_range=255))
+    assert ref["metrics"]["psnr"]["value"] == pytest.approx(np.mean(want), abs=1e-6)
+    assert ref["metrics"]["psnr"]["value"] < 100
+    assert "GT head on plate" in out
+    lines = out.splitlines()
+    assert [k for k, l in enumerate(lines) if "Ground Truth" in l][0] < [k for k, l in enumerate(lines) if "GT head on plate" in l][0]
 
 
 def test_rerun_is_skipped_and_resumes(store):

@@ -163,6 +163,24 @@ def test_a_subject_own_gaussian_budget_is_named_with_the_rows_that_used_it():
     assert BUDGET_NOTE not in T.table_self(fixture_records()).markdown()
 
 
+def test_the_plate_reference_row_sits_under_the_ground_truth_unranked():
+    from test_results import N_ITEMS, metric
+
+    ref = record("plate-reference", "GT head on plate", "reference", 0, {
+        "psnr": metric("psnr", items(24.8, 0.5, 950)), "lpips": metric("lpips", [0.001] * N_ITEMS),
+        "lmd": metric("lmd", [0.0] * N_ITEMS)}, description="the frames' head composited on the plate", cost={"fps": 999.0})
+    recs = fixture_records() + [ref]
+    md = T.table_self(recs).markdown()
+    labels = [line.split("|")[1].strip() for line in md.splitlines() if line.startswith("| ") and "---" not in line]
+    assert labels[1:3] == ["Ground Truth", "GT head on plate"] and labels[-1] == "Ours (lmgs)"
+    row = _row(md, "GT head on plate")
+    assert row[1] == "24.80" and row[2] == "0.0010" and row[6] == "–"  # unranked (its LPIPS beats all), no cost
+    assert _row(md, "Ours (lmgs)")[2].startswith("**")  # the best method is still bolded
+    assert "GT head on plate (reference): the frames' head composited on the plate" in md
+    assert "GT head on plate" not in T.table_calibration(recs).markdown()
+    assert not any(p["label"] == "GT head on plate" for p in C._points(recs, "fps", "psnr"))
+
+
 def test_per_subject_sections():
     recs = fixture_records()
     other = []

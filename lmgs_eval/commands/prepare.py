@@ -48,6 +48,12 @@ def run(args: argparse.Namespace) -> int:
     if subject.budget_density is not None:
         print(f"  Gaussian budget: {subject.budget_density:g} per face pixel for the methods sized by face area "
               "(this subject's capacity knee, not the quick preset's)")
+    from lmgs_eval.protocols import plate_reference_psnr
+
+    ceiling = plate_reference_psnr(subject)
+    if ceiling is not None:
+        print(f"  plate: the test frames' head (parsing) composited on the plate (torso_imgs over bc.jpg) scores PSNR "
+              f"{ceiling:.2f} dB: the best a renderer drawing only the head can reach here (Table I's 'GT head on plate')")
     for note in subject.notes:
         print(f"  note: {note}")
     if args.preview:
