@@ -302,8 +302,9 @@ def fit(
         if use_geo and dynamic:
             ref_d = torch.from_numpy(clip.depth[i].astype(np.float32)).to(dev)
             ref_n = torch.from_numpy(clip.normal[i].astype(np.float32) / 127.0).to(dev)
-            loss = loss + losses.geometry(r.depth, r.normal, r.face_alpha, ref_d, ref_n, t.lambda_depth, t.lambda_normal,
-                                          t.normal_reduce)
+            ramp = gr_ramp(step - t.static_steps, t.gr_warmup)
+            loss = loss + losses.geometry(r.depth, r.normal, r.face_alpha, ref_d, ref_n, ramp * t.lambda_depth,
+                                          ramp * t.lambda_normal, t.normal_reduce)
         if lip_boxes is not None and dynamic and t.lambda_lips > 0:
             y0, y1, x0, x1 = lip_boxes[i]
             loss = loss + t.lambda_lips * (r.rgb[y0:y1, x0:x1] - gt[y0:y1, x0:x1]).abs().mean()
@@ -312,6 +313,7 @@ def fit(
             if bar is not None:
                 bar.close()
             where = f"; the last good checkpoint is {ckpt}" if ckpt is not None and ckpt.exists() else ""
+            _write_failed_curve(workdir, curve_rows, step, dynamic, loss_value, r, gt)
             raise TrainingDiverged(f"loss became non-finite at step {step} (frame {i}){where}")
         ratio = guard.update(loss_value, "dynamic" if dynamic else "static")
         if ratio is not None:
@@ -322,6 +324,9 @@ def fit(
                 where = f"; the last checkpoint (step {saved_at}) is {ckpt}"
                 if step - saved_at < guard.window:
                     where += f" (written less than {guard.window} steps before: it may already hold the collapse)"
+            if workdir is not None:
+                _write_failed_curve(workdir, curve_rows, step, dynamic, loss_value, r, gt)
+                where += f"; the training curve up to it is {Path(workdir) / 'curve.png'}"
             raise TrainingDiverged(
                 f"training collapsed at step {step} ({'dynamic' if dynamic else 'static'} stage): the mean loss of the last "
                 f"{guard.window} steps is {ratio:.1f}x the lowest earlier in the stage (training PSNR {_psnr(r.rgb.detach(), gt):.1f} dB)"
@@ -362,6 +367,22 @@ def fit(
         if ckpt is not None and ckpt.exists():
             ckpt.unlink()
     return model, report
+
+
+def _write_failed_curve(workdir, rows: list[dict], step: int, dynamic: bool, loss_value: float, r, gt) -> None:
+    """The curve of a stopped run, up to the step that stopped it, for the user to look at."""
+    if workdir is None:
+        return
+    last = {"step": step, "stage": "dynamic" if dynamic else "static", "loss": loss_value,
+            "psnr": _psnr(r.rgb.detach(), gt) if math.isfinite(loss_value) else float("nan"),
+            "n_face": rows[-1]["n_face"] if rows else 0, "n_mouth": rows[-1]["n_mouth"] if rows else 0,
+            "se_fraction": r.se_fraction, "seconds": rows[-1]["seconds"] if rows else 0.0}
+    write_curve(Path(workdir), [*rows, last])
+
+
+def gr_ramp(dynamic_step: int, warmup: int) -> float:
+    """Weight factor of the Geometry Regularizer at step ``dynamic_step`` (0-based) of the dynamic stage."""
+    return 1.0 if warmup <= 0 else min(1.0, (dynamic_step + 1) / warmup)
 
 
 def _lip_boxes(clip: TrainingClip, grow: float = 0.6) -> np.ndarray | None:

@@ -61,8 +61,35 @@ def peak_rss_mb() -> float:
 def model_dir(subject, method_name: str, config_hash: str, seed: int) -> Path:
     from lmgs_eval.paths import cache_root
 
-    tag = subject.meta.get("manifest_sha256", "")[:12] if subject.bundled else ""
-    return cache_root() / "models" / f"{subject.name}{('-' + tag) if tag else ''}" / method_name / f"{config_hash}-seed{seed}"
+    return cache_root() / "models" / subject.name / method_name / f"{config_hash}-seed{seed}"
+
+
+DATA_MARKER = "subject.sha256"
+
+
+def claim_model_dir(workdir: Path, subject) -> None:
+    """A cached model (or checkpoint) is reused only on the data it was trained on.
+
+    The folder keeps the subject's manifest hash (:data:`DATA_MARKER`); a model of the same
+    method, config and seed but other data of a subject of the same name (re-generated,
+    re-processed) is a :class:`UserError`, not a silent reuse. A folder from before the
+    marker is taken to be of the current data. Subjects without a manifest are not checked.
+    """
+    from lmgs_eval.paths import atomic_write_text
+
+    sha = subject_sha(subject)
+    if sha is None:
+        return
+    marker = Path(workdir) / DATA_MARKER
+    if marker.exists():
+        old = marker.read_text().strip()
+        if old != sha and any((Path(workdir) / f).exists() for f in ("model.pt", "checkpoint.pt")):
+            raise UserError(f"{workdir}: a model trained on other data of subject '{subject.name}' (manifest sha256 "
+                            f"{old[:12]}, now {sha[:12]}); delete the folder to train on this data")
+        if old == sha:
+            return
+    Path(workdir).mkdir(parents=True, exist_ok=True)
+    atomic_write_text(marker, sha + "\n")
 
 
 def head_of(driving: DrivingAudio, k: int) -> DrivingAudio:
@@ -256,6 +283,7 @@ def fit_method(method, clip, subject, seed: int, progress: bool) -> dict:
     """Fit (or reload) a method; returns the cost of training."""
     info = method.describe()
     workdir = model_dir(subject, info.name, info.config_hash, seed)
+    claim_model_dir(workdir, subject)
     reused = (workdir / "model.pt").exists()
     t0 = time.perf_counter()
     with OthersCPU() as busy:
@@ -366,15 +394,14 @@ def _subject_block(subject) -> dict:
         "width": subject.width,
         "height": subject.height,
         "path": str(subject.root),
-        "sha256": _manifest_sha(subject),
+        "sha256": subject_sha(subject),
     }
 
 
-def _manifest_sha(subject) -> str | None:
-    from lmgs_eval.results import sha256_file
-
+def subject_sha(subject) -> str | None:
+    """sha256 of the subject's ``manifest.json`` (None without one): which data a record was made on."""
     p = subject.root / "manifest.json"
-    return sha256_file(p) if p.exists() else None
+    return _sha_cached(p) if p.exists() else None
 
 
 _SHA_CACHE: dict[tuple[str, int, int], str] = {}
@@ -517,7 +544,7 @@ def run_self(cfg: RunConfig) -> list[dict]:
 
     # The paper's "Ground Truth" row: the real test video scored like any method.
     gt_info = MethodInfo("ground-truth", "Ground Truth", "ground-truth", "the test split's own frames and audio", config={}, config_hash="gt")
-    if cfg.force or store.find_record(cfg.results, "ground-truth", subject.name, "self", "test", 0, "gt") is None:
+    if cfg.force or store.find_record(cfg.results, "ground-truth", subject.name, "self", "test", 0, "gt", subject_sha(subject)) is None:
         log("scoring the ground truth")
         res = score_clip(gt, gt, test.audio)
         art = {"render": _write_render(cfg.results, f"{renders_dir}/ground-truth.mp4", gt, test.audio)}
@@ -538,7 +565,8 @@ def run_self(cfg: RunConfig) -> list[dict]:
                 opts.setdefault("preset", cfg.preset)
             method = create_method(name, subject=subject, **opts)
             info = method.describe()
-            if not cfg.force and store.find_record(cfg.results, info.name, subject.name, "self", "test", seed, info.config_hash):
+            if not cfg.force and store.find_record(cfg.results, info.name, subject.name, "self", "test", seed, info.config_hash,
+                                                              subject_sha(subject)):
                 log(f"{info.name} seed {seed}: already in {cfg.results} (same config {info.config_hash}); skipped")
                 continue
             records.append(fit_render_score(cfg, method, subject, seed, train, driving, gt,
@@ -578,7 +606,8 @@ def run_plate_reference(cfg: RunConfig, subject, test) -> list[dict]:
 
     info = MethodInfo("plate-reference", "GT head on plate", "reference", PLATE_DESCRIPTION,
                       config={"version": PLATE_VERSION}, config_hash=f"plate-v{PLATE_VERSION}")
-    if not cfg.force and store.find_record(cfg.results, info.name, subject.name, "self", "test", 0, info.config_hash):
+    if not cfg.force and store.find_record(cfg.results, info.name, subject.name, "self", "test", 0, info.config_hash,
+                                                         subject_sha(subject)):
         return []
     frames = plate_composite(test)
     if frames is None:
@@ -671,7 +700,8 @@ def run_controls(cfg: RunConfig, subject, gt: np.ndarray, audio: np.ndarray, oth
     from lmgs_eval.metrics.sync import crop_faces, face_boxes, lse
 
     todo = [c for c in control_clips(gt, audio, other_audio)
-            if cfg.force or store.find_record(cfg.results, c[0], subject.name, "calibration", "test", 0, f"controls-v{CONTROLS_VERSION}") is None]
+            if cfg.force or store.find_record(cfg.results, c[0], subject.name, "calibration", "test", 0, f"controls-v{CONTROLS_VERSION}",
+                                             subject_sha(subject)) is None]
     if not todo:
         return []
     log(f"scoring {len(todo)} calibration controls")
@@ -793,7 +823,8 @@ def run_cross(cfg: RunConfig, audio_paths: list[str] | None = None) -> tuple[lis
         for seed in cfg.seeds:
             method = create_method(name, subject=subject, **{"preset": cfg.preset, **cfg.method_options})
             info = method.describe()
-            todo = [c for c in clips if cfg.force or not store.find_record(cfg.results, info.name, subject.name, "cross", c.name, seed, info.config_hash)]
+            todo = [c for c in clips if cfg.force or not store.find_record(cfg.results, info.name, subject.name, "cross", c.name, seed, info.config_hash,
+                                                                                    subject_sha(subject))]
             if not todo:
                 log(f"{info.name} seed {seed}: cross clips already in {cfg.results}; skipped")
                 continue

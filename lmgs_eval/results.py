@@ -577,18 +577,21 @@ def is_failed(rec: Mapping[str, Any]) -> bool:
 
 
 def find_finished(root: str | os.PathLike, method: str, subject: str, protocol: str, clip: str, seed: int,
-                  config_hash: str) -> dict[str, Any] | None:
+                  config_hash: str, subject_sha: str | None = None) -> dict[str, Any] | None:
     """:func:`find_record`, but a failed run counts as not done: it is retried (the failure may have been fixed)."""
-    rec = find_record(root, method, subject, protocol, clip, seed, config_hash)
+    rec = find_record(root, method, subject, protocol, clip, seed, config_hash, subject_sha)
     return None if rec is None or is_failed(rec) else rec
 
 
 def find_record(root: str | os.PathLike, method: str, subject: str, protocol: str, clip: str, seed: int,
-                config_hash: str) -> dict[str, Any] | None:
+                config_hash: str, subject_sha: str | None = None) -> dict[str, Any] | None:
     """The stored record for this run, or None (so an interrupted run can resume).
 
     Only a valid record whose fields match is returned; a failed run (``status.state ==
-    "failed"``) is returned too, and the caller decides whether to retry it.
+    "failed"``) is returned too, and the caller decides whether to retry it. With
+    ``subject_sha`` (the subject's manifest hash), a record made on other data of a subject of
+    the same name (re-generated, re-processed) is a :class:`UserError`: it is neither reused
+    as if it were of this data nor overwritten.
     """
     key = {"method": {"name": method}, "subject": {"name": subject}, "protocol": {"name": protocol, "clip": clip},
            "seed": seed, "config_hash": config_hash}
@@ -603,7 +606,13 @@ def find_record(root: str | os.PathLike, method: str, subject: str, protocol: st
         return None
     same = (rec["method"]["name"] == method and rec["subject"]["name"] == subject and rec["protocol"]["name"] == protocol
             and rec["protocol"]["clip"] == clip and rec["seed"] == seed and rec["config_hash"] == config_hash)
-    return rec if same else None
+    if not same:
+        return None
+    made_on = rec["subject"].get("sha256")
+    if subject_sha and made_on and made_on != subject_sha:
+        raise UserError(f"{path}: made on other data of subject '{subject}' (manifest sha256 {made_on[:12]}, now "
+                        f"{subject_sha[:12]}); move the old records out of the store, or use another --results")
+    return rec
 
 
 def resolve_artefact(root: str | os.PathLike, path: str) -> Path:

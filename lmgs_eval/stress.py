@@ -325,7 +325,7 @@ def _stress_one(cfg: RunConfig, ctx: dict, conds, name: str, seed: int, max_minu
     method = create_method(name, subject=subject, **{"preset": cfg.preset, **cfg.method_options})
     info = method.describe()
     ch = f"{info.config_hash}-stress{PERTURB_VERSION}"
-    todo = [c for c in conds if cfg.force or not _done(cfg.results, info.name, subject.name, c.name, seed, ch)]
+    todo = [c for c in conds if cfg.force or not _done(cfg.results, info.name, subject, c.name, seed, ch)]
     if not todo:
         log(f"{info.name} seed {seed}: stress conditions already in {cfg.results}; skipped")
         return records, messages
@@ -407,8 +407,9 @@ def _stress_one(cfg: RunConfig, ctx: dict, conds, name: str, seed: int, max_minu
     return records, messages
 
 
-def _done(root, method: str, subject: str, clip: str, seed: int, ch: str) -> bool:
+def _done(root, method: str, subject, clip: str, seed: int, ch: str) -> bool:
     """A finished record (a failed run is retried: the failure may have been fixed)."""
+    from lmgs_eval.protocols import subject_sha
     from lmgs_eval.results import find_finished
 
-    return find_finished(root, method, subject, "stress", clip, seed, ch) is not None
+    return find_finished(root, method, subject.name, "stress", clip, seed, ch, subject_sha(subject)) is not None

@@ -122,8 +122,14 @@ def test_collapse_guard_hand_cases():
 def test_collapse_stops_with_message(clip, monkeypatch, tmp_path):
     # a finite loss that jumps and stays (as the 16,000-Gaussian hopper run's did) stops the run
     _alter_loss_after(monkeypatch, 88, lambda x: x + 5.0)
-    with pytest.raises(TrainingDiverged, match=r"collapsed at step 8[89] \(dynamic stage\).*checkpoint \(step 60\)"):
+    with pytest.raises(TrainingDiverged, match=r"collapsed at step 8[89] \(dynamic stage\).*checkpoint \(step 60\)"
+                                               r".*training curve up to it is .*curve.png"):
         fit(clip, _tiny_cfg(), seed=0, progress=False, workdir=tmp_path)
+    import csv
+
+    rows = list(csv.DictReader((tmp_path / "curve.csv").open()))  # the curve up to the stop, for a look
+    assert int(rows[-1]["step"]) in (88, 89) and rows[-1]["stage"] == "dynamic" and float(rows[-1]["loss"]) > 5
+    assert (tmp_path / "curve.png").exists()
 
 
 def test_resume_after_interruption(clip, monkeypatch, tmp_path):
@@ -187,3 +193,28 @@ def test_without_audio_encoder_the_window_is_averaged(clip):
     assert not any(isinstance(m, torch.nn.Conv1d) for m in enc.modules())
     out = model.render(DrivingAudio(audio=clip.audio, w2c=model.train_w2c.numpy()))
     assert out.shape[0] == len(clip.frames) and np.isfinite(out).all()
+
+
+def test_gr_warmup_ramps_the_geometry_weights_in_and_leaves_the_hash_when_off(clip, monkeypatch):
+    import lmgs.train as tr
+
+    assert clip.depth is not None and clip.normal is not None
+    base = _tiny_cfg()
+    warm = base.replace(train=dataclasses.replace(base.train, gr_warmup=4))
+    assert "gr_warmup" not in base.to_dict()["train"] and warm.hash() != base.hash()
+    seen = []
+    real = tr.losses.geometry
+
+    def spy(depth, normal, alpha, ref_d, ref_n, lambda_d, lambda_n, reduce):
+        seen.append((lambda_d, lambda_n))
+        return real(depth, normal, alpha, ref_d, ref_n, lambda_d, lambda_n, reduce)
+
+    monkeypatch.setattr(tr.losses, "geometry", spy)
+    fit(clip, warm, seed=0, progress=False)
+    lam = base.train.lambda_normal
+    assert len(seen) == base.train.dynamic_steps  # only in the dynamic stage
+    assert [n for _, n in seen[:5]] == pytest.approx([lam / 4, lam / 2, 3 * lam / 4, lam, lam])
+    assert all(d == pytest.approx(n) for d, n in seen)  # lambda_depth == lambda_normal == 1e-4
+    seen.clear()
+    fit(clip, base, seed=0, progress=False)
+    assert {n for _, n in seen} == {lam}  # off: full weight from the first dynamic step, as before

@@ -296,3 +296,41 @@ def test_external_sidecar_errors_name_the_file(tmp_path, sidecar, words):
     with pytest.raises(UserError) as e:
         ExternalRenders("x", tmp_path / "r")
     assert str(tmp_path / "r" / "cost.json") in str(e.value) and words in str(e.value)
+
+
+def test_a_model_or_record_of_other_data_of_the_same_subject_is_not_reused(tmp_path):
+    from types import SimpleNamespace
+
+    from lmgs_eval.errors import UserError
+    from lmgs_eval.protocols import DATA_MARKER, claim_model_dir
+
+    subject = SimpleNamespace(name="mine", root=tmp_path / "mine")
+    subject.root.mkdir()
+    (subject.root / "manifest.json").write_text('{"a": 1}')
+    work = tmp_path / "models" / "lmgs" / "abc-seed0"
+    claim_model_dir(work, subject)  # a new folder takes the data's hash
+    (work / "model.pt").write_bytes(b"model")
+    first = (work / DATA_MARKER).read_text()
+    claim_model_dir(work, subject)  # same data: reused
+    (subject.root / "manifest.json").write_text('{"a": 2}')  # re-processed
+    with pytest.raises(UserError, match=r"abc-seed0: a model trained on other data of subject 'mine'"):
+        claim_model_dir(work, subject)
+    assert (work / DATA_MARKER).read_text() == first and (work / "model.pt").exists()
+    (work / DATA_MARKER).unlink()  # a folder from before the marker: taken to be of the current data
+    claim_model_dir(work, subject)
+    assert (work / DATA_MARKER).read_text() != first
+
+
+def test_a_store_of_other_data_of_the_subject_stops_self_with_one_line(store, tmp_path):
+    import shutil
+
+    root, _, _ = store
+    copy = tmp_path / "copy"
+    shutil.copytree(root, copy)
+    gt = next(p for p in copy.rglob("*.json") if "ground-truth" in p.name)
+    rec = json.loads(gt.read_text())
+    rec["subject"]["sha256"] = "0" * 64
+    gt.write_text(json.dumps(rec))
+    rc, _, err = run_cli("self", "--subject", SUBJECT, "--results", str(copy), "--no-progress", *FAST)
+    assert rc != 0 and "made on other data of subject 'astronaut-64px-2s'" in err and str(gt) in err
+    assert "Traceback" not in err and json.loads(gt.read_text())["subject"]["sha256"] == "0" * 64

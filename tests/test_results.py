@@ -208,6 +208,11 @@ def test_find_record_for_resume(tmp_path):
     assert got == rec
     assert R.find_record(tmp_path, rec["method"]["name"], "astronaut", "self", "test", rec["seed"], "other") is None
     assert R.find_record(tmp_path, rec["method"]["name"], "astronaut", "cross", "A", rec["seed"], rec["config_hash"]) is None
+    # a record of other data of a subject of the same name is neither reused nor overwritten
+    key = (tmp_path, rec["method"]["name"], "astronaut", "self", "test", rec["seed"], rec["config_hash"])
+    assert R.find_record(*key, subject_sha="a" * 64) == rec
+    with pytest.raises(UserError, match=r"made on other data of subject 'astronaut' \(manifest sha256 aaaaaaaaaaaa, now bbbbbbbbbbbb\)"):
+        R.find_finished(*key, subject_sha="b" * 64)
 
 
 def test_interrupted_write_leaves_no_partial_record(tmp_path, monkeypatch):
