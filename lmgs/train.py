@@ -313,7 +313,9 @@ def fit(
             if bar is not None:
                 bar.close()
             where = f"; the last good checkpoint is {ckpt}" if ckpt is not None and ckpt.exists() else ""
-            _write_failed_curve(workdir, curve_rows, step, dynamic, loss_value, r, gt)
+            if workdir is not None:
+                _write_failed_curve(workdir, curve_rows, step, dynamic, loss_value, r, gt)
+                where += f"; the training curve up to it is {Path(workdir) / 'curve.png'}"
             raise TrainingDiverged(f"loss became non-finite at step {step} (frame {i}){where}")
         ratio = guard.update(loss_value, "dynamic" if dynamic else "static")
         if ratio is not None:
@@ -371,8 +373,6 @@ def fit(
 
 def _write_failed_curve(workdir, rows: list[dict], step: int, dynamic: bool, loss_value: float, r, gt) -> None:
     """The curve of a stopped run, up to the step that stopped it, for the user to look at."""
-    if workdir is None:
-        return
     last = {"step": step, "stage": "dynamic" if dynamic else "static", "loss": loss_value,
             "psnr": _psnr(r.rgb.detach(), gt) if math.isfinite(loss_value) else float("nan"),
             "n_face": rows[-1]["n_face"] if rows else 0, "n_mouth": rows[-1]["n_mouth"] if rows else 0,

@@ -102,9 +102,10 @@ def _alter_loss_after(monkeypatch, n: int, change):
 
 def test_non_finite_loss_stops_with_message(clip, monkeypatch, tmp_path):
     _alter_loss_after(monkeypatch, 45, lambda x: x * float("nan"))
-    with pytest.raises(TrainingDiverged, match=r"non-finite at step 45.*checkpoint"):
+    with pytest.raises(TrainingDiverged, match=r"non-finite at step 45.*checkpoint.*curve up to it is .*curve.png"):
         fit(clip, _tiny_cfg(), seed=0, progress=False, workdir=tmp_path)
     assert (tmp_path / "checkpoint.pt").exists()  # the last good one (step 30) is kept
+    assert (tmp_path / "curve.csv").read_text().splitlines()[-1].startswith("45,static,nan")
 
 
 def test_collapse_guard_hand_cases():
