@@ -111,7 +111,7 @@ def test_training_records_the_contention_and_a_reused_checkpoint_keeps_it(tmp_pa
                 _spin(0.3)
                 (workdir / "model.pt").write_bytes(b"x")
 
-    subject = SimpleNamespace(name="s", bundled=False, meta={})
+    subject = SimpleNamespace(name="s", bundled=False, meta={}, root=tmp_path / "subject")  # no manifest: not checked
     first = protocols.fit_method(Toy(), None, subject, 0, progress=False)
     share = first["train_others_cpu_share"]
     assert not first["reused_checkpoint"] and (share is None or 0 <= share <= 1)
