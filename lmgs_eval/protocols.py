@@ -81,13 +81,12 @@ def claim_model_dir(workdir: Path, subject) -> None:
     if sha is None:
         return
     marker = Path(workdir) / DATA_MARKER
-    if marker.exists():
-        old = marker.read_text().strip()
-        if old != sha and any((Path(workdir) / f).exists() for f in ("model.pt", "checkpoint.pt")):
-            raise UserError(f"{workdir}: a model trained on other data of subject '{subject.name}' (manifest sha256 "
-                            f"{old[:12]}, now {sha[:12]}); delete the folder to train on this data")
-        if old == sha:
-            return
+    old = marker.read_text().strip() if marker.exists() else None
+    if old == sha:
+        return
+    if old is not None and any((Path(workdir) / f).exists() for f in ("model.pt", "checkpoint.pt")):
+        raise UserError(f"{workdir}: a model trained on other data of subject '{subject.name}' (manifest sha256 "
+                        f"{old[:12]}, now {sha[:12]}); delete the folder to train on this data")
     Path(workdir).mkdir(parents=True, exist_ok=True)
     atomic_write_text(marker, sha + "\n")
 
