@@ -17,13 +17,14 @@ from typing import Any, Literal
 AudioKind = Literal["logmel", "mfcc", "ds", "hu", "wavlm"]
 
 
-def added_option(neutral: Any) -> Any:
-    """A field added after records existed, defaulting to ``neutral`` (the behaviour before it).
+def added_option(neutral: Any, default: Any = None) -> Any:
+    """A field added after records existed; ``neutral`` is the behaviour before it.
 
-    :func:`config_dict` leaves it out while it holds that value, so the config and its hash
-    (and every record and checkpoint made before the option) stay what they were.
+    :func:`config_dict` leaves it out while it holds ``neutral``, so the config and its hash
+    (and every record and checkpoint made before the option) stay what they were. ``default``
+    (when given) is a new default that differs from ``neutral``: configs at it hash anew.
     """
-    return field(default=neutral, metadata={"omit_when": neutral})
+    return field(default=neutral if default is None else default, metadata={"omit_when": neutral})
 
 
 def config_dict(obj: Any) -> Any:

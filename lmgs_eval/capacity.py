@@ -131,7 +131,7 @@ def run_capacity(cfg: RunConfig, budgets: Sequence[int] = DEFAULT_BUDGETS) -> li
     from lmgs_eval import results as store
     from lmgs_eval.data.registry import find_subject
     from lmgs_eval.methods import create_method, driving_from_subject, subject_to_clip
-    from lmgs_eval.protocols import fit_render_score, render_stem, subject_sha
+    from lmgs_eval.protocols import fit_render_score, render_stem, stored
 
     subject = find_subject(cfg.subject, cfg.data_root, progress=cfg.progress)
     train = subject_to_clip(subject, subject.train_ids, progress=cfg.progress)
@@ -161,8 +161,7 @@ def run_capacity(cfg: RunConfig, budgets: Sequence[int] = DEFAULT_BUDGETS) -> li
             info = method.describe()
             clip = f"budget-{n}"
             trained.append((n, seed, method))
-            if not cfg.force and store.find_finished(cfg.results, info.name, subject.name, "capacity", clip, seed, info.config_hash,
-                                                          subject_sha(subject)):
+            if not cfg.force and stored(cfg.results, subject, info.name, "capacity", clip, seed, info.config_hash, finished=True):
                 log(f"budget {n} seed {seed}: already in {cfg.results}; skipped")
                 continue
             try:
@@ -195,15 +194,14 @@ def retime_side_by_side(cfg: RunConfig, subject, train, driving, trained: Sequen
     import time
 
     from lmgs_eval import results as store
-    from lmgs_eval.protocols import fit_method, head_of, model_dir, subject_sha
+    from lmgs_eval.protocols import fit_method, head_of, model_dir, stored
 
     clip = head_of(driving, frames)
     n = clip.n_frames
     recorded, away = [], set()
     for budget, seed, method in trained:
         info = method.describe()
-        rec = store.find_finished(cfg.results, info.name, subject.name, "capacity", f"budget-{budget}", seed, info.config_hash,
-                                  subject_sha(subject))
+        rec = stored(cfg.results, subject, info.name, "capacity", f"budget-{budget}", seed, info.config_hash, finished=True)
         if rec is not None:
             recorded.append((budget, seed, method, rec))
             if not (model_dir(subject, info.name, info.config_hash, seed) / "model.pt").exists():

@@ -97,7 +97,9 @@ class LMGSMethod:
             description=(
                 "The paper's method on TalkingGaussian's face/mouth decomposition, trained on a CPU schedule "
                 f"({self.cfg.train.static_steps} static + {self.cfg.train.dynamic_steps} dynamic steps, preset "
-                f"'{self.cfg.preset}'); {', '.join(parts)}."
+                f"'{self.cfg.preset}'); {', '.join(parts)}"
+                + (f"; the GR weights ramp in over the first {t.gr_warmup} dynamic steps (not in the paper: at full "
+                   "weight at once training collapsed on bundled hopper)." if self.cfg.gr and t.gr_warmup else ".")
             ),
             standins=standins(a.frontend),
             config=self.cfg.to_dict(),

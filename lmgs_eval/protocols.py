@@ -397,6 +397,19 @@ def _subject_block(subject) -> dict:
     }
 
 
+def stored(root, subject, method: str, protocol: str, clip: str, seed: int, config_hash: str, *,
+           finished: bool = False) -> dict | None:
+    """The store's record of this run on this subject's data, or None.
+
+    ``finished``: a failed run counts as not done (it is retried). A record made on other data
+    of a subject of the same name is a UserError (:func:`lmgs_eval.results.find_record`).
+    """
+    from lmgs_eval import results as store
+
+    find = store.find_finished if finished else store.find_record
+    return find(root, method, subject.name, protocol, clip, seed, config_hash, subject_sha(subject))
+
+
 def subject_sha(subject) -> str | None:
     """sha256 of the subject's ``manifest.json`` (None without one): which data a record was made on."""
     p = subject.root / "manifest.json"
@@ -543,7 +556,7 @@ def run_self(cfg: RunConfig) -> list[dict]:
 
     # The paper's "Ground Truth" row: the real test video scored like any method.
     gt_info = MethodInfo("ground-truth", "Ground Truth", "ground-truth", "the test split's own frames and audio", config={}, config_hash="gt")
-    if cfg.force or store.find_record(cfg.results, "ground-truth", subject.name, "self", "test", 0, "gt", subject_sha(subject)) is None:
+    if cfg.force or stored(cfg.results, subject, "ground-truth", "self", "test", 0, "gt") is None:
         log("scoring the ground truth")
         res = score_clip(gt, gt, test.audio)
         art = {"render": _write_render(cfg.results, f"{renders_dir}/ground-truth.mp4", gt, test.audio)}
@@ -564,8 +577,7 @@ def run_self(cfg: RunConfig) -> list[dict]:
                 opts.setdefault("preset", cfg.preset)
             method = create_method(name, subject=subject, **opts)
             info = method.describe()
-            if not cfg.force and store.find_record(cfg.results, info.name, subject.name, "self", "test", seed, info.config_hash,
-                                                              subject_sha(subject)):
+            if not cfg.force and stored(cfg.results, subject, info.name, "self", "test", seed, info.config_hash):
                 log(f"{info.name} seed {seed}: already in {cfg.results} (same config {info.config_hash}); skipped")
                 continue
             records.append(fit_render_score(cfg, method, subject, seed, train, driving, gt,
@@ -605,8 +617,7 @@ def run_plate_reference(cfg: RunConfig, subject, test) -> list[dict]:
 
     info = MethodInfo("plate-reference", "GT head on plate", "reference", PLATE_DESCRIPTION,
                       config={"version": PLATE_VERSION}, config_hash=f"plate-v{PLATE_VERSION}")
-    if not cfg.force and store.find_record(cfg.results, info.name, subject.name, "self", "test", 0, info.config_hash,
-                                                         subject_sha(subject)):
+    if not cfg.force and stored(cfg.results, subject, info.name, "self", "test", 0, info.config_hash):
         return []
     frames = plate_composite(test)
     if frames is None:
@@ -699,8 +710,7 @@ def run_controls(cfg: RunConfig, subject, gt: np.ndarray, audio: np.ndarray, oth
     from lmgs_eval.metrics.sync import crop_faces, face_boxes, lse
 
     todo = [c for c in control_clips(gt, audio, other_audio)
-            if cfg.force or store.find_record(cfg.results, c[0], subject.name, "calibration", "test", 0, f"controls-v{CONTROLS_VERSION}",
-                                             subject_sha(subject)) is None]
+            if cfg.force or stored(cfg.results, subject, c[0], "calibration", "test", 0, f"controls-v{CONTROLS_VERSION}") is None]
     if not todo:
         return []
     log(f"scoring {len(todo)} calibration controls")
@@ -822,8 +832,7 @@ def run_cross(cfg: RunConfig, audio_paths: list[str] | None = None) -> tuple[lis
         for seed in cfg.seeds:
             method = create_method(name, subject=subject, **{"preset": cfg.preset, **cfg.method_options})
             info = method.describe()
-            todo = [c for c in clips if cfg.force or not store.find_record(cfg.results, info.name, subject.name, "cross", c.name, seed, info.config_hash,
-                                                                                    subject_sha(subject))]
+            todo = [c for c in clips if cfg.force or not stored(cfg.results, subject, info.name, "cross", c.name, seed, info.config_hash)]
             if not todo:
                 log(f"{info.name} seed {seed}: cross clips already in {cfg.results}; skipped")
                 continue

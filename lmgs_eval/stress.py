@@ -409,7 +409,6 @@ def _stress_one(cfg: RunConfig, ctx: dict, conds, name: str, seed: int, max_minu
 
 def _done(root, method: str, subject, clip: str, seed: int, ch: str) -> bool:
     """A finished record (a failed run is retried: the failure may have been fixed)."""
-    from lmgs_eval.protocols import subject_sha
-    from lmgs_eval.results import find_finished
+    from lmgs_eval.protocols import stored
 
-    return find_finished(root, method, subject.name, "stress", clip, seed, ch, subject_sha(subject)) is not None
+    return stored(root, subject, method, "stress", clip, seed, ch, finished=True) is not None

@@ -200,9 +200,10 @@ def test_gr_warmup_ramps_the_geometry_weights_in_and_leaves_the_hash_when_off(cl
     import lmgs.train as tr
 
     assert clip.depth is not None and clip.normal is not None
-    base = _tiny_cfg()
+    assert quick().train.gr_warmup == 400 and quick().to_dict()["train"]["gr_warmup"] == 400  # the default ramps
+    base = _tiny_cfg(**{"train.gr_warmup": 0})
     warm = base.replace(train=dataclasses.replace(base.train, gr_warmup=4))
-    assert "gr_warmup" not in base.to_dict()["train"] and warm.hash() != base.hash()
+    assert "gr_warmup" not in base.to_dict()["train"] and warm.hash() != base.hash()  # 0 hashes as before the option
     seen = []
     real = tr.losses.geometry
 

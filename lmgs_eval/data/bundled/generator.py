@@ -20,7 +20,7 @@ from lmgs_eval.data.bundled.head import HeadModel
 from lmgs_eval.data.bundled.photo import PHOTOS
 from lmgs_eval.errors import UserError
 
-GENERATOR_VERSION = "1"
+GENERATOR_VERSION = "2"  # 2: the head composited over the written plate, not the photo
 FPS = 25
 SPF = sp_mod.SAMPLE_RATE // FPS  # 640 samples per frame
 DEPTH_SCALE = 10000.0  # depth PNG value = camera z (metres) x 10000 (0.1 mm steps, up to 6.5 m)

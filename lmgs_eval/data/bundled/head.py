@@ -369,11 +369,17 @@ class HeadModel:
 
         s = self.size
         rs = lambda im: cv2.resize(im, (s, s), interpolation=cv2.INTER_AREA)  # noqa: E731
-        return rs(self.p.behind), rs(self.p.under_torso), rs(self.p.background), rs(self.p.under)
+        ta, bc, torso = rs(self.p.under_torso), rs(self.p.background), rs(self.p.under)
+        # The head is composited over exactly the plate the files carry (torso_imgs over bc.jpg;
+        # generator 2). Generator 1 used the photo itself, whose hair and hat around the head's
+        # outline no plate-based method could know (the "GT head on plate" row showed it).
+        plate = torso * ta[..., None] + bc * (1 - ta[..., None])
+        return plate.astype(np.float32), ta, bc, torso
 
     def static_layers(self) -> dict[str, np.ndarray]:
-        """Frame-size static images: ``behind`` (what the head is composited over), ``torso``
-        (torso over background) and its ``torso_alpha``, ``bc``, ``neck`` mask."""
+        """Frame-size static images: ``behind`` (what the head is composited over: ``torso`` by
+        ``torso_alpha`` over ``bc``), ``torso`` (torso over background) and its ``torso_alpha``,
+        ``bc``, ``neck`` mask."""
         import cv2
 
         behind, ta, bc, torso = self._under

@@ -117,8 +117,9 @@ class Portrait:
             continued upwards under the chin) over the background.
         under_torso: float32 ``[TEX, TEX]`` alpha of the torso layer (neck + shoulders).
         background: float32 ``[TEX, TEX, 3]`` the photo with the person painted out.
-        behind: float32 ``[TEX, TEX, 3]`` what the renderer composites the head over: the
-            photo, with the neck continued up under the chin.
+
+    The renderer composites the head over ``under`` (torso, by ``under_torso``) over
+    ``background``: exactly the plate the subject files carry (``torso_imgs`` over ``bc.jpg``).
     """
 
     name: str
@@ -131,7 +132,6 @@ class Portrait:
     under: np.ndarray
     under_torso: np.ndarray
     background: np.ndarray
-    behind: np.ndarray
     crop: tuple[float, float, float]  # x0, y0, size of the crop in photo pixels
 
 
@@ -241,9 +241,6 @@ def portrait(name: str) -> Portrait:
     torso = person & ~head
     under = np.where(torso[:, :, None], tex, bg)
     alpha = torso.astype(np.float32)
-    # What the renderer shows behind the moving head: the photo itself (hair edges stay
-    # hair when the head turns a few pixels), the neck continued up under the chin.
-    behind = tex.copy()
     jaw_y = np.interp(xx[0], lms[:17, 0], lms[:17, 1])[None, :]
     ext = head & (yy > jaw_y - 0.3 * fh) & (yy > lms[33, 1]) & (np.abs(xx - jcx) < 0.4 * jw)
     colsrc = torso & (np.abs(xx - jcx) < 0.4 * jw)
@@ -255,10 +252,8 @@ def portrait(name: str) -> Portrait:
         src = tex[min(y_top + 3, TEX - 1), x]
         rows = np.nonzero(ext[:, x])[0]
         under[rows, x] = src * 0.85  # in the shadow of the chin
-        behind[rows, x] = src * 0.85
         alpha[rows, x] = 1.0
     blur = cv2.GaussianBlur(under, (0, 0), 1.0)
     under = np.where(alpha[:, :, None] > 0, blur, under)
-    behind = np.where(ext[:, :, None], cv2.GaussianBlur(behind, (0, 0), 1.0), behind)
     return Portrait(name, spec, tex, lms, head.astype(np.float32), person, neck, under.astype(np.float32),
-                    alpha, bg, behind.astype(np.float32), (float(x0), float(y0), float(size)))
+                    alpha, bg, (float(x0), float(y0), float(size)))
