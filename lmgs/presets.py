@@ -30,8 +30,11 @@ class TrainConfig:
         lambda_depth, lambda_normal: Geometry Regularizer weights (paper: 1e-4 each).
         normal_reduce: ``sum`` (the paper: the normal term summed over the face's pixels, so
             at 1e-4 it weighs about 1.4-1.8 per-pixel units on the bundled subjects and
-            dominates the image loss) or ``mean`` (per pixel; variant ``lmgs-gr-mean``).
-            An :func:`~lmgs.config.added_option`: at ``sum`` the config hash is as before.
+            dominates the image loss) or ``mean`` (per pixel). The presets keep the paper's
+            sum; the evaluation toolkit's ``lmgs`` method uses ``mean`` at ``lambda_normal``
+            0.05 (2DGS's weight; ``lmgs_eval.method_lmgs.GR_PER_PIXEL``), its variant
+            ``lmgs-gr-paper`` the sum. An :func:`~lmgs.config.added_option`: at ``sum`` the
+            config hash is as before.
         gr_warmup: dynamic-stage steps over which the Geometry Regularizer's weights ramp
             linearly from 0 to ``lambda_depth`` / ``lambda_normal``; default 400 (0: full
             weight at once, as before the option; an :func:`~lmgs.config.added_option`). At
@@ -65,7 +68,8 @@ class TrainConfig:
     lambda_mouth: float = 0.1
     lambda_lips: float = 1.0
     # 5000 / 13,949 px (astronaut's face area): the knee of `lmgs-eval capacity` on astronaut,
-    # 2026-11-23 (budgets 500-20k; 0.12 before, which sat below the knee: LPIPS 0.0328 vs 0.0278).
+    # 2026-11-23 (budgets 500-20k; 0.12 before, which sat below the knee: LPIPS 0.0328 vs 0.0278),
+    # on generator-1 data; the capacity stage of `make bench` re-checks it on generator 2.
     # hopper's knee is 0.548559 (its own, set per subject by the toolkit; one density cannot sit at both)
     budget_density: float = 0.358438
     mouth_fraction: float = 0.25

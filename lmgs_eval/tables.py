@@ -714,7 +714,13 @@ def table_theta(records: Sequence[Record], metrics: Sequence[str] = ("lpips", "l
                  _common_notes(used, cols, methods=False), label_header="θ")
 
 
-def _ablation_label(r: Record, full_frontend: str | None = None) -> str:
+def _gr_form(r: Record) -> tuple[str, float]:
+    """How a record's Geometry Regularizer reduces and weighs its normal term: ``(reduce, lambda_normal)``."""
+    train = r["config"].get("train") or {}
+    return train.get("normal_reduce", "sum"), float(train.get("lambda_normal", 1e-4))
+
+
+def _ablation_label(r: Record, full_frontend: str | None = None, full_gr: tuple | None = None) -> str:
     """The row of Table IV: the audio rows of the paper, then what of SE / LC / GR is off."""
     g, audio = _guidance(r), r["config"].get("audio") or {}
     parts = []
@@ -729,9 +735,10 @@ def _ablation_label(r: Record, full_frontend: str | None = None) -> str:
            if not on]
     if off:
         parts.append("w/o " + ", ".join(off))
-    train = r["config"].get("train") or {}
-    if r["config"].get("gr", True) and train.get("normal_reduce", "sum") != "sum":  # not in the paper: an added row
-        parts.append(f"GR, normal term per pixel ({train.get('normal_reduce')}, λ_N = {train.get('lambda_normal'):g})")
+    form = _gr_form(r)
+    if r["config"].get("gr", True) and form != (full_gr or ("sum", 1e-4)):  # GR in another form than the full model's
+        parts.append("GR as the paper writes it (normal term summed, λ_N = {1:g})".format(*form) if form[0] == "sum"
+                     else "GR, normal term per pixel ({0}, λ_N = {1:g})".format(*form))
     if parts:
         return ", ".join(parts)
     return "Full model" if not is_variant(r) else (r["method"]["display_name"] or r["method"]["name"])
@@ -747,7 +754,7 @@ def table_ablation(records: Sequence[Record], metrics: Sequence[str] = ("lmd", "
         theta = _guidance(full[0])["theta"] if full else 0.6
         frontend = (full[0]["config"].get("audio") or {}).get("frontend") if full else None
         recs = [r for r in recs if _guidance(r)["theta"] == theta]
-        label = functools.partial(_ablation_label, full_frontend=frontend)
+        label = functools.partial(_ablation_label, full_frontend=frontend, full_gr=_gr_form(full[0]) if full else None)
         if len({label(r) for r in recs}) < 2:
             continue
         order = {"Replacing Audio Net with DS": 0, "w/o Audio Encoder": 1, "w/o SE": 2, "w/o LC": 3, "w/o GR": 4}

@@ -266,6 +266,20 @@ def test_table4_has_the_papers_audio_rows_first():
     assert _row(md4, label)[1:4] == ["✓", "✓", "✓"]
     rows = [ln.split("|")[1].strip() for ln in md4.splitlines() if ln.startswith("| ")]
     assert rows.index("w/o GR") < rows.index(label) < rows.index("Full model")
+    # The row names the GR form that differs from the full model's: with a per-pixel full model,
+    # the paper's summed form is the added row, and the per-pixel records are the full model's.
+    per_pixel = copy.deepcopy(recs)
+    for x in per_pixel:
+        if x["method"]["name"].startswith("lmgs") and x["config"].get("gr", True):
+            x["config"]["train"] = {"normal_reduce": "mean", "lambda_normal": 0.05}
+    paper = copy.deepcopy(r)
+    paper["method"].update(name="lmgs-gr-paper", display_name="lmgs-gr-paper", variant="gr-paper")
+    paper["config"] = {**paper["config"], "train": {}}
+    md4c = T.table_ablation(per_pixel + [paper]).markdown()
+    summed = "GR as the paper writes it (normal term summed, λ_N = 0.0001)"
+    assert _row(md4c, summed)[1:4] == ["✓", "✓", "✓"] and label not in md4c
+    rows = [ln.split("|")[1].strip() for ln in md4c.splitlines() if ln.startswith("| ")]
+    assert rows.index("w/o GR") < rows.index(summed) < rows.index("Full model")
     # Neither audio row is a θ row of Table III.
     assert T.table_theta(recs).markdown() == T.table_theta(fixture_records()).markdown()
 

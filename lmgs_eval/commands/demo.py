@@ -21,7 +21,7 @@ FULL_METHODS = ("lmgs", "talkinggaussian", "degstalk", "gaussiantalker", "wav2li
 FULL_SEEDS = {"lmgs": (0, 1, 2), "talkinggaussian": (0, 1, 2)}
 # Tables III-IV on hopper, the harder bundled subject (lmgs-ds needs aud_ds.npy, which bundled subjects lack).
 FULL_VARIANTS = ("lmgs-no-se", "lmgs-no-lc", "lmgs-no-gr", "lmgs-no-ae", "lmgs-theta0.4", "lmgs-theta0.8", "lmgs-base",
-                 "lmgs-gr-mean")
+                 "lmgs-gr-paper")
 VARIANT_SUBJECT = "hopper"
 # The stress suite on one subject, hopper, for the 3DGS family (lmgs-base would repeat TalkingGaussian:
 # same config, byte-identical renders).
