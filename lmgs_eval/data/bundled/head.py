@@ -377,14 +377,13 @@ class HeadModel:
         return plate.astype(np.float32), ta, bc, torso
 
     def static_layers(self) -> dict[str, np.ndarray]:
-        """Frame-size static images: ``behind`` (what the head is composited over: ``torso`` by
-        ``torso_alpha`` over ``bc``), ``torso`` (torso over background) and its ``torso_alpha``,
-        ``bc``, ``neck`` mask."""
+        """Frame-size static images: ``torso`` (torso over background) and its ``torso_alpha``,
+        ``bc``, ``neck`` mask. The head is composited over ``torso`` by ``torso_alpha`` over ``bc``."""
         import cv2
 
-        behind, ta, bc, torso = self._under
+        _, ta, bc, torso = self._under
         neck = cv2.resize(self.p.neck.astype(np.float32), (self.size, self.size), interpolation=cv2.INTER_AREA) > 0.5
-        return {"behind": behind, "torso": torso, "torso_alpha": ta, "bc": bc, "neck": neck}
+        return {"torso": torso, "torso_alpha": ta, "bc": bc, "neck": neck}
 
     def render(self, a: np.ndarray, ss: int = 2, geometry: bool = True) -> Frame:
         """Render one frame for articulation row ``a``."""
