@@ -123,9 +123,13 @@ def ensure_bundled(spec: BundledSpec, root: Path | None = None, *, force: bool =
                 version = json.loads(meta.read_text()).get("generator_version")
             except json.JSONDecodeError:
                 version = None
-            if version == bundled.GENERATOR_VERSION:
+            if version == bundled.GENERATOR_VERSION and bundled.speech_is_shipped(final):
                 return final
-            print(f"{final}: built by generator {version}, rebuilding with {bundled.GENERATOR_VERSION}", file=sys.stderr)
+            if version == bundled.GENERATOR_VERSION:
+                print(f"{final}: its piper speech is not the shipped samples (built on this CPU before they were "
+                      f"shipped), rebuilding", file=sys.stderr)
+            else:
+                print(f"{final}: built by generator {version}, rebuilding with {bundled.GENERATOR_VERSION}", file=sys.stderr)
         with atomic_dir(final) as tmp:
             bundled.build(spec.name, tmp, size=spec.size, seconds=spec.seconds, seed=spec.seed, progress=progress)
     return final

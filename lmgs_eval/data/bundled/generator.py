@@ -333,3 +333,27 @@ def manifest(folder: Path) -> dict[str, str]:
         if p.is_file() and p.name != "manifest.json":
             out[p.relative_to(folder).as_posix()] = hashlib.sha256(p.read_bytes()).hexdigest()
     return out
+
+
+def speech_is_shipped(folder: Path) -> bool:
+    """False if ``folder`` (a bundled build) speaks its first training sentence otherwise than
+    the shipped piper samples say: a build made before they were shipped, on a CPU whose
+    ONNX kernels gave other samples. True when there is nothing to compare."""
+    import wave
+
+    folder = Path(folder)
+    try:
+        first = (folder / "text.txt").read_text(encoding="utf-8").splitlines()[0].strip()
+    except (OSError, IndexError):
+        return True
+    shipped = sp_mod.frozen_piper().get(first)
+    if shipped is None or not (folder / "aud.wav").is_file():
+        return True
+    lead = int(round(0.3 * sp_mod.SAMPLE_RATE))  # speak_for's lead
+    want = sp_mod.pcm16(shipped[0])
+    try:
+        with wave.open(str(folder / "aud.wav")) as w:
+            got = np.frombuffer(w.readframes(lead + len(want)), "<i2")[lead:]
+    except (OSError, EOFError, wave.Error):
+        return False
+    return np.array_equal(got, want[: len(got)])

@@ -11,6 +11,7 @@ from __future__ import annotations
 import functools
 from dataclasses import dataclass
 from fractions import Fraction
+from pathlib import Path
 
 import numpy as np
 
@@ -172,6 +173,94 @@ def _synth_piper(text: str) -> tuple[np.ndarray, list[tuple[str, float, float]],
     return np.concatenate(audio), phones, sr
 
 
+# ----------------------------------------------------------------------------- frozen piper
+# piper runs in ONNX Runtime, whose kernels depend on the CPU's instruction set: the same
+# sentence comes out a few 16-bit steps apart on a CPU with AVX-512 and on one without
+# (checked: 0.9% of the samples of a sentence differ by one step). A bundled subject must
+# be the same bytes on every machine (its manifest hash is what records are matched on),
+# so the sentences the default bundled subjects speak with piper are shipped as the
+# 16-bit, 16 kHz samples and phone timings piper gave on an AVX2 CPU
+# (``speech_frozen.xz``, written by ``python -m lmgs_eval.data.bundled.freeze_speech``).
+# Other sentences are synthesised live and rounded to the same 16-bit steps.
+PCM_SCALE = 32767.0
+FROZEN_PATH = Path(__file__).with_name("speech_frozen.xz")
+FROZEN_FORMAT = "lmgs-frozen-speech-1"
+
+
+def pcm16(x: np.ndarray) -> np.ndarray:
+    """Float audio in [-1, 1] as the 16-bit samples every writer stores (``rint(x * 32767)``)."""
+    return np.clip(np.rint(np.clip(np.asarray(x, np.float64), -1.0, 1.0) * PCM_SCALE), -32767, 32767).astype(np.int16)
+
+
+def encode_frozen(entries: dict[str, tuple[np.ndarray, list[tuple[str, float, float]]]], source: str) -> bytes:
+    """``{text: (int16 pcm at 16 kHz, phones)}`` as one lzma stream: a JSON header line, then
+    the concatenated samples' first differences with their two bytes split into planes."""
+    import hashlib
+    import json
+    import lzma
+
+    texts = sorted(entries)
+    pcm = np.concatenate([np.asarray(entries[t][0], np.int16) for t in texts]) if texts else np.zeros(0, np.int16)
+    index, pos = [], 0
+    for t in texts:
+        n = len(entries[t][0])
+        index.append({"text": t, "start": pos, "samples": n, "phones": [[p, float(s), float(e)] for p, s, e in entries[t][1]]})
+        pos += n
+    delta = np.diff(pcm.astype(np.int32), prepend=0).astype("<i2")
+    planes = delta.view(np.uint8).reshape(-1, 2).T.copy().tobytes()
+    header = {"format": FROZEN_FORMAT, "voice": PIPER_VOICE, "sample_rate": SAMPLE_RATE, "source": source,
+              "samples": int(len(pcm)), "pcm_sha256": hashlib.sha256(pcm.astype("<i2").tobytes()).hexdigest(), "index": index}
+    return lzma.compress(json.dumps(header, ensure_ascii=False).encode() + b"\n" + planes, preset=9)
+
+
+def decode_frozen(blob: bytes, name: str = "speech_frozen.xz") -> tuple[dict, dict[str, tuple[np.ndarray, list[tuple[str, float, float]]]]]:
+    """The header and ``{text: (int16 pcm, phones)}`` of :func:`encode_frozen`'s bytes (checked)."""
+    import hashlib
+    import json
+    import lzma
+
+    try:
+        raw = lzma.decompress(blob)
+        head, _, body = raw.partition(b"\n")
+        header = json.loads(head)
+    except (lzma.LZMAError, ValueError) as exc:
+        raise UserError(f"{name}: not a frozen-speech file ({exc})") from None
+    n = int(header.get("samples", -1))
+    if header.get("format") != FROZEN_FORMAT or len(body) != 2 * n:
+        raise UserError(f"{name}: format {header.get('format')!r} with {len(body)} bytes of samples, expected {FROZEN_FORMAT!r} and {2 * n}")
+    delta = np.frombuffer(body, np.uint8).reshape(2, n).T.copy().view("<i2").ravel()
+    pcm = np.cumsum(delta.astype(np.int32)).astype(np.int16)
+    if hashlib.sha256(pcm.astype("<i2").tobytes()).hexdigest() != header["pcm_sha256"]:
+        raise UserError(f"{name}: samples do not match their sha256 (damaged file)")
+    out = {}
+    for e in header["index"]:
+        out[e["text"]] = (pcm[e["start"] : e["start"] + e["samples"]], [(p, s, t) for p, s, t in e["phones"]])
+    return header, out
+
+
+@functools.lru_cache(maxsize=1)
+def _frozen_entries() -> dict[str, tuple[np.ndarray, list[tuple[str, float, float]]]]:
+    if not FROZEN_PATH.is_file():
+        return {}
+    return decode_frozen(FROZEN_PATH.read_bytes(), str(FROZEN_PATH))[1]
+
+
+class _FrozenView:
+    def get(self, text: str):
+        e = _frozen_entries().get(text)
+        if e is None:
+            return None
+        return e[0].astype(np.float32) / PCM_SCALE, e[1]
+
+    def __contains__(self, text: str) -> bool:
+        return text in _frozen_entries()
+
+
+def frozen_piper() -> _FrozenView:
+    """The shipped piper sentences: ``.get(text)`` gives ``(float32 audio at 16 kHz, phones)`` or None."""
+    return _FrozenView()
+
+
 # ----------------------------------------------------------------------------- espeak-ng
 def _espeak_synth(text: str, voice: str) -> tuple[np.ndarray, list[tuple[str, float, float]], int]:
     """espeak-ng in a fresh process (see ``_espeak_worker.py``: the library is stateful)."""
@@ -240,8 +329,14 @@ def synthesize(texts: list[str] | tuple[str, ...], voice: str, *, lead: float = 
         text = text.strip()
         if not text:
             continue
-        audio, ph, sr = fn(text)
-        a16 = _resample_to_16k(audio, sr)
+        frozen = frozen_piper().get(text) if voice == PIPER_VOICE else None
+        if frozen is not None:
+            a16, ph = frozen
+        else:
+            audio, ph, sr = fn(text)
+            a16 = np.asarray(audio, np.float32) if sr == SAMPLE_RATE else _resample_to_16k(audio, sr)
+            if voice == PIPER_VOICE:
+                a16 = pcm16(a16).astype(np.float32) / PCM_SCALE
         for name, s, e in ph:
             if e <= s:
                 continue
