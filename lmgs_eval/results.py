@@ -176,7 +176,7 @@ SCHEMA: dict[str, Any] = {
                  "properties": {"version": _STR, "git_commit": _OSTR, "dirty": {"type": ["boolean", "null"]}}},
         "machine": {"type": "object", "required": ["cpu", "threads", "torch", "cuda_device", "platform"],
                     "properties": {"cpu": _STR, "threads": _OINT, "torch": _OSTR, "cuda_device": _OSTR,
-                                   "platform": _STR}},
+                                   "platform": _STR, "cpu_kernels": _OSTR}},
         "artefacts": {"type": "object", "additionalProperties": {
             "type": "object", "required": ["path", "sha256"],
             "properties": {"path": {"type": "string", "minLength": 1},
@@ -315,7 +315,10 @@ def _cpu_name() -> str:
 
 
 def machine_info() -> dict[str, Any]:
-    """Hardware fingerprint: CPU model, threads, torch version, CUDA device (if torch is loaded), platform.
+    """Hardware fingerprint: CPU model, threads, torch version, CUDA device (if torch is loaded), platform,
+    and the instruction set torch's CPU kernels use (``cpu_kernels``: "AVX512", "AVX2", ...; training
+    and ONNX Runtime scoring round differently on different ones, so the same seed and data give
+    slightly different numbers on a CPU with AVX-512 and one without).
 
     torch is not imported here (it is slow); its version comes from the package metadata and
     the CUDA device is only read when the caller has already imported torch.
@@ -327,14 +330,18 @@ def machine_info() -> dict[str, Any]:
     except metadata.PackageNotFoundError:
         torch_version = None
     threads = os.cpu_count()
-    cuda = None
+    cuda = kernels = None
     torch = sys.modules.get("torch")
     if torch is not None:
         threads = int(torch.get_num_threads())
         if torch.cuda.is_available():
             cuda = str(torch.cuda.get_device_name(0))
+        try:
+            kernels = str(torch.backends.cpu.get_cpu_capability())
+        except AttributeError:  # torch < 2.1
+            kernels = None
     return {"cpu": _cpu_name(), "threads": threads, "torch": torch_version, "cuda_device": cuda,
-            "platform": platform.platform()}
+            "platform": platform.platform(), "cpu_kernels": kernels}
 
 
 def now_iso() -> str:

@@ -594,7 +594,8 @@ def _common_notes(records: Sequence[Record], columns: Sequence[Column], methods:
                 text += f" Stand-ins: {'; '.join(m['standins'])}."
             notes.append(text)
     machines = {f"{r['machine']['cpu']}, {r['machine']['threads']} threads, "
-                f"{r['machine']['cuda_device'] or 'no GPU'}" for r in records}
+                + (f"{r['machine']['cpu_kernels']} kernels, " if r["machine"].get("cpu_kernels") else "")
+                + f"{r['machine']['cuda_device'] or 'no GPU'}" for r in records}
     if any(c.kind == "cost" for c in columns) and machines:
         if len(machines) > 1:
             notes.append(f"{MIXED} cost measured on different machines: {' | '.join(sorted(machines))}.")

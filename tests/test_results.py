@@ -281,7 +281,11 @@ def test_helpers(tmp_path):
     g = R.git_info()
     assert set(g) == {"version", "git_commit", "dirty"}
     m = R.machine_info()
-    assert set(m) == {"cpu", "threads", "torch", "cuda_device", "platform"} and m["threads"] >= 1
+    assert set(m) == {"cpu", "threads", "torch", "cuda_device", "platform", "cpu_kernels"} and m["threads"] >= 1
+    import torch
+
+    # with torch loaded, the kernels' instruction set is the one torch dispatches to
+    assert R.machine_info()["cpu_kernels"] == torch.backends.cpu.get_cpu_capability()
 
 
 # ----------------------------------------------------------------------------- verify
