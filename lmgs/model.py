@@ -36,8 +36,8 @@ class FrameRender:
     head_alpha: torch.Tensor  # [H, W, 1]
     face_alpha: torch.Tensor  # [H, W, 1]
     mouth_alpha: torch.Tensor  # [H, W, 1]
-    depth: torch.Tensor  # [H, W, 1] expected depth of the face, alpha-normalised
-    normal: torch.Tensor  # [H, W, 3] face normals, alpha-normalised
+    depth: torch.Tensor | None  # [H, W, 1] expected depth of the face, alpha-normalised (None: geometry=False)
+    normal: torch.Tensor | None  # [H, W, 3] face normals, alpha-normalised (None: geometry=False)
     face_means2d: torch.Tensor
     face_visible: torch.Tensor
     mouth_means2d: torch.Tensor
@@ -62,10 +62,15 @@ def render_branches(
     camera: Camera,
     background: torch.Tensor,
     backend: str = "auto",
+    geometry: bool = True,
 ) -> FrameRender:
-    """Render (means, quats, log_scales, opacity_logits, colors) of both branches and composite."""
-    face = rasterize(*face_params, camera, None, backend=backend)
-    mouth = rasterize(*mouth_params, camera, None, backend=backend)
+    """Render (means, quats, log_scales, opacity_logits, colors) of both branches and composite.
+
+    ``geometry=False`` (rendering a trained model) leaves out the face's depth and normal maps,
+    which only the Geometry Regularizer reads (``depth`` and ``normal`` are None).
+    """
+    face = rasterize(*face_params, camera, None, backend=backend, render_mode="RGB+D+N" if geometry else "RGB")
+    mouth = rasterize(*mouth_params, camera, None, backend=backend, render_mode="RGB")
     rgb, head_rgb, head_alpha = composite(face, mouth, background)
     a = face.alpha.clamp_min(1e-6)
     return FrameRender(
@@ -74,8 +79,8 @@ def render_branches(
         head_alpha=head_alpha,
         face_alpha=face.alpha,
         mouth_alpha=mouth.alpha,
-        depth=face.depth / a,
-        normal=face.normal / a,
+        depth=face.depth / a if geometry else None,
+        normal=face.normal / a if geometry else None,
         face_means2d=face.means2d,
         face_visible=face.visible,
         mouth_means2d=mouth.means2d,
@@ -204,7 +209,7 @@ class LMGSModel(nn.Module):
                 fracs.append(float(frac))
             mouth_p, _ = self.branch_params(self.mouth, self.mouth_deform, True, fa[t], None, None, mouth_f)
             b = time.perf_counter()
-            r = render_branches(face_p, mouth_p, self.camera(w2c.to(dev)), bg)
+            r = render_branches(face_p, mouth_p, self.camera(w2c.to(dev)), bg, geometry=False)
             out[t] = (r.rgb.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()
             c = time.perf_counter()
             t_net += b - a

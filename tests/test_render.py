@@ -85,6 +85,24 @@ def test_nograd_projection_equals_the_autograd_path(dtype, atol, scene):
     assert fast.visible.any() and not fast.visible.all()
 
 
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+@pytest.mark.parametrize("grad", [False, True])
+def test_rgb_mode_is_the_full_renders_colour_and_alpha(backend, grad):
+    """render_mode="RGB" (3 features composited on the no-grad numba path) gives the colour and
+    alpha of "RGB+D+N" bit for bit, and no depth or normals; checked against the dense reference."""
+    p = _scene(300, seed=21)
+    cam, bg = _camera(37, 29), torch.tensor([0.1, 0.5, 0.9])
+    with torch.set_grad_enabled(grad):
+        full = rasterize(*p, cam, bg, backend=backend)
+        rgb = rasterize(*p, cam, bg, backend=backend, render_mode="RGB")
+    assert rgb.depth is None and rgb.normal is None
+    assert torch.equal(rgb.rgb, full.rgb) and torch.equal(rgb.alpha, full.alpha) and torch.equal(rgb.radii, full.radii)
+    ref = _rasterize(*p, cam, bg)
+    torch.testing.assert_close(rgb.rgb, ref.rgb, atol=1e-5, rtol=0)
+    with pytest.raises(InputError, match="render_mode"):
+        rasterize(*p, cam, bg, backend=backend, render_mode="D")
+
+
 def test_forward_dense_scene_hits_early_stop():
     # many opaque, large Gaussians: transmittance reaches the 1e-4 stop in most pixels
     p = _scene(150, seed=5, spread=0.2, log_scale=-1.5)

@@ -33,8 +33,10 @@ def _tile_order(n_tiles: int) -> np.ndarray:
     return order.reshape(m, p).T.copy()
 
 
-def _composite_rows(rows: np.ndarray, rects: np.ndarray, vis: np.ndarray, depths: np.ndarray, width: int, height: int):
-    """Sort the visible Gaussians front to back, bin them into tiles and composite their rows."""
+def _composite_rows(rows: np.ndarray, rects: np.ndarray, vis: np.ndarray, depths: np.ndarray, width: int, height: int,
+                    nf: int = K.NF):
+    """Sort the visible Gaussians front to back, bin them into tiles and composite their rows
+    (the first ``nf`` features: 3 is colour alone)."""
     tiles_w, tiles_h = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
     n_tiles = tiles_w * tiles_h
     # stable sort by depth: ties keep index order, like the dense reference
@@ -42,7 +44,7 @@ def _composite_rows(rows: np.ndarray, rects: np.ndarray, vis: np.ndarray, depths
     order = vis_ids[np.argsort(depths[vis_ids], kind="stable")].astype(np.int64)
     offsets, ids = K.bin_tiles(rects, order, n_tiles, tiles_w)
     tile_order = _tile_order(n_tiles)
-    out, t_final, last = K.forward(rows, ids, offsets, tile_order, tiles_w, width, height)
+    out, t_final, last = K.forward(rows, ids, offsets, tile_order, tiles_w, width, height, nf)
     return out, t_final, last, (offsets, ids, tile_order, tiles_w)
 
 
@@ -85,8 +87,8 @@ def composite(
     return _Composite.apply(means2d, conics, opacities, features, radii.cpu(), depths.cpu(), width, height)
 
 
-def rasterize_nograd(means, quats, log_scales, opacity_logits, colors, camera) -> tuple[torch.Tensor, ...]:
-    """Projection and compositing in numba, no autograd: ``features [H, W, 7]``, ``alpha``, ``means2d``, ``radii``.
+def rasterize_nograd(means, quats, log_scales, opacity_logits, colors, camera, nf: int = K.NF) -> tuple[torch.Tensor, ...]:
+    """Projection and compositing in numba, no autograd: ``features [H, W, nf]``, ``alpha``, ``means2d``, ``radii``.
 
     The twin of ``project`` + :func:`composite` for rendering a trained model (nothing
     needs a gradient): the ~60 small torch operations of the projection, the float64
@@ -101,7 +103,7 @@ def rasterize_nograd(means, quats, log_scales, opacity_logits, colors, camera) -
         _np(means), _np(quats), _np(log_scales), _np(opacity_logits), _np(colors), _np(camera.world_to_camera),
         float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), width, height,
         P.NEAR_PLANE, P.EPS2D, P.LOG_SCALE_MIN, P.LOG_SCALE_MAX)
-    out, t_final, _, _ = _composite_rows(rows, rects, radii > 0, depths, width, height)
+    out, t_final, _, _ = _composite_rows(rows, rects, radii > 0, depths, width, height, nf)
     feat = torch.from_numpy(out).to(device=dev, dtype=dtype)
     alpha = torch.from_numpy(1.0 - t_final).to(device=dev, dtype=dtype)[..., None]
     return feat, alpha, torch.from_numpy(means2d).to(device=dev, dtype=dtype), torch.from_numpy(radii)

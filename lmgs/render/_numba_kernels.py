@@ -232,7 +232,7 @@ def _row_span(dy, ca, cb, cc, thr, mx, i0, i1):  # pragma: no cover - compiled
 
 
 @njit(parallel=True, cache=True)
-def forward(rows, ids, offsets, tile_order, tiles_w, width, height):  # pragma: no cover - compiled
+def forward(rows, ids, offsets, tile_order, tiles_w, width, height, nf=NF):  # pragma: no cover - compiled
     """Front-to-back compositing of every tile.
 
     For pixel :math:`p` and its tile list :math:`i = 1..n` (front to back):
@@ -246,16 +246,19 @@ def forward(rows, ids, offsets, tile_order, tiles_w, width, height):  # pragma: 
     alpha >= 1/255 box, with per-pixel state; each pixel still sees its Gaussians in the
     same front-to-back order, so this equals the per-pixel loop operation for operation.
 
-    Returns ``out [H, W, 7]``, ``t_final [H, W]`` and ``last [H, W]`` (one past the
+    ``nf`` composites only the first ``nf`` features (3: colour alone, for rendering a
+    trained model; the weights, and so ``t_final`` and ``last``, do not depend on it).
+
+    Returns ``out [H, W, nf]``, ``t_final [H, W]`` and ``last [H, W]`` (one past the
     intersection index of the last composited Gaussian, the backward's start).
     """
-    out = np.zeros((height, width, NF), np.float64)
+    out = np.zeros((height, width, nf), np.float64)
     t_final = np.ones((height, width), np.float64)
     last = np.zeros((height, width), np.int64)
     n_chunks = tile_order.shape[0]
     for chunk in prange(n_chunks):
         T = np.empty(TILE * TILE, np.float64)
-        acc = np.empty((TILE * TILE, NF), np.float64)
+        acc = np.empty((TILE * TILE, nf), np.float64)
         stop = np.empty(TILE * TILE, np.int64)
         done = np.empty(TILE * TILE, np.bool_)
         for t in tile_order[chunk]:
@@ -310,7 +313,7 @@ def forward(rows, ids, offsets, tile_order, tiles_w, width, height):  # pragma: 
                             n_done += 1
                             continue
                         w = alpha * tl
-                        for f in range(NF):
+                        for f in range(nf):
                             acc[l, f] += w * rows[g, 7 + f]
                         T[l] = test_t
                         stop[l] = k + 1
@@ -319,7 +322,7 @@ def forward(rows, ids, offsets, tile_order, tiles_w, width, height):  # pragma: 
             for py in range(y_lo, y_lo + ph):
                 for px in range(x_lo, x_lo + pw):
                     l = (py - y_lo) * TILE + px - x_lo
-                    for f in range(NF):
+                    for f in range(nf):
                         out[py, px, f] = acc[l, f]
                     t_final[py, px] = T[l]
                     last[py, px] = stop[l]

@@ -6,7 +6,8 @@ resident set (``resource.getrusage(RUSAGE_SELF).ru_maxrss``) during the first
 forward+backward of the row's scene, over the level after building the scene and a tiny
 warm-up render (which loads the numba cache). Times are medians of repeated runs after
 that; ``fwd_bwd_ms`` is forward plus ``backward()`` of a sum over every output image, and
-``fwd_nograd_ms`` the forward under ``torch.no_grad()`` (how a trained model renders).
+``fwd_nograd_ms`` the forward under ``torch.no_grad()``, and ``fwd_rgb_ms`` that forward with
+``render_mode="RGB"`` (colour and alpha only: how a trained model renders).
 """
 
 from __future__ import annotations
@@ -106,6 +107,8 @@ def _measure(backend: str, res: int, n: int, repeats: int) -> dict:
     with torch.no_grad():  # rendering a trained model: no autograd (numba: the projection runs in numba too)
         fwd(params, cam)
         fwd_ng_ms, _ = timed(lambda: fwd(params, cam))
+        rasterize(*params, cam, bg, backend=backend, render_mode="RGB")
+        fwd_rgb_ms, _ = timed(lambda: rasterize(*params, cam, bg, backend=backend, render_mode="RGB"))
     return {
         "backend": backend,
         "res": f"{res}x{res}",
@@ -115,6 +118,8 @@ def _measure(backend: str, res: int, n: int, repeats: int) -> dict:
         "fwd_bwd_ms": fwd_bwd_ms,
         "fwd_nograd_ms": fwd_ng_ms,
         "nograd_speedup": fwd_ms / fwd_ng_ms,
+        "fwd_rgb_ms": fwd_rgb_ms,
+        "rgb_speedup": fwd_ng_ms / fwd_rgb_ms,
         "fwd_min_ms": fwd_min,
         "fwd_bwd_min_ms": fwd_bwd_min,
         "peak_mb": peak_kb / 1024.0,
@@ -166,6 +171,8 @@ def run(args: argparse.Namespace) -> dict:
         "times": "fwd_ms/fwd_bwd_ms are medians, *_min_ms minima of the repeats (the 2 cores are shared)",
         "nograd": "fwd_nograd_ms: the same forward under torch.no_grad() (rendering a trained model); "
                   "nograd_speedup = fwd_ms / fwd_nograd_ms, same worker, same scene",
+        "rgb": "fwd_rgb_ms: that no-grad forward with render_mode='RGB' (colour and alpha only, what inference draws); "
+               "rgb_speedup = fwd_nograd_ms / fwd_rgb_ms, same worker, same scene",
         "scene": "head-sized blob 0.6 m away, fx = 1.5 x res, ~1.5 px sigma at 256 px",
         "threads": {"torch": torch.get_num_threads(), "numba": numba.get_num_threads(), "cpus": os.cpu_count()},
         "machine": f"{platform.machine()} {platform.processor() or ''}".strip(),

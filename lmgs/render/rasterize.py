@@ -13,6 +13,8 @@ from lmgs.types import Camera
 
 Backend = Literal["auto", "numba", "torch", "gsplat"]
 BACKENDS: tuple[str, ...] = ("auto", "numba", "torch", "gsplat")
+RenderMode = Literal["RGB+D+N", "RGB"]
+RENDER_MODES: tuple[str, ...] = ("RGB+D+N", "RGB")
 
 
 @dataclass(frozen=True)
@@ -27,9 +29,11 @@ class RasterResult:
             when ``background`` is None).
         alpha: ``[H, W, 1]`` :math:`\\sum_i w_i = 1 - T_n`.
         depth: ``[H, W, 1]`` :math:`\\sum_i w_i z_i`, camera z accumulated and **not**
-            normalised by alpha (gsplat's ``"D"``); see :attr:`expected_depth`.
+            normalised by alpha (gsplat's ``"D"``); see :attr:`expected_depth`. None with
+            ``render_mode="RGB"``.
         normal: ``[H, W, 3]`` :math:`\\sum_i w_i n_i`, camera-space (OpenCV) unit axis of
-            each Gaussian's smallest scale, oriented towards the camera; not normalised.
+            each Gaussian's smallest scale, oriented towards the camera; not normalised. None
+            with ``render_mode="RGB"``.
         radii: ``[N]`` int32 screen radius in pixels (3 sigma), 0 = culled.
         visible: ``[N]`` bool, ``radii > 0``.
         means2d: ``[N, 2]`` pixel positions, a node of the autograd graph with
@@ -40,8 +44,8 @@ class RasterResult:
 
     rgb: torch.Tensor  # [H, W, 3]
     alpha: torch.Tensor  # [H, W, 1]
-    depth: torch.Tensor  # [H, W, 1]
-    normal: torch.Tensor  # [H, W, 3]
+    depth: torch.Tensor | None  # [H, W, 1]
+    normal: torch.Tensor | None  # [H, W, 3]
     radii: torch.Tensor  # [N] int32
     visible: torch.Tensor  # [N] bool
     means2d: torch.Tensor  # [N, 2]
@@ -63,6 +67,7 @@ def rasterize(
     *,
     sh_degree: int | None = None,
     backend: Backend = "auto",
+    render_mode: RenderMode = "RGB+D+N",
 ) -> RasterResult:
     """Render 3D Gaussians (Kerbl et al., 3D Gaussian Splatting, SIGGRAPH 2023).
 
@@ -94,6 +99,10 @@ def rasterize(
             gradient (rendering a trained model), the numba path also projects in numba
             (``K.project_rows``, float64, the same formulas; tests hold it equal to the
             torch projection) instead of the ~60 small torch operations autograd needs.
+        render_mode: ``"RGB+D+N"`` (colour, depth and normals, what training needs) or
+            ``"RGB"`` (colour and alpha alone, ``depth`` and ``normal`` None). On the no-grad
+            numba path ``"RGB"`` composites 3 features per pixel instead of 7 (the same colour
+            and alpha, bit for bit); the other paths compute all and drop the two.
 
     Returns:
         A :class:`RasterResult`.
@@ -102,6 +111,8 @@ def rasterize(
         InputError: bad shapes, non-finite parameters (naming the tensor and how many
             values), or an unavailable backend.
     """
+    if render_mode not in RENDER_MODES:
+        raise InputError(f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
     degree = check_inputs(means, quats, log_scales, opacity_logits, colors, camera, background, sh_degree)
     chosen = _choose_backend(backend, means.device)
     width, height = int(camera.width), int(camera.height)
@@ -115,7 +126,8 @@ def rasterize(
             t.requires_grad for t in (means, quats, log_scales, opacity_logits, colors))):
         from lmgs.render._cpu import rasterize_nograd
 
-        feat, alpha, means2d, radii = rasterize_nograd(means, quats, log_scales, opacity_logits, colors, camera)
+        feat, alpha, means2d, radii = rasterize_nograd(means, quats, log_scales, opacity_logits, colors, camera,
+                                                       3 if render_mode == "RGB" else 7)
     else:
         p = project(means, quats, log_scales, opacity_logits, colors, degree, camera)
         if chosen == "numba":
@@ -132,8 +144,8 @@ def rasterize(
     return RasterResult(
         rgb=rgb,
         alpha=alpha,
-        depth=feat[..., 3:4],
-        normal=feat[..., 4:7],
+        depth=None if render_mode == "RGB" else feat[..., 3:4],
+        normal=None if render_mode == "RGB" else feat[..., 4:7],
         radii=radii,
         visible=radii > 0,
         means2d=means2d,
