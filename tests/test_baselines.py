@@ -186,6 +186,15 @@ def test_gaussiantalker_config_hash_follows_its_budget_and_shared_schedule():
     assert other.describe().config_hash != base.describe().config_hash
 
 
+def test_degstalk_geometry_term_is_the_toolkits_lmgs_form():
+    """DEGSTalk keeps a geometry term, in the same form as the toolkit's lmgs (not the preset's summed one)."""
+    degs, full = create_method("degstalk").cfg, create_method("lmgs").cfg
+    assert degs.gr and not degs.guidance.se and not degs.guidance.lc
+    for field in ("normal_reduce", "lambda_normal", "lambda_depth", "gr_warmup"):
+        assert getattr(degs.train, field) == getattr(full.train, field), field
+    assert (degs.train.normal_reduce, degs.train.lambda_normal) == ("mean", 0.05)
+
+
 @pytest.mark.parametrize("name", ["talkinggaussian", "degstalk"])
 def test_lmgs_configured_baselines_train_with_their_budget_density(name):
     # a budget override reaches the lmgs training config (and so the hash), not only the budget record

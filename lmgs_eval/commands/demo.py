@@ -18,7 +18,9 @@ HELP = ("the main job: build astronaut, run self and cross with lmgs (quick pres
 FULL_SUBJECTS = ("astronaut", "hopper")
 FULL_METHODS = ("lmgs", "talkinggaussian", "degstalk", "gaussiantalker", "wav2lip", "ip_lap",
                 "ernerf", "radnerf", "adnerf", "geneface")
-FULL_SEEDS = {"lmgs": (0, 1, 2), "talkinggaussian": (0, 1, 2)}
+# Five seeds for the comparison the paper is about (lmgs against its backbone): on astronaut the
+# ST-LPIPS gap (about 0.0003) is smaller than one seed's spread across hosts (0.0045 / 0.0055).
+FULL_SEEDS = {"lmgs": (0, 1, 2, 3, 4), "talkinggaussian": (0, 1, 2, 3, 4)}
 # Tables III-IV on hopper, the harder bundled subject (lmgs-ds needs aud_ds.npy, which bundled subjects lack).
 FULL_VARIANTS = ("lmgs-no-se", "lmgs-no-lc", "lmgs-no-gr", "lmgs-no-ae", "lmgs-theta0.4", "lmgs-theta0.8", "lmgs-base",
                  "lmgs-gr-paper")
@@ -42,7 +44,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("--full", action="store_true",
                    help="the whole benchmark (resumable, hours on 2 cores): every method on astronaut and hopper "
-                        "(3 seeds for lmgs and talkinggaussian), Tables III-IV variants and the stress suite (3DGS family) "
+                        "(5 seeds for lmgs and talkinggaussian), Tables III-IV variants and the stress suite (3DGS family) "
                         "on hopper, capacity on both (seed 0); tables to ./tables")
 
 
