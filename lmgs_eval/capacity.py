@@ -227,7 +227,8 @@ def retime_side_by_side(cfg: RunConfig, subject, train, driving, trained: Sequen
             method.render(clip)
             best[(b, s)] = min(best[(b, s)], time.perf_counter() - t0)
     out = {}
-    run = store.now_iso()
+    # the run's identity: to the microsecond, as two timing runs can fall in one second on a fast host
+    run = store.now_iso("microseconds")
     for b, s, _, rec in loaded:
         fps = n / best[(b, s)]
         out[(b, s)] = fps

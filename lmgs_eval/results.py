@@ -344,9 +344,9 @@ def machine_info() -> dict[str, Any]:
             "platform": platform.platform(), "cpu_kernels": kernels}
 
 
-def now_iso() -> str:
-    """Current UTC time, ISO 8601, seconds."""
-    return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+def now_iso(timespec: str = "seconds") -> str:
+    """Current UTC time, ISO 8601, to the second (or ``timespec``, e.g. ``"microseconds"``)."""
+    return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec=timespec)
 
 
 EMPTY_COST: dict[str, Any] = {
