@@ -250,8 +250,8 @@ class GaussianTalkerModel(nn.Module):
             f = self.deform.encoder(g.means) if feats is None else feats
             dx, dr, ds = self.deform(f, audio, blink)
             means, quats, ls = means + dx, quats + dr, ls + ds
-        mode = "RGB+D+N" if torch.is_grad_enabled() else "RGB"  # depth and normals only feed training's losses
-        return rasterize(means, quats, ls, g.opacity_logits, g.colors(), self.camera(w2c), None, render_mode=mode)
+        # no loss of GaussianTalker reads depth or normals
+        return rasterize(means, quats, ls, g.opacity_logits, g.colors(), self.camera(w2c), None, render_mode="RGB")
 
 
 def _composite(res, background: torch.Tensor) -> torch.Tensor:

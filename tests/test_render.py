@@ -90,11 +90,10 @@ def test_nograd_projection_equals_the_autograd_path(dtype, atol, scene):
 def test_rgb_mode_is_the_full_renders_colour_and_alpha(backend, grad):
     """render_mode="RGB" (3 features composited on the no-grad numba path) gives the colour and
     alpha of "RGB+D+N" bit for bit, and no depth or normals; checked against the dense reference."""
-    p = _scene(300, seed=21)
+    p = [t.requires_grad_(grad) for t in _scene(300, seed=21)]  # grad: the autograd path, which drops the two
     cam, bg = _camera(37, 29), torch.tensor([0.1, 0.5, 0.9])
-    with torch.set_grad_enabled(grad):
-        full = rasterize(*p, cam, bg, backend=backend)
-        rgb = rasterize(*p, cam, bg, backend=backend, render_mode="RGB")
+    full = rasterize(*p, cam, bg, backend=backend)
+    rgb = rasterize(*p, cam, bg, backend=backend, render_mode="RGB")
     assert rgb.depth is None and rgb.normal is None
     assert torch.equal(rgb.rgb, full.rgb) and torch.equal(rgb.alpha, full.alpha) and torch.equal(rgb.radii, full.radii)
     ref = _rasterize(*p, cam, bg)

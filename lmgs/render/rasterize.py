@@ -14,7 +14,9 @@ from lmgs.types import Camera
 Backend = Literal["auto", "numba", "torch", "gsplat"]
 BACKENDS: tuple[str, ...] = ("auto", "numba", "torch", "gsplat")
 RenderMode = Literal["RGB+D+N", "RGB"]
-RENDER_MODES: tuple[str, ...] = ("RGB+D+N", "RGB")
+# features composited per pixel in each mode (rgb, depth, normal: see the kernels' row layout)
+_MODE_FEATURES: dict[str, int] = {"RGB+D+N": 7, "RGB": 3}
+RENDER_MODES: tuple[str, ...] = tuple(_MODE_FEATURES)
 
 
 @dataclass(frozen=True)
@@ -127,7 +129,7 @@ def rasterize(
         from lmgs.render._cpu import rasterize_nograd
 
         feat, alpha, means2d, radii = rasterize_nograd(means, quats, log_scales, opacity_logits, colors, camera,
-                                                       3 if render_mode == "RGB" else 7)
+                                                       _MODE_FEATURES[render_mode])
     else:
         p = project(means, quats, log_scales, opacity_logits, colors, degree, camera)
         if chosen == "numba":
