@@ -24,6 +24,11 @@ class TrainConfig:
         static_steps: steps of the static stage (canonical fields, L1 + D-SSIM).
         dynamic_steps: steps of the dynamic stage (deformation on, + geometry loss).
         landmark_steps: steps of the per-subject audio-to-landmark predictor.
+        landmark_folds: the landmarks guiding training are out-of-fold predictions of that
+            many predictors, each fitted without one contiguous block of the training split
+            (:func:`lmgs.landmarks.cross_fit_landmarks`), so they are as wrong as the ones
+            guiding inference; 0: the in-sample predictions of the predictor fitted on the
+            whole split (before the option; an :func:`~lmgs.config.added_option`). Default 5.
         lr_means, lr_scales, lr_quats, lr_opacity, lr_colors: Adam rates of the Gaussians.
         lr_nets: AdamW rate of the networks (audio encoder, tri-planes, deformation, guidance).
         lambda_dssim: weight of D-SSIM (3DGS: 0.2).
@@ -78,12 +83,15 @@ class TrainConfig:
     checkpoint_every: int = 500
     normal_reduce: str = added_option("sum")
     gr_warmup: int = added_option(0, default=400)
+    landmark_folds: int = added_option(0, default=5)
 
     def __post_init__(self) -> None:
         if self.normal_reduce not in ("sum", "mean"):
             raise ValueError(f"train.normal_reduce must be 'sum' or 'mean', not {self.normal_reduce!r}")
         if self.gr_warmup < 0:
             raise ValueError(f"train.gr_warmup must be >= 0 steps, not {self.gr_warmup!r}")
+        if self.landmark_folds < 0 or self.landmark_folds == 1:
+            raise ValueError(f"train.landmark_folds must be 0 (off) or at least 2, not {self.landmark_folds!r}")
 
 
 @dataclass(frozen=True)
@@ -103,7 +111,12 @@ class LMGSConfig:
     def to_dict(self) -> dict:
         from lmgs.config import config_dict
 
-        return config_dict(self)
+        d = config_dict(self)
+        if not (self.guidance.se or self.guidance.lc):
+            # without SE and LC nothing reads the landmarks: the folds change no weight, so
+            # they do not change the hash either (TalkingGaussian's records stay valid)
+            d["train"].pop("landmark_folds", None)
+        return d
 
     def hash(self) -> str:
         blob = json.dumps(self.to_dict(), sort_keys=True, default=str).encode()

@@ -251,9 +251,21 @@ def fit(
             c2w = np.linalg.inv(clip.w2c) @ np.diag([1.0, -1.0, -1.0, 1.0])
             targets = lift_2d_landmarks(clip.landmarks2d, c2w, clip.focal, clip.cx, clip.cy)
         model.predictor = fit_landmark_predictor(feats, torch.as_tensor(np.asarray(targets), dtype=torch.float32), steps=t.landmark_steps, seed=seed)
-        lms_pred = model.predictor.predict(feats).to(dev)
+        # Training landmarks of held-out quality (see cross_fit_landmarks); a clip too short
+        # for the folds (fewer than 8 frames a block) falls back to in-sample predictions.
+        folds = min(t.landmark_folds, n // 8)
+        if folds >= 2:
+            from lmgs.landmarks import cross_fit_landmarks
+
+            lms_pred = cross_fit_landmarks(feats, torch.as_tensor(np.asarray(targets), dtype=torch.float32),
+                                           folds=folds, steps=t.landmark_steps, seed=seed).to(dev)
+        else:
+            lms_pred = model.predictor.predict(feats).to(dev)
         t_lms = time.perf_counter() - a
-        say(f"landmark predictor fitted in {t_lms:.1f} s")
+        how = f"{folds}-fold out-of-fold" if folds >= 2 else "in-sample"
+        if t.landmark_folds and folds < 2:
+            how += f" ({n} frames are too few for {t.landmark_folds} folds)"
+        say(f"landmark predictor fitted in {t_lms:.1f} s; training landmarks {how}")
 
     g_opt, n_opt = _optimizers(model, cfg)
     total = t.static_steps + t.dynamic_steps

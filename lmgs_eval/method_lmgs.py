@@ -105,6 +105,8 @@ class LMGSMethod:
                 "The paper's method on TalkingGaussian's face/mouth decomposition, trained on a CPU schedule "
                 f"({self.cfg.train.static_steps} static + {self.cfg.train.dynamic_steps} dynamic steps, preset "
                 f"'{self.cfg.preset}'); {', '.join(parts)}"
+                + (f"; the landmarks guiding training are out-of-fold predictions ({t.landmark_folds} folds), as wrong "
+                   "as at test time, as a pretrained predictor's would be" if (g.se or g.lc) and t.landmark_folds else "")
                 + (f"; the GR weights ramp in over the first {t.gr_warmup} dynamic steps" if self.cfg.gr and t.gr_warmup else "")
                 + ("; not the paper's GR form: the normal term per pixel at 2DGS's weight (the paper's sum at 1e-4 "
                    "collapsed training on bundled data)." if self.cfg.gr and t.normal_reduce != "sum" else ".")

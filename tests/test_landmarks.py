@@ -113,3 +113,43 @@ def test_lift_with_mean_face_prior_is_plausible():
     assert z[0] - z[30] == pytest.approx(MEAN_FACE_DEPTH[0] * face_width, rel=1e-3)
     with pytest.raises(InputError):
         lift_2d_landmarks(np.zeros((2, 68, 3)), c2w, focal, 256, 256)
+
+
+def test_cross_fit_predicts_each_block_without_its_targets():
+    from lmgs.landmarks import cross_fit_landmarks
+
+    feats, lms, _ = _synthetic(60)
+    out = cross_fit_landmarks(feats, lms, folds=3, steps=10, seed=0)
+    assert out.shape == (60, 68, 3)
+    moved = lms.clone()
+    moved[20:40] += 5.0  # block 1's targets only
+    out2 = cross_fit_landmarks(feats, moved, folds=3, steps=10, seed=0)
+    assert torch.equal(out[20:40], out2[20:40])  # predicted by a fit that never saw them
+    assert not torch.allclose(out[:20], out2[:20]) and not torch.allclose(out[40:], out2[40:])  # the others did
+    with pytest.raises(InputError, match="at least 2 folds"):
+        cross_fit_landmarks(feats, lms, folds=1)
+    with pytest.raises(InputError, match="too few"):
+        cross_fit_landmarks(feats[:20], lms[:20], folds=5)
+
+
+def test_cross_fit_error_is_the_held_out_error_not_the_in_sample_one():
+    """In-sample predictions of an over-parameterised predictor are better than it is on new
+    audio; the out-of-fold ones are as good as on new audio (the point of cross-fitting)."""
+    from lmgs.landmarks import cross_fit_landmarks
+
+    g = torch.Generator().manual_seed(1)
+    feats, lms, _ = _synthetic(300)
+    # per-frame jitter along one landmark pattern, which the audio cannot explain
+    pattern = torch.randn(68, 3, generator=g)
+    lms = lms + 0.2 * torch.randn(len(lms), 1, 1, generator=g) * pattern
+    tr = 240
+
+    def err(p, y):
+        return float((p - y).norm(dim=-1).mean())
+
+    full = fit_landmark_predictor(feats[:tr], lms[:tr], steps=300, seed=0)
+    in_sample = err(full.predict(feats[:tr]), lms[:tr])
+    held_out = err(full.predict(feats[tr:]), lms[tr:])
+    oof = err(cross_fit_landmarks(feats[:tr], lms[:tr], folds=4, steps=300, seed=0), lms[:tr])
+    assert in_sample < 0.2 * held_out  # the predictor memorises the jitter of its own frames (0.006 / 0.294)
+    assert 0.7 * held_out < oof < 1.5 * held_out  # out of fold: new-audio quality (0.361, fitted on 3/4 of the frames)

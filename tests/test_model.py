@@ -220,3 +220,54 @@ def test_gr_warmup_ramps_the_geometry_weights_in_and_leaves_the_hash_when_off(cl
     seen.clear()
     fit(clip, base, seed=0, progress=False)
     assert {n for _, n in seen} == {lam}  # off: full weight from the first dynamic step, as before
+
+
+def test_training_landmarks_are_out_of_fold_and_the_folds_hash(clip, monkeypatch):
+    import lmgs.landmarks as lm
+    import lmgs.train as tr
+
+    assert quick().train.landmark_folds == 5 and quick().to_dict()["train"]["landmark_folds"] == 5
+    off = _tiny_cfg(**{"train.landmark_folds": 0})
+    assert "landmark_folds" not in off.to_dict()["train"] and off.hash() != _tiny_cfg().hash()  # 0: the hash of before
+    # without SE and LC nothing reads landmarks: the folds leave TalkingGaussian's hash alone
+    tg = _tiny_cfg(**{"guidance.se": False, "guidance.lc": False, "gr": False})
+    assert tg.hash() == tg.replace(**{"train.landmark_folds": 0}).hash()
+    with pytest.raises(ValueError, match="landmark_folds"):
+        _tiny_cfg(**{"train.landmark_folds": 1})
+
+    calls, fed = [], []
+    real = lm.cross_fit_landmarks
+
+    def spy(feats, targets, *, folds, steps, seed):
+        out = real(feats, targets, folds=folds, steps=steps, seed=seed)
+        calls.append((folds, out.clone()))
+        return out
+
+    real_render = tr.LMGSModel.render_frame
+
+    def render_spy(self, w2c, bg, *, dynamic=True, landmarks=None, **kw):
+        if landmarks is not None:
+            fed.append(landmarks.detach().clone())
+        return real_render(self, w2c, bg, dynamic=dynamic, landmarks=landmarks, **kw)
+
+    monkeypatch.setattr(lm, "cross_fit_landmarks", spy)
+    monkeypatch.setattr(tr.LMGSModel, "render_frame", render_spy)
+    cfg = _tiny_cfg(**{"train.landmark_folds": 3})
+    model, _ = fit(clip, cfg, seed=0, progress=False)
+    assert [f for f, _ in calls] == [3]  # 24 frames: 3 blocks of 8
+    oof = calls[0][1]
+    assert len(fed) == cfg.train.dynamic_steps  # only the dynamic stage reads landmarks
+    assert all(any(torch.equal(x, o) for o in oof) for x in fed)  # the out-of-fold sets, not the predictor's own
+    from lmgs.audio import compute_features
+
+    feats = compute_features(clip.audio, 16000, cfg.audio, n_frames=len(clip))
+    in_sample = model.predictor.predict(feats)
+    assert not any(torch.allclose(fed[0], p) for p in in_sample)
+    calls.clear()
+    said = []
+    fit(clip, _tiny_cfg(), seed=0, progress=False, log=said.append)  # 5 folds asked, 24 frames: capped at 3 blocks of 8
+    assert [f for f, _ in calls] == [3] and any("3-fold out-of-fold" in s for s in said)
+    calls.clear()
+    said.clear()
+    fit(synthetic_clip(n=12), _tiny_cfg(), seed=0, progress=False, log=said.append)
+    assert calls == [] and any("in-sample (12 frames are too few for 5 folds)" in s for s in said)
