@@ -45,6 +45,9 @@ VARIANTS: dict[str, dict] = {
     # real ER-NeRF / TalkingGaussian subjects have them, the bundled ones do not).
     "lmgs-no-ae": {"audio.use_encoder": False, **GR_PER_PIXEL},
     "lmgs-ds": {"audio.frontend": "ds", **GR_PER_PIXEL},
+    # The landmarks guiding training as wrong as at test time: out-of-fold predictions of the per-subject
+    # predictor (5 folds) instead of its in-sample ones (lmgs.landmarks.cross_fit_landmarks; issue 5's note).
+    "lmgs-oof": {"train.landmark_folds": 5, **GR_PER_PIXEL},
 }
 
 
@@ -97,6 +100,8 @@ class LMGSMethod:
             parts.append("no Audio Encoder")
         if a.frontend != "logmel":
             parts.append(f"audio front end {a.frontend}")
+        if (g.se or g.lc) and t.landmark_folds:
+            parts.append(f"out-of-fold training landmarks ({t.landmark_folds} folds)")
         return MethodInfo(
             name=self.variant,
             display_name="Ours (lmgs)" if self.variant == "lmgs" else f"lmgs ({', '.join(parts)})",

@@ -736,6 +736,9 @@ def _ablation_label(r: Record, full_frontend: str | None = None, full_gr: tuple 
            if not on]
     if off:
         parts.append("w/o " + ", ".join(off))
+    folds = (r["config"].get("train") or {}).get("landmark_folds", 0)
+    if folds and (g.get("se", True) or g.get("lc", True)):
+        parts.append(f"Training landmarks out of fold ({folds} folds)")
     form = _gr_form(r)
     if r["config"].get("gr", True) and form != (full_gr or ("sum", 1e-4)):  # GR in another form than the full model's
         parts.append("GR as the paper writes it (normal term summed, λ_N = {1:g})".format(*form) if form[0] == "sum"

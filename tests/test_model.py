@@ -226,9 +226,10 @@ def test_training_landmarks_are_out_of_fold_and_the_folds_hash(clip, monkeypatch
     import lmgs.landmarks as lm
     import lmgs.train as tr
 
-    assert quick().train.landmark_folds == 5 and quick().to_dict()["train"]["landmark_folds"] == 5
-    off = _tiny_cfg(**{"train.landmark_folds": 0})
-    assert "landmark_folds" not in off.to_dict()["train"] and off.hash() != _tiny_cfg().hash()  # 0: the hash of before
+    # off by default (in-sample training landmarks), and then the hash is that of before the option
+    assert quick().train.landmark_folds == 0 and "landmark_folds" not in quick().to_dict()["train"]
+    on = _tiny_cfg(**{"train.landmark_folds": 5})
+    assert on.to_dict()["train"]["landmark_folds"] == 5 and on.hash() != _tiny_cfg().hash()
     # without SE and LC nothing reads landmarks: the folds leave TalkingGaussian's hash alone
     tg = _tiny_cfg(**{"guidance.se": False, "guidance.lc": False, "gr": False})
     assert tg.hash() == tg.replace(**{"train.landmark_folds": 0}).hash()
@@ -265,9 +266,12 @@ def test_training_landmarks_are_out_of_fold_and_the_folds_hash(clip, monkeypatch
     assert not any(torch.allclose(fed[0], p) for p in in_sample)
     calls.clear()
     said = []
-    fit(clip, _tiny_cfg(), seed=0, progress=False, log=said.append)  # 5 folds asked, 24 frames: capped at 3 blocks of 8
+    fit(clip, on, seed=0, progress=False, log=said.append)  # 5 folds asked, 24 frames: capped at 3 blocks of 8
     assert [f for f, _ in calls] == [3] and any("3-fold out-of-fold" in s for s in said)
     calls.clear()
     said.clear()
-    fit(synthetic_clip(n=12), _tiny_cfg(), seed=0, progress=False, log=said.append)
+    fit(synthetic_clip(n=12), on, seed=0, progress=False, log=said.append)
     assert calls == [] and any("in-sample (12 frames are too few for 5 folds)" in s for s in said)
+    said.clear()
+    fit(synthetic_clip(n=12), _tiny_cfg(), seed=0, progress=False, log=said.append)  # the default: in-sample
+    assert calls == [] and any("training landmarks in-sample" in s and "too few" not in s for s in said)

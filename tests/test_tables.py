@@ -282,6 +282,13 @@ def test_table4_has_the_papers_audio_rows_first():
     assert rows.index("w/o GR") < rows.index(summed) < rows.index("Full model")
     # Neither audio row is a θ row of Table III.
     assert T.table_theta(recs).markdown() == T.table_theta(fixture_records()).markdown()
+    # Training on out-of-fold landmarks (lmgs-oof) is its own row, SE / LC / GR ticked, not a θ row.
+    oof = copy.deepcopy(next(x for x in recs if x["method"]["name"] == "lmgs"))
+    oof["method"].update(name="lmgs-oof", display_name="lmgs-oof", variant="oof")
+    oof["config"] = {**oof["config"], "train": {**(oof["config"].get("train") or {}), "landmark_folds": 5}}
+    md4d = T.table_ablation(recs + [oof]).markdown()
+    assert _row(md4d, "Training landmarks out of fold (5 folds)")[1:4] == ["✓", "✓", "✓"]
+    assert T.table_theta(recs + [oof]).markdown() == T.table_theta(recs).markdown()
 
 def _calibration_store(constant: bool) -> list[dict]:
     lse_c_gt = [5.0] * 20 if constant else items(8.5, 0.4, 1)
