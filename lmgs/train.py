@@ -69,7 +69,11 @@ class CollapseGuard:
 
 @dataclass
 class FitReport:
-    """What a training run produced and cost."""
+    """What a training run produced and cost.
+
+    ``seconds`` is the whole training's time: after a resume, the earlier runs' seconds up to
+    their last checkpoint (``prior_seconds``, saved in it) plus this run's.
+    """
 
     steps: int
     seconds: float
@@ -80,6 +84,7 @@ class FitReport:
     resumed_from: int = 0
     landmark_seconds: float = 0.0
     curve: list = field(default_factory=list)
+    prior_seconds: float = 0.0
 
 
 def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -278,9 +283,10 @@ def fit(
 
     ckpt = Path(workdir) / "checkpoint.pt" if workdir else None
     curve_rows: list[dict] = []
-    start = 0
+    start, prior = 0, 0.0
     if ckpt is not None and ckpt.exists():
-        start = _resume(ckpt, model, g_opt, n_opt, cfg, dev, curve_rows)
+        start, prior = _resume(ckpt, model, g_opt, n_opt, cfg, dev, curve_rows)
+        t_start -= prior  # the clock (curve, report) counts the earlier runs' training too
         face_state = initialize_state(len(model.face), dev)
         mouth_state = initialize_state(len(model.mouth), dev)
         say(f"resumed from {ckpt} at step {start}")
@@ -370,12 +376,13 @@ def fit(
         if bar is not None:
             bar.update(1)
         if ckpt is not None and (step + 1) % t.checkpoint_every == 0 and step + 1 < total:
-            _save_checkpoint(ckpt, model, g_opt, n_opt, step + 1, curve_rows)
+            _save_checkpoint(ckpt, model, g_opt, n_opt, step + 1, curve_rows, time.perf_counter() - t_start)
             saved_at = step + 1
     if bar is not None:
         bar.close()
     seconds = time.perf_counter() - t_start
-    report = FitReport(total - start, seconds, model.n_gaussians(), budget, last_psnr, last_frac, start, t_lms, curve_rows)
+    report = FitReport(total - start, seconds, model.n_gaussians(), budget, last_psnr, last_frac, start, t_lms, curve_rows,
+                       prior_seconds=prior)
     if workdir is not None:
         write_curve(Path(workdir), curve_rows)
         if ckpt is not None and ckpt.exists():
@@ -426,9 +433,9 @@ def _predictor_args(pred) -> dict:
             "hidden": int(pred.temporal[0].in_channels)}
 
 
-def _save_checkpoint(path: Path, model, g_opt, n_opt, step: int, curve_rows) -> None:
+def _save_checkpoint(path: Path, model, g_opt, n_opt, step: int, curve_rows, elapsed: float) -> None:
     _atomic_save({**_model_blob(model), "step": step, "g_opt": g_opt.state_dict(), "n_opt": n_opt.state_dict(),
-                  "curve": curve_rows, "torch_rng": torch.get_rng_state()}, path)
+                  "curve": curve_rows, "torch_rng": torch.get_rng_state(), "elapsed": float(elapsed)}, path)
 
 
 def _resume(path: Path, model, g_opt, n_opt, cfg, dev, curve_rows) -> int:
@@ -452,7 +459,9 @@ def _resume(path: Path, model, g_opt, n_opt, cfg, dev, curve_rows) -> int:
     n_opt.load_state_dict(blob["n_opt"])
     torch.set_rng_state(blob["torch_rng"])
     curve_rows.extend(blob.get("curve", []))
-    return int(blob["step"])
+    # seconds of training up to the checkpoint (older checkpoints: the curve's last timestamp)
+    elapsed = blob.get("elapsed", curve_rows[-1]["seconds"] if curve_rows else 0.0)
+    return int(blob["step"]), float(elapsed)
 
 
 def write_curve(workdir: Path, rows: list[dict]) -> None:

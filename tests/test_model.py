@@ -151,6 +151,12 @@ def test_resume_after_interruption(clip, monkeypatch, tmp_path):
     monkeypatch.setattr(tr.losses, "photometric", real)
     model, report = fit(clip, _tiny_cfg(), seed=0, progress=False, workdir=tmp_path)
     assert report.resumed_from == 30 and report.steps == 70
+    # the time is the whole training's: the interrupted run's up to its checkpoint, then this one's
+    import csv
+
+    secs = [float(r["seconds"]) for r in csv.DictReader(open(tmp_path / "curve.csv"))]
+    assert report.prior_seconds > 0 and report.seconds > report.prior_seconds
+    assert secs == sorted(secs) and secs[-1] <= report.seconds
     assert (tmp_path / "curve.csv").exists() and (tmp_path / "curve.png").exists()
     assert not (tmp_path / "checkpoint.pt").exists()
 
