@@ -146,7 +146,7 @@ class DeformNet(nn.Module):
             g = self.encoder(landmarks.to(xyz))
         se_fraction = None
         if self.guidance_cfg.se:
-            res = spatial_enhance(f, g, self.guidance_cfg.theta)
+            res = spatial_enhance(f, g, self.guidance_cfg.theta, self.guidance_cfg.select_fraction)
             F, se_fraction = res.features, res.fraction
         else:
             F = f

@@ -43,7 +43,7 @@ def cosine_similarity_matrix(f: torch.Tensor, g: torch.Tensor, eps: float = 1e-8
     return fn @ gn.T
 
 
-def spatial_enhance(f: torch.Tensor, g: torch.Tensor, theta: float = 0.6) -> EnhanceResult:
+def spatial_enhance(f: torch.Tensor, g: torch.Tensor, theta: float = 0.6, max_fraction: float = 0.0) -> EnhanceResult:
     """Spatial Enhancement: add the most similar keypoint's feature to points similar enough.
 
     .. math::
@@ -59,6 +59,9 @@ def spatial_enhance(f: torch.Tensor, g: torch.Tensor, theta: float = 0.6) -> Enh
         f: ``[N, D]`` point features :math:`\\phi(x_i)`.
         g: ``[K, D]`` keypoint features :math:`\\phi(k_j)` of one frame (K = 68).
         theta: threshold :math:`\\theta` (paper: 0.6).
+        max_fraction: 0: every point at or above ``theta`` (the paper). In (0, 1): at most
+            ``round(max_fraction * N)`` points, the most similar ones (the threshold is raised
+            to the similarity of the last one kept; ties at it are kept too).
     """
     if f.ndim != 2 or g.ndim != 2 or f.shape[1] != g.shape[1]:
         raise InputError(f"spatial_enhance expects f [N, D] and g [K, D], got {tuple(f.shape)} and {tuple(g.shape)}")
@@ -67,7 +70,11 @@ def spatial_enhance(f: torch.Tensor, g: torch.Tensor, theta: float = 0.6) -> Enh
     with torch.no_grad():
         s = cosine_similarity_matrix(f, g)
         best, match = s.max(dim=1)
-        selected = best >= theta
+        thr = theta
+        if max_fraction > 0.0 and f.shape[0]:
+            k = int(round(max_fraction * f.shape[0]))
+            thr = max(theta, float(torch.topk(best, k).values[-1]) if k > 0 else float("inf"))
+        selected = best >= thr
     # One-hot matrix product rather than ``g[match]``: the backward of an index with
     # repeated indices accumulates with atomic adds on the CPU (run-to-run different
     # float sums); a matrix product is reproducible for a given machine and thread count.

@@ -736,6 +736,9 @@ def _ablation_label(r: Record, full_frontend: str | None = None, full_gr: tuple 
            if not on]
     if off:
         parts.append("w/o " + ", ".join(off))
+    cap = g.get("select_fraction", 0.0)
+    if cap and g.get("se", True):
+        parts.append(f"SE capped at {cap:.0%} of the points")
     folds = (r["config"].get("train") or {}).get("landmark_folds", 0)
     if folds and (g.get("se", True) or g.get("lc", True)):
         parts.append(f"Training landmarks out of fold ({folds} folds)")

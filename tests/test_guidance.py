@@ -39,6 +39,33 @@ def test_spatial_enhance_hand_case():
     torch.testing.assert_close(r.features[3:], f[3:])
     # a stricter threshold keeps only the two close ones
     assert spatial_enhance(f, g, theta=0.8).selected.tolist() == [True, True, False, False, False]
+    # a cap on the share selected keeps the most similar: 2 of 5 at 0.4 (similarities 0.985, 0.985, 0.707)
+    capped = spatial_enhance(f, g, theta=0.6, max_fraction=0.4)
+    assert capped.selected.tolist() == [True, True, False, False, False] and capped.fraction == pytest.approx(0.4)
+    torch.testing.assert_close(capped.features[2], f[2])
+    # a cap above what θ selects changes nothing; θ stays the floor under any cap
+    assert spatial_enhance(f, g, theta=0.6, max_fraction=0.8).selected.tolist() == r.selected.tolist()
+    assert spatial_enhance(f, g, theta=0.99, max_fraction=0.8).selected.tolist() == [False] * 5
+    assert not spatial_enhance(f, g, theta=-1.0, max_fraction=0.1).selected.any()  # round(0.5) = 0 points
+
+
+def test_se_cap_is_a_config_switch_that_hashes_only_when_on():
+    from lmgs.presets import quick
+
+    cfg = quick()
+    assert cfg.guidance.select_fraction == 0.0 and "select_fraction" not in cfg.to_dict()["guidance"]
+    on = cfg.replace(**{"guidance.select_fraction": 0.2})
+    assert on.to_dict()["guidance"]["select_fraction"] == 0.2 and on.hash() != cfg.hash()
+    with pytest.raises(ValueError, match="select_fraction"):
+        cfg.replace(**{"guidance.select_fraction": 1.0})
+    # the deformation network passes the cap to Spatial Enhancement
+    torch.manual_seed(0)
+    xyz, lms, aud = torch.rand(200, 3) * 2 - 1, torch.rand(68, 3) * 2 - 1, torch.randn(16)
+    fracs = []
+    for q in (0.0, 0.2):
+        net = DeformNet(16, DeformConfig(), _small_tri(), GuidanceConfig(theta=-1.0, select_fraction=q))
+        fracs.append(net(xyz, aud, lms, blink=0.5).se_fraction)
+    assert fracs[0] == 1.0 and fracs[1] == pytest.approx(0.2, abs=0.01)
 
 
 def test_spatial_enhance_gradients_flow_through_added_features():
@@ -190,7 +217,7 @@ def test_added_options_leave_the_config_hash_as_it_was():
     plain = dataclasses.asdict(cfg)
     for part in ("deform_face", "deform_mouth"):
         del plain[part]["zero_init"], plain[part]["bound_audio"]
-    del plain["train"]["normal_reduce"], plain["train"]["landmark_folds"]
+    del plain["train"]["normal_reduce"], plain["train"]["landmark_folds"], plain["guidance"]["select_fraction"]
     assert d == plain and d["train"]["gr_warmup"] == 400  # a new default unlike the neutral 0: in the dict
     assert "gr_warmup" not in cfg.replace(**{"train.gr_warmup": 0}).to_dict()["train"]  # at neutral: left out
     assert cfg.hash() == hashlib.sha256(json.dumps(plain, sort_keys=True, default=str).encode()).hexdigest()[:16]

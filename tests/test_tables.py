@@ -289,6 +289,13 @@ def test_table4_has_the_papers_audio_rows_first():
     md4d = T.table_ablation(recs + [oof]).markdown()
     assert _row(md4d, "Training landmarks out of fold (5 folds)")[1:4] == ["✓", "✓", "✓"]
     assert T.table_theta(recs + [oof]).markdown() == T.table_theta(recs).markdown()
+    # SE capped at a share of the points (lmgs-se20) likewise
+    se20 = copy.deepcopy(next(x for x in recs if x["method"]["name"] == "lmgs"))
+    se20["method"].update(name="lmgs-se20", display_name="lmgs-se20", variant="se20")
+    se20["config"] = {**se20["config"], "guidance": {**se20["config"]["guidance"], "select_fraction": 0.2}}
+    md4e = T.table_ablation(recs + [se20]).markdown()
+    assert _row(md4e, "SE capped at 20% of the points")[1:4] == ["✓", "✓", "✓"]
+    assert T.table_theta(recs + [se20]).markdown() == T.table_theta(recs).markdown()
 
 def _calibration_store(constant: bool) -> list[dict]:
     lse_c_gt = [5.0] * 20 if constant else items(8.5, 0.4, 1)
