@@ -33,6 +33,17 @@ class TrainConfig:
             the bundled subjects (5 seeds, issue 5): out of fold costs hopper its ST-LPIPS gain over
             TalkingGaussian; the toolkit's variant ``lmgs-oof`` is k = 5. An
             :func:`~lmgs.config.added_option`.
+        lr_means, lr_scales, lr_quats, lr_opacity, lr_colors: Adam rates of the Gaussians.
+        lr_nets: AdamW rate of the networks (audio encoder, tri-planes, deformation, guidance).
+        lambda_dssim: weight of D-SSIM (3DGS: 0.2).
+        lambda_depth, lambda_normal: Geometry Regularizer weights (paper: 1e-4 each).
+        normal_reduce: ``sum`` (the paper: the normal term summed over the face's pixels, so
+            at 1e-4 it weighs about 1.4-1.8 per-pixel units on the bundled subjects and
+            dominates the image loss) or ``mean`` (per pixel). The presets keep the paper's
+            sum; the evaluation toolkit's ``lmgs`` method uses ``mean`` at ``lambda_normal``
+            0.05 (2DGS's weight; ``lmgs_eval.method_lmgs.GR_PER_PIXEL``), its variant
+            ``lmgs-gr-paper`` the sum. An :func:`~lmgs.config.added_option`: at ``sum`` the
+            config hash is as before.
         gr_warmup: dynamic-stage steps over which the Geometry Regularizer's weights ramp
             linearly from 0 to ``lambda_depth`` / ``lambda_normal``; default 400 (0: full
             weight at once, as before the option; an :func:`~lmgs.config.added_option`). At

@@ -255,15 +255,15 @@ def fit(
                 raise InputError("SE/LC need landmarks: the subject has neither 3D nor 2D landmarks")
             c2w = np.linalg.inv(clip.w2c) @ np.diag([1.0, -1.0, -1.0, 1.0])
             targets = lift_2d_landmarks(clip.landmarks2d, c2w, clip.focal, clip.cx, clip.cy)
-        model.predictor = fit_landmark_predictor(feats, torch.as_tensor(np.asarray(targets), dtype=torch.float32), steps=t.landmark_steps, seed=seed)
+        targets = torch.as_tensor(np.asarray(targets), dtype=torch.float32)
+        model.predictor = fit_landmark_predictor(feats, targets, steps=t.landmark_steps, seed=seed)
         # Training landmarks of held-out quality (see cross_fit_landmarks); a clip too short
         # for the folds (fewer than 8 frames a block) falls back to in-sample predictions.
         folds = min(t.landmark_folds, n // 8)
         if folds >= 2:
             from lmgs.landmarks import cross_fit_landmarks
 
-            lms_pred = cross_fit_landmarks(feats, torch.as_tensor(np.asarray(targets), dtype=torch.float32),
-                                           folds=folds, steps=t.landmark_steps, seed=seed).to(dev)
+            lms_pred = cross_fit_landmarks(feats, targets, folds=folds, steps=t.landmark_steps, seed=seed).to(dev)
         else:
             lms_pred = model.predictor.predict(feats).to(dev)
         t_lms = time.perf_counter() - a

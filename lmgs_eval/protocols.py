@@ -288,10 +288,9 @@ def fit_method(method, clip, subject, seed: int, progress: bool) -> dict:
     with OthersCPU() as busy:
         method.fit(clip, seed=seed, workdir=workdir, progress=progress)
     secs = time.perf_counter() - t0
-    # a training resumed from a checkpoint: add what the interrupted runs had trained (lmgs saves it)
-    report = getattr(method, "report", None)
-    prior = float(getattr(report, "prior_seconds", 0.0) or 0.0) if not reused else 0.0
-    secs += prior
+    # a training resumed from a checkpoint: add what the interrupted runs had trained (lmgs saves it;
+    # a reused model's time comes from its fit.json below)
+    secs += float(getattr(getattr(method, "report", None), "prior_seconds", 0.0) or 0.0)
     rec = {"train_seconds": secs, "train_others_cpu_share": busy.share, "reused_checkpoint": reused, "workdir": str(workdir)}
     if reused:
         fit = _recorded_fit(workdir)
