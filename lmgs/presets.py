@@ -120,6 +120,10 @@ class LMGSConfig:
             # without SE and LC nothing reads the landmarks: the folds change no weight, so
             # they do not change the hash either (TalkingGaussian's records stay valid)
             d["train"].pop("landmark_folds", None)
+        if not self.guidance.se:
+            # the cap only bounds what SE selects: without SE it changes no weight (lmgs-no-se's and
+            # TalkingGaussian's hashes stay those of their records)
+            d["guidance"].pop("select_fraction", None)
         return d
 
     def hash(self) -> str:

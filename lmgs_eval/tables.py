@@ -721,7 +721,13 @@ def _gr_form(r: Record) -> tuple[str, float]:
     return train.get("normal_reduce", "sum"), float(train.get("lambda_normal", 1e-4))
 
 
-def _ablation_label(r: Record, full_frontend: str | None = None, full_gr: tuple | None = None) -> str:
+def _se_cap(r: Record) -> float:
+    """The share of points a record's SE may select at most (0: θ alone; records before the cap lack it)."""
+    return float(_guidance(r).get("select_fraction", 0.0))
+
+
+def _ablation_label(r: Record, full_frontend: str | None = None, full_gr: tuple | None = None,
+                    full_cap: float | None = None) -> str:
     """The row of Table IV: the audio rows of the paper, then what of SE / LC / GR is off."""
     g, audio = _guidance(r), r["config"].get("audio") or {}
     parts = []
@@ -736,9 +742,9 @@ def _ablation_label(r: Record, full_frontend: str | None = None, full_gr: tuple 
            if not on]
     if off:
         parts.append("w/o " + ", ".join(off))
-    cap = g.get("select_fraction", 0.0)
-    if cap and g.get("se", True):
-        parts.append(f"SE capped at {cap:.0%} of the points")
+    cap = _se_cap(r)
+    if g.get("se", True) and cap != (full_cap or 0.0):  # SE selects another share than the full model's
+        parts.append(f"SE capped at {cap:.0%} of the points" if cap else "SE by θ alone (uncapped)")
     folds = (r["config"].get("train") or {}).get("landmark_folds", 0)
     if folds and (g.get("se", True) or g.get("lc", True)):
         parts.append(f"Training landmarks out of fold ({folds} folds)")
@@ -761,7 +767,8 @@ def table_ablation(records: Sequence[Record], metrics: Sequence[str] = ("lmd", "
         theta = _guidance(full[0])["theta"] if full else 0.6
         frontend = (full[0]["config"].get("audio") or {}).get("frontend") if full else None
         recs = [r for r in recs if _guidance(r)["theta"] == theta]
-        label = functools.partial(_ablation_label, full_frontend=frontend, full_gr=_gr_form(full[0]) if full else None)
+        label = functools.partial(_ablation_label, full_frontend=frontend, full_gr=_gr_form(full[0]) if full else None,
+                                  full_cap=_se_cap(full[0]) if full else None)
         if len({label(r) for r in recs}) < 2:
             continue
         order = {"Replacing Audio Net with DS": 0, "w/o Audio Encoder": 1, "w/o SE": 2, "w/o LC": 3, "w/o GR": 4}

@@ -48,8 +48,8 @@ def test_bench_runs_each_stage_once_and_a_failing_stage_does_not_stop_the_rest(t
             assert calls.count(("self", subject, (m,), seeds)) == 1 and calls.count(("cross", subject, (m,), seeds)) == 1
     for v in demo.FULL_VARIANTS:
         assert calls.count(("self", demo.VARIANT_SUBJECT, (v,), (0,))) == 1
-    for subject in demo.FULL_SUBJECTS:  # out-of-fold landmarks, SE capped at 20 %: both subjects, 5 seeds, self only
-        for v in ("lmgs-oof", "lmgs-se20"):
+    for subject in demo.FULL_SUBJECTS:  # out-of-fold landmarks, SE by θ alone: both subjects, 5 seeds, self only
+        for v in ("lmgs-oof", "lmgs-uncapped"):
             assert calls.count(("self", subject, (v,), (0, 1, 2, 3, 4))) == 1
             assert not any(c[0] == "cross" and c[2] == (v,) for c in calls)
     assert ("stress", demo.STRESS_SUBJECT, demo.FULL_STRESS, 2) in calls

@@ -49,13 +49,20 @@ def test_spatial_enhance_hand_case():
     assert not spatial_enhance(f, g, theta=-1.0, max_fraction=0.1).selected.any()  # round(0.5) = 0 points
 
 
-def test_se_cap_is_a_config_switch_that_hashes_only_when_on():
-    from lmgs.presets import quick
+def test_se_cap_defaults_to_the_papers_share_and_hashes_only_where_se_reads_it():
+    from lmgs.presets import paper, quick
 
     cfg = quick()
-    assert cfg.guidance.select_fraction == 0.0 and "select_fraction" not in cfg.to_dict()["guidance"]
-    on = cfg.replace(**{"guidance.select_fraction": 0.2})
-    assert on.to_dict()["guidance"]["select_fraction"] == 0.2 and on.hash() != cfg.hash()
+    assert cfg.guidance.select_fraction == 0.2 and cfg.to_dict()["guidance"]["select_fraction"] == 0.2
+    assert paper().guidance.select_fraction == 0.2
+    # θ alone (the records before the cap): the option at its neutral value is left out of the dict, so
+    # that config hashes as configs made before the option did
+    off = cfg.replace(**{"guidance.select_fraction": 0.0})
+    assert "select_fraction" not in off.to_dict()["guidance"] and off.hash() != cfg.hash()
+    # without SE the cap changes no weight and no hash (lmgs-no-se's, TalkingGaussian's records stay valid)
+    no_se = cfg.replace(**{"guidance.se": False})
+    assert "select_fraction" not in no_se.to_dict()["guidance"]
+    assert no_se.hash() == no_se.replace(**{"guidance.select_fraction": 0.0}).hash()
     with pytest.raises(ValueError, match="select_fraction"):
         cfg.replace(**{"guidance.select_fraction": 1.0})
     # the deformation network passes the cap to Spatial Enhancement
@@ -217,8 +224,9 @@ def test_added_options_leave_the_config_hash_as_it_was():
     plain = dataclasses.asdict(cfg)
     for part in ("deform_face", "deform_mouth"):
         del plain[part]["zero_init"], plain[part]["bound_audio"]
-    del plain["train"]["normal_reduce"], plain["train"]["landmark_folds"], plain["guidance"]["select_fraction"]
+    del plain["train"]["normal_reduce"], plain["train"]["landmark_folds"]
     assert d == plain and d["train"]["gr_warmup"] == 400  # a new default unlike the neutral 0: in the dict
+    assert d["guidance"]["select_fraction"] == 0.2  # likewise
     assert "gr_warmup" not in cfg.replace(**{"train.gr_warmup": 0}).to_dict()["train"]  # at neutral: left out
     assert cfg.hash() == hashlib.sha256(json.dumps(plain, sort_keys=True, default=str).encode()).hexdigest()[:16]
     on = cfg.replace(**{"deform_face.zero_init": True})

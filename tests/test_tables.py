@@ -296,6 +296,17 @@ def test_table4_has_the_papers_audio_rows_first():
     md4e = T.table_ablation(recs + [se20]).markdown()
     assert _row(md4e, "SE capped at 20% of the points")[1:4] == ["✓", "✓", "✓"]
     assert T.table_theta(recs + [se20]).markdown() == T.table_theta(recs).markdown()
+    # the label says how a row's SE differs from the full model's: with the full model capped (lmgs's
+    # default), the row by θ alone is the variant, and a record made before the option counts as uncapped
+    capped = [copy.deepcopy(x) for x in recs]
+    for x in capped:
+        if x["method"]["name"] == "lmgs":
+            x["config"] = {**x["config"], "guidance": {**x["config"].get("guidance", {}), "select_fraction": 0.2}}
+    uncapped = copy.deepcopy(next(x for x in recs if x["method"]["name"] == "lmgs"))
+    uncapped["method"].update(name="lmgs-uncapped", display_name="lmgs-uncapped", variant="uncapped")
+    md4f = T.table_ablation(capped + [uncapped]).markdown()
+    assert _row(md4f, "SE by θ alone (uncapped)")[1:4] == ["✓", "✓", "✓"] and "SE capped" not in md4f
+    assert _row(md4f, "Full model")[1:4] == ["✓", "✓", "✓"]
 
 def _calibration_store(constant: bool) -> list[dict]:
     lse_c_gt = [5.0] * 20 if constant else items(8.5, 0.4, 1)
