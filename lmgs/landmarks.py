@@ -278,6 +278,14 @@ def fit_landmark_predictor(
     return model
 
 
+MIN_FOLD_FRAMES = 8  # frames a cross-fitting block needs at least
+
+
+def max_folds(n_frames: int) -> int:
+    """The most folds :func:`cross_fit_landmarks` takes for a clip of ``n_frames`` (blocks of at least 8)."""
+    return n_frames // MIN_FOLD_FRAMES
+
+
 def cross_fit_landmarks(
     features: torch.Tensor,
     landmarks3d: torch.Tensor,
@@ -301,7 +309,7 @@ def cross_fit_landmarks(
     Args:
         features: ``[N, W, C]`` audio windows of consecutive frames.
         landmarks3d: ``[N, 68, 3]`` targets.
-        folds: contiguous blocks (at least 2; each needs at least 4 frames).
+        folds: contiguous blocks (at least 2, at most :func:`max_folds`: 8 frames a block).
         steps, seed: as :func:`fit_landmark_predictor` (fold ``k`` uses ``seed + k``).
     """
     f = torch.as_tensor(features, dtype=torch.float32)
@@ -309,7 +317,7 @@ def cross_fit_landmarks(
     n = f.shape[0]
     if folds < 2:
         raise InputError(f"cross-fitting needs at least 2 folds, got {folds}")
-    if n < 4 * folds + 4:
+    if folds > max_folds(n):
         raise InputError(f"{n} frames are too few for {folds}-fold cross-fitting of the landmark predictor")
     edges = np.linspace(0, n, folds + 1).round().astype(int)
     out = torch.empty(n, 68, 3, dtype=torch.float32, device=f.device)

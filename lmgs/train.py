@@ -246,7 +246,7 @@ def fit(
     lms_pred = None
     t_lms = 0.0
     if model.uses_landmarks:
-        from lmgs.landmarks import fit_landmark_predictor, lift_2d_landmarks
+        from lmgs.landmarks import cross_fit_landmarks, fit_landmark_predictor, lift_2d_landmarks, max_folds
 
         a = time.perf_counter()
         targets = clip.landmarks3d
@@ -258,11 +258,9 @@ def fit(
         targets = torch.as_tensor(np.asarray(targets), dtype=torch.float32)
         model.predictor = fit_landmark_predictor(feats, targets, steps=t.landmark_steps, seed=seed)
         # Training landmarks of held-out quality (see cross_fit_landmarks); a clip too short
-        # for the folds (fewer than 8 frames a block) falls back to in-sample predictions.
-        folds = min(t.landmark_folds, n // 8)
+        # for the folds (fewer than 8 frames a block) takes fewer, or in-sample predictions.
+        folds = min(t.landmark_folds, max_folds(n))
         if folds >= 2:
-            from lmgs.landmarks import cross_fit_landmarks
-
             lms_pred = cross_fit_landmarks(feats, targets, folds=folds, steps=t.landmark_steps, seed=seed).to(dev)
         else:
             lms_pred = model.predictor.predict(feats).to(dev)

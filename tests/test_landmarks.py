@@ -130,6 +130,13 @@ def test_cross_fit_predicts_each_block_without_its_targets():
         cross_fit_landmarks(feats, lms, folds=1)
     with pytest.raises(InputError, match="too few"):
         cross_fit_landmarks(feats[:20], lms[:20], folds=5)
+    # one rule for how many folds a clip takes (train.fit caps landmark_folds with it): 8 frames a block
+    from lmgs.landmarks import max_folds
+
+    assert max_folds(24) == 3 and max_folds(23) == 2 and max_folds(12) == 1
+    assert cross_fit_landmarks(feats[:24], lms[:24], folds=3, steps=2).shape == (24, 68, 3)
+    with pytest.raises(InputError, match="too few"):
+        cross_fit_landmarks(feats[:23], lms[:23], folds=3, steps=2)
 
 
 def test_cross_fit_error_is_the_held_out_error_not_the_in_sample_one():
