@@ -296,6 +296,7 @@ def fit_method(method, clip, subject, seed: int, progress: bool) -> dict:
         fit = _recorded_fit(workdir)
         rec["train_seconds"] = fit.get("train_seconds")
         rec["train_others_cpu_share"] = fit.get("train_others_cpu_share")
+        rec["train_peak_mb"] = fit.get("peak_mb")  # this process did not train: the training's peak is there
     else:
         import json
 
@@ -516,7 +517,8 @@ def _cost_block(method, fit_cost: dict | None, render_cost: dict, timings: dict 
         "n_params": c.get("n_params"),
         "n_gaussians": c.get("n_gaussians"),
         "model_mb": c.get("model_mb"),
-        "peak_mb": None if pre else peak_rss_mb(),
+        # the protocol's peak: this process's, or the training's that made a reused checkpoint if higher
+        "peak_mb": None if pre else max(peak_rss_mb(), (fit_cost or {}).get("train_peak_mb") or 0.0),
         "device": c.get("device") or (None if pre else "cuda" if torch.cuda.is_available() else "cpu"),
     }
 

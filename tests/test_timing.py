@@ -122,3 +122,15 @@ def test_training_records_the_contention_and_a_reused_checkpoint_keeps_it(tmp_pa
     again = protocols.fit_method(Toy(), None, subject, 0, progress=False)
     assert again["reused_checkpoint"]
     assert (again["train_seconds"], again["train_others_cpu_share"]) == (first["train_seconds"], share)
+    # the training's peak memory goes with the reused checkpoint into the record's cost (the higher one)
+    assert again["train_peak_mb"] == saved["peak_mb"] > 0
+
+    class Cost:
+        def cost(self):
+            return {}
+
+    fit_json = tmp_path / "cache" / "lmgs" / "models" / "s" / "toy" / "abc-seed0" / "fit.json"
+    fit_json.write_text(json.dumps({**saved, "peak_mb": 1e6}))  # a training that peaked far above this process
+    reused = protocols.fit_method(Toy(), None, subject, 0, progress=False)
+    assert protocols._cost_block(Cost(), reused, {})["peak_mb"] == 1e6
+    assert protocols._cost_block(Cost(), first, {})["peak_mb"] < 1e6  # trained here: this process's own peak
