@@ -47,7 +47,11 @@ def test_bench_runs_each_stage_once_and_a_failing_stage_does_not_stop_the_rest(t
             seeds = demo.FULL_SEEDS.get(m, (0,))
             assert calls.count(("self", subject, (m,), seeds)) == 1 and calls.count(("cross", subject, (m,), seeds)) == 1
     for v in demo.FULL_VARIANTS:
-        assert calls.count(("self", demo.VARIANT_SUBJECT, (v,), (0,))) == 1
+        assert calls.count(("self", demo.VARIANT_SUBJECT, (v,), demo.ABLATION_SEEDS.get((demo.VARIANT_SUBJECT, v), (0,)))) == 1
+    # Table IV's component rows on astronaut, over the seeds the committed tables hold
+    assert calls.count(("self", "astronaut", ("lmgs-no-se",), (0, 1, 2, 3, 4))) == 1
+    assert calls.count(("self", "astronaut", ("lmgs-no-lc",), (0, 1, 2))) == 1
+    assert calls.count(("self", demo.VARIANT_SUBJECT, ("lmgs-no-gr",), (0, 1, 2))) == 1
     for subject in demo.FULL_SUBJECTS:  # out-of-fold landmarks, SE by θ alone: both subjects, 5 seeds, self only
         for v in ("lmgs-oof", "lmgs-uncapped"):
             assert calls.count(("self", subject, (v,), (0, 1, 2, 3, 4))) == 1
