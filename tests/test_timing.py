@@ -117,7 +117,8 @@ def test_training_records_the_contention_and_a_reused_checkpoint_keeps_it(tmp_pa
     assert not first["reused_checkpoint"] and (share is None or 0 <= share <= 1)
     if host_cpu_seconds() is not None:
         assert share is not None
-    saved = json.loads((tmp_path / "cache" / "lmgs" / "models" / "s" / "toy" / "abc-seed0" / "fit.json").read_text())
+    fit_json = tmp_path / "cache" / "lmgs" / "models" / "s" / "toy" / "abc-seed0" / "fit.json"
+    saved = json.loads(fit_json.read_text())
     assert saved["train_others_cpu_share"] == share and saved["train_seconds"] == first["train_seconds"]
     again = protocols.fit_method(Toy(), None, subject, 0, progress=False)
     assert again["reused_checkpoint"]
@@ -129,7 +130,6 @@ def test_training_records_the_contention_and_a_reused_checkpoint_keeps_it(tmp_pa
         def cost(self):
             return {}
 
-    fit_json = tmp_path / "cache" / "lmgs" / "models" / "s" / "toy" / "abc-seed0" / "fit.json"
     fit_json.write_text(json.dumps({**saved, "peak_mb": 1e6}))  # a training that peaked far above this process
     reused = protocols.fit_method(Toy(), None, subject, 0, progress=False)
     assert protocols._cost_block(Cost(), reused, {})["peak_mb"] == 1e6
