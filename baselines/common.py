@@ -1,6 +1,6 @@
 """Shared plumbing of the baseline adapters: budgets, hashes, checkpoints, audio, driving inputs.
 
-Every adapter in :mod:`baselines` follows the same pattern as ``lmgs_eval.method_lmgs``:
+Every adapter in :mod:`baselines` follows the same pattern as ``baselines.lmgs_method``:
 a frozen budget dataclass with named presets (``tiny`` for tests, ``quick`` for the
 benchmark), its hash as ``config_hash``, ``workdir/model.pt`` reused when its hash matches,
 and the device from :func:`lmgs.device.choose_device`.
@@ -9,8 +9,6 @@ and the device from :func:`lmgs.device.choose_device`.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 import os
 import tempfile
 from pathlib import Path
@@ -19,7 +17,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from lmgs.config import AudioConfig
+from baselines.protocol import MethodInfo
+from lmgs.config import AudioConfig, config_hash, override
 from lmgs.errors import InputError
 from lmgs.types import DrivingAudio, TrainingClip
 
@@ -27,18 +26,15 @@ CHECKPOINT_VERSION = 1
 LOGMEL = AudioConfig()  # the project's audio front end (log-mel, 16 x 80 windows per frame)
 
 
-def config_hash(cfg) -> str:
-    """Short sha256 of a (frozen dataclass) config's JSON form."""
-    blob = json.dumps(dataclasses.asdict(cfg), sort_keys=True, default=str).encode()
-    return hashlib.sha256(blob).hexdigest()[:16]
+BASELINE_PRESETS = ("tiny", "quick")
 
 
-def preset_of(cls, name: str):
-    """``cls.tiny()`` / ``cls.quick()``...; a clear error for an unknown preset name."""
-    maker = getattr(cls, name, None)
-    if name.startswith("_") or not callable(maker):
-        raise InputError(f"unknown preset '{name}' for {cls.__name__}; known: tiny, quick")
-    return maker()
+def preset_of(cls, name: str, method: str | None = None):
+    """``cls.tiny()`` / ``cls.quick()``; a clear error for a preset the baselines do not have."""
+    if name not in BASELINE_PRESETS:
+        raise InputError(f"--preset {name}: method '{method or cls.__name__}' has no such preset; "
+                         f"its presets: {', '.join(BASELINE_PRESETS)}")
+    return getattr(cls, name)()
 
 
 def configured(cls, preset: str, options: dict, method: str):
@@ -49,7 +45,7 @@ def configured(cls, preset: str, options: dict, method: str):
     accepted; a ``--set`` value wins over a field given directly). An unknown name is a one-line
     error listing the method's settings.
     """
-    budget = preset_of(cls, preset)
+    budget = preset_of(cls, preset, method)
     changes = {k: v for k, v in options.items() if k != "overrides"}
     for key, value in (options.get("overrides") or {}).items():
         changes[key.removeprefix("train.")] = value
@@ -58,7 +54,7 @@ def configured(cls, preset: str, options: dict, method: str):
     if unknown:
         raise InputError(f"method '{method}' has no setting {', '.join(repr(k) for k in unknown)}; "
                          f"its settings: {', '.join(fields)}")
-    return dataclasses.replace(budget, **changes) if changes else budget
+    return override(budget, changes, what=f"--set ({method})")
 
 
 def audio_windows(audio: np.ndarray, n_frames: int) -> torch.Tensor:
@@ -224,7 +220,7 @@ class Adapter:
         return {"method": self.name, "preset": self.preset, **dataclasses.asdict(self.cfg)}
 
     def config_hash(self) -> str:
-        return hashlib.sha256(json.dumps(self.config(), sort_keys=True, default=str).encode()).hexdigest()[:16]
+        return config_hash(self.config())
 
     def fit(self, clip: TrainingClip, *, seed: int, workdir: Path, progress: bool = True) -> None:
         import time
@@ -259,8 +255,6 @@ class Adapter:
             raise RuntimeError(f"{self.name}: render() before fit()")
 
     def describe(self):
-        from lmgs_eval.methods import MethodInfo
-
         return MethodInfo(name=self.name, display_name=self.display_name, family=self.family,
                           description=f"{self.description} Budget '{self.preset}': {self.budget_text()}.",
                           standins=self.standins, config=self.config(), config_hash=self.config_hash())

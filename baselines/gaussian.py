@@ -46,8 +46,8 @@ from lmgs.audio import AudioNet
 from lmgs.config import AudioConfig, DeformConfig, TriplaneConfig
 from lmgs.encoders import TriplaneEncoder
 from lmgs.presets import TrainConfig
-from lmgs_eval.method_lmgs import GR_PER_PIXEL
-from lmgs_eval.methods import MethodInfo, register
+from baselines.lmgs_method import GR_PER_PIXEL
+from baselines.protocol import MethodInfo, register
 
 STANDINS = ("audio front end: log-mel computed in the project (DeepSpeech / HuBERT / WavLM cannot be had offline)",)
 

@@ -56,7 +56,7 @@ from baselines.common import (
 )
 from lmgs.audio import AudioNet
 from lmgs.config import AudioConfig, TriplaneConfig
-from lmgs_eval.methods import register
+from baselines.protocol import register
 
 STANDINS = ("audio front end: the project's log-mel windows (DeepSpeech / HuBERT features cannot be had offline)",)
 

@@ -33,7 +33,7 @@ from torch.nn import functional as F
 from baselines.common import Adapter, audio_windows, landmark_targets, n_frames_of, progress_bar, project, seed_all
 from lmgs.audio.encoder import AudioEncoder
 from lmgs.config import AudioConfig
-from lmgs_eval.methods import register
+from baselines.protocol import register
 
 STANDINS = ("audio front end: the project's log-mel windows (Wav2Lip's 16 x 80 mel windows at 16 kHz, same shape)",)
 JAW_MOUTH = list(range(2, 15)) + list(range(48, 68))

@@ -11,8 +11,14 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import hashlib
+import json
+import types
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
+
+from lmgs.errors import InputError
 
 AudioKind = Literal["logmel", "mfcc", "ds", "hu", "wavlm"]
 
@@ -42,6 +48,101 @@ def config_dict(obj: Any) -> Any:
     if isinstance(obj, dict):
         return {k: config_dict(v) for k, v in obj.items()}
     return copy.deepcopy(obj)
+
+
+def config_hash(config: Any) -> str:
+    """16 hex digits of the sha256 of a config as JSON (sorted keys): the one hasher of configs.
+
+    ``config`` is a mapping, or a dataclass (taken through :func:`config_dict`). A trained model,
+    its checkpoint folder and every record made with it are named by this hash.
+    """
+    if dataclasses.is_dataclass(config) and not isinstance(config, type):
+        config = config_dict(config)
+    blob = json.dumps(config, sort_keys=True, default=str).encode()
+    return hashlib.sha256(blob).hexdigest()[:16]
+
+
+def _type_name(tp: Any) -> str:
+    if get_origin(tp) is Literal:
+        return " or ".join(repr(a) for a in get_args(tp))
+    if get_origin(tp) in (Union, types.UnionType):
+        return " or ".join(_type_name(a) for a in get_args(tp))
+    if tp is type(None):
+        return "null"
+    if get_origin(tp) is tuple:
+        return "a list"
+    return {int: "an integer", float: "a number", bool: "true or false", str: "a string"}.get(tp, getattr(tp, "__name__", str(tp)))
+
+
+def _coerce(value: Any, tp: Any) -> tuple[bool, Any]:
+    """``(ok, value)``: ``value`` as a field of type ``tp`` takes it (an int for a float, a list for a tuple)."""
+    origin = get_origin(tp)
+    if tp is Any:
+        return True, value
+    if origin is Literal:
+        return value in get_args(tp), value
+    if origin in (Union, types.UnionType):
+        for a in get_args(tp):
+            ok, v = _coerce(value, a)
+            if ok:
+                return True, v
+        return False, value
+    if tp is type(None):
+        return value is None, value
+    if tp is bool:
+        return isinstance(value, bool), value
+    if tp is int:
+        return isinstance(value, int) and not isinstance(value, bool), value
+    if tp is float:
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        return ok, float(value) if ok else value
+    if tp is str:
+        return isinstance(value, str), value
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            return False, value
+        args = get_args(tp)
+        item = args[0] if args else Any
+        out = []
+        for x in value:
+            ok, v = _coerce(x, item)
+            if not ok:
+                return False, value
+            out.append(v)
+        return True, tuple(out)
+    return True, value
+
+
+def override(config: Any, changes: Mapping[str, Any], *, what: str = "--set") -> Any:
+    """A copy of a frozen dataclass config with dotted changes, each checked against its field's type.
+
+    ``override(cfg, {"train.dynamic_steps": 4000, "gr": False})``. This is the one path every
+    method's ``--set KEY=VALUE`` takes. A key that is not a field, or a value of the wrong type,
+    is an :class:`~lmgs.errors.InputError` of one line naming the key (``what`` says where it
+    came from) and what it takes. Integers are taken for float fields and lists for tuples.
+    """
+    for key, value in changes.items():
+        config = _override_one(config, key.split("."), value, key, what)
+    return config
+
+
+def _override_one(obj: Any, parts: list[str], value: Any, key: str, what: str) -> Any:
+    fields = {f.name: f for f in dataclasses.fields(obj)}
+    name = parts[0]
+    if name not in fields:
+        raise InputError(f"{what} {key}: {type(obj).__name__} has no field '{name}'; its fields: {', '.join(sorted(fields))}")
+    hints = get_type_hints(type(obj))
+    current = getattr(obj, name)
+    if len(parts) > 1:
+        if not (dataclasses.is_dataclass(current) and not isinstance(current, type)):
+            raise InputError(f"{what} {key}: '{name}' is a value, not a section with fields")
+        return dataclasses.replace(obj, **{name: _override_one(current, parts[1:], value, key, what)})
+    if dataclasses.is_dataclass(current) and not isinstance(current, type):
+        raise InputError(f"{what} {key}: '{name}' is a section; set one of its fields ({key}.FIELD)")
+    ok, coerced = _coerce(value, hints[name])
+    if not ok:
+        raise InputError(f"{what} {key}={value!r}: expected {_type_name(hints[name])}, got {type(value).__name__}")
+    return dataclasses.replace(obj, **{name: coerced})
 
 
 @dataclass(frozen=True)

@@ -9,11 +9,9 @@ configurations, not code forks: ``se`` / ``lc`` / ``theta`` live in
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 from dataclasses import dataclass, field
 
-from lmgs.config import AudioConfig, DeformConfig, GuidanceConfig, TriplaneConfig, added_option
+from lmgs.config import AudioConfig, DeformConfig, GuidanceConfig, TriplaneConfig, added_option, config_dict, config_hash
 
 
 @dataclass(frozen=True)
@@ -41,7 +39,7 @@ class TrainConfig:
             at 1e-4 it weighs about 1.4-1.8 per-pixel units on the bundled subjects and
             dominates the image loss) or ``mean`` (per pixel). The presets keep the paper's
             sum; the evaluation toolkit's ``lmgs`` method uses ``mean`` at ``lambda_normal``
-            0.05 (2DGS's weight; ``lmgs_eval.method_lmgs.GR_PER_PIXEL``), its variant
+            0.05 (2DGS's weight; ``baselines.lmgs_method.GR_PER_PIXEL``), its variant
             ``lmgs-gr-paper`` the sum. An :func:`~lmgs.config.added_option`: at ``sum`` the
             config hash is as before.
         gr_warmup: dynamic-stage steps over which the Geometry Regularizer's weights ramp
@@ -113,8 +111,6 @@ class LMGSConfig:
     size: int = 256
 
     def to_dict(self) -> dict:
-        from lmgs.config import config_dict
-
         d = config_dict(self)
         if not (self.guidance.se or self.guidance.lc):
             # without SE and LC nothing reads the landmarks: the folds change no weight, so
@@ -127,8 +123,7 @@ class LMGSConfig:
         return d
 
     def hash(self) -> str:
-        blob = json.dumps(self.to_dict(), sort_keys=True, default=str).encode()
-        return hashlib.sha256(blob).hexdigest()[:16]
+        return config_hash(self.to_dict())
 
     def replace(self, **changes) -> "LMGSConfig":
         """A copy with top-level or dotted changes: ``cfg.replace(**{"guidance.se": False})``."""

@@ -7,7 +7,7 @@ import pytest
 
 from lmgs.errors import InputError
 from lmgs.types import DrivingAudio
-from lmgs_eval.methods import MethodInfo, TalkingHead, create_method, list_methods
+from baselines.protocol import MethodInfo, TalkingHead, create_method, list_methods
 from model_fixtures import synthetic_clip
 
 GS = ("talkinggaussian", "degstalk", "gaussiantalker")
@@ -234,8 +234,8 @@ def test_a_subject_knee_density_reaches_every_method_sized_by_face_area_and_no_o
     subject's knee cannot miss one of them), takes the subject's density, and an explicit one wins."""
     from types import SimpleNamespace
 
-    from lmgs_eval.methods import list_methods, scene_budget_methods
-    from lmgs_eval.protocols import _config_value
+    from baselines.protocol import list_methods, scene_budget_methods
+    from lmgs_eval.results.records import _config_value
 
     knee = SimpleNamespace(budget_density=0.55)
     sized = set(scene_budget_methods())

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from conftest import run_cli
-from lmgs_eval.capacity import budget_means, knee, points_from_records
+from lmgs_eval.report.capacity import budget_means, knee, points_from_records
 from lmgs_eval.results import load_records, validate
 
 FAST = ["--set", "train.static_steps=30", "--set", "train.dynamic_steps=30", "--set", "train.landmark_steps=10",
@@ -104,9 +104,9 @@ def test_capacity_points_never_mix_side_by_side_and_per_run_fps():
 
 
 def test_a_budget_whose_training_collapses_is_recorded_as_failed_and_the_rest_go_on(tmp_path, monkeypatch):
-    import lmgs_eval.protocols as protocols
+    import lmgs_eval.protocols.capacity as protocols
     from lmgs.train import TrainingDiverged
-    from lmgs_eval.capacity import failed_points
+    from lmgs_eval.report.capacity import failed_points
 
     real = protocols.fit_render_score
 
@@ -140,7 +140,7 @@ def test_a_subject_knee_density_is_the_default_of_capacity_and_of_the_other_prot
     exact density (so its models are the ones made before the knee was known)."""
     from lmgs.presets import TrainConfig
     from lmgs_eval.data import registry
-    from lmgs_eval.methods import create_method
+    from baselines.protocol import create_method
 
     monkeypatch.setitem(registry.KNEE_DENSITY, registry.BundledSpec("astronaut", 64, 2.0), 0.8)
     subject = registry.find_subject("astronaut-64px-2s", progress=False)

@@ -6,13 +6,14 @@ from __future__ import annotations
 
 import argparse
 
-from lmgs_eval.capacity import DEFAULT_BUDGETS
+from lmgs_eval.protocols.capacity import DEFAULT_BUDGETS
 
 
 def test_bench_runs_each_stage_once_and_a_failing_stage_does_not_stop_the_rest(tmp_path, monkeypatch, capsys):
-    import lmgs_eval.capacity as capacity
-    import lmgs_eval.protocols as protocols
-    import lmgs_eval.stress as stress
+    import lmgs_eval.protocols.capacity as capacity
+    import lmgs_eval.protocols.cross as cross_mod
+    import lmgs_eval.protocols.self_driven as self_mod
+    import lmgs_eval.protocols.stress as stress
     from lmgs_eval.commands import demo, table
 
     calls = []
@@ -32,8 +33,8 @@ def test_bench_runs_each_stage_once_and_a_failing_stage_does_not_stop_the_rest(t
     def capacity_(cfg, budgets):
         calls.append(("capacity", cfg.subject, tuple(budgets)))
 
-    monkeypatch.setattr(protocols, "run_self", self_)
-    monkeypatch.setattr(protocols, "run_cross", cross)
+    monkeypatch.setattr(self_mod, "run_self", self_)
+    monkeypatch.setattr(cross_mod, "run_cross", cross)
     monkeypatch.setattr(stress, "run_stress", stress_)
     monkeypatch.setattr(capacity, "run_capacity", capacity_)
     monkeypatch.setattr(table, "run", lambda a: calls.append(("table", a.out, a.records)))

@@ -125,7 +125,7 @@ def test_trained_ernerf_renders_the_same_with_its_grid(tmp_path):
     # a fitted ER-NeRF (tiny budget): the grid it made from its training conditions changes the
     # render by well under one uint8 level on average
     from lmgs.types import DrivingAudio
-    from lmgs_eval.methods import create_method
+    from baselines.protocol import create_method
     from model_fixtures import synthetic_clip
 
     clip = synthetic_clip()

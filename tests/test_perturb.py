@@ -7,7 +7,7 @@ import hashlib
 import numpy as np
 import pytest
 
-from lmgs_eval.perturb import add_noise, make_conditions, pitch_shift, time_stretch
+from lmgs_eval.protocols.perturb import add_noise, make_conditions, pitch_shift, time_stretch
 
 SR = 16000
 

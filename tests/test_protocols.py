@@ -135,12 +135,12 @@ def test_verify_catches_a_changed_render(store, tmp_path):
 
 
 def test_interrupted_run_leaves_no_partial_record(tmp_path, monkeypatch):
-    import lmgs_eval.protocols as protocols
+    from lmgs_eval.metrics.metric_suite import MetricSuite
 
     def boom(*a, **k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(protocols, "score_clip", boom)
+    monkeypatch.setattr(MetricSuite, "score", boom)
     rc, _, err = run_cli("self", "--subject", SUBJECT, "--results", str(tmp_path), "--no-progress", *FAST)
     assert rc == 130 and "interrupted" in err
     assert list(tmp_path.rglob("*.json")) == []
@@ -186,13 +186,13 @@ def test_unknown_method_and_subject(tmp_path):
 
 
 def test_a_training_that_diverges_is_one_line_and_exit_1(tmp_path, monkeypatch):
-    import lmgs_eval.protocols as protocols
+    import lmgs_eval.runner as runner
     from lmgs.train import TrainingDiverged
 
     def diverge(method, train, subject, seed, progress):
         raise TrainingDiverged("training collapsed at step 1040 (dynamic stage): the mean loss of the last 25 steps is 3.9x ...")
 
-    monkeypatch.setattr(protocols, "fit_method", diverge)
+    monkeypatch.setattr(runner, "fit_method", diverge)
     rc, out, err = run_cli("self", "--subject", SUBJECT, "--results", str(tmp_path), "--no-progress", *FAST)
     assert rc == 1 and "lmgs-eval self: training failed: training collapsed at step 1040" in err
     assert "Traceback" not in err and not [r for r in load_records(tmp_path)[0] if r["method"]["name"] == "lmgs"]  # no record made of it
@@ -203,7 +203,8 @@ def test_timed_render_reports_the_median_of_repeats(monkeypatch):
     import itertools
 
     from lmgs.types import DrivingAudio
-    from lmgs_eval import protocols
+    from lmgs_eval import hosttime
+    from lmgs_eval import runner as protocols
 
     class Toy:
         calls = 0
@@ -217,7 +218,7 @@ def test_timed_render_reports_the_median_of_repeats(monkeypatch):
 
     # perf_counter pairs: warm-up 0.3 s, then repeats of 5, 1 and 3 s
     ticks = itertools.chain([0.0, 0.3], [10.0, 15.0], [20.0, 21.0], [30.0, 33.0])
-    monkeypatch.setattr(protocols, "probe_ms", lambda: 1.0)  # the host probe is not what is timed here
+    monkeypatch.setattr(hosttime, "probe_ms", lambda: 1.0)  # the host probe is not what is timed here
     monkeypatch.setattr(protocols.time, "perf_counter", lambda: next(ticks))
     monkeypatch.setattr(protocols, "REPEAT_BUDGET_S", 100.0)
     driving = DrivingAudio(audio=np.zeros(50 * 640, np.float32))
@@ -239,7 +240,7 @@ def _handmade_renders(folder: Path, offset: int = 0, drop: int = 0) -> tuple[np.
 
     from lmgs_eval.data.io import to_u8
     from lmgs_eval.data.registry import find_subject
-    from lmgs_eval.methods import subject_to_clip
+    from lmgs_eval.convert import subject_to_clip
 
     subject = find_subject(SUBJECT, progress=False)
     gt = to_u8(subject_to_clip(subject, subject.test_ids, progress=False).frames)
@@ -288,12 +289,12 @@ def test_external_with_a_missing_frame_is_a_clear_error(tmp_path):
     ('{"fps": 3', "not valid JSON"),
 ])
 def test_external_sidecar_errors_name_the_file(tmp_path, sidecar, words):
-    from lmgs_eval.errors import UserError
-    from lmgs_eval.external import ExternalRenders
+    from baselines.external import ExternalRenders
+    from lmgs.errors import InputError
 
     (tmp_path / "r").mkdir()
     (tmp_path / "r" / "cost.json").write_text(sidecar)
-    with pytest.raises(UserError) as e:
+    with pytest.raises(InputError) as e:
         ExternalRenders("x", tmp_path / "r")
     assert str(tmp_path / "r" / "cost.json") in str(e.value) and words in str(e.value)
 
@@ -302,7 +303,7 @@ def test_a_model_or_record_of_other_data_of_the_same_subject_is_not_reused(tmp_p
     from types import SimpleNamespace
 
     from lmgs_eval.errors import UserError
-    from lmgs_eval.protocols import DATA_MARKER, claim_model_dir
+    from lmgs_eval.runner import DATA_MARKER, claim_model_dir
 
     subject = SimpleNamespace(name="mine", root=tmp_path / "mine")
     subject.root.mkdir()

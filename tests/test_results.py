@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from lmgs_eval import results as R
+from lmgs_eval.results.migrate import lmgs_components
 from lmgs_eval.errors import UserError
 
 CREATED = "2025-01-01T00:00:00+00:00"
@@ -55,6 +56,8 @@ def record(name: str, display: str, family: str, seed: int, metrics: dict, *, pr
               "standins": [], "variant": variant}
     if control:
         method["control"] = control
+    if (name == "lmgs" or name.startswith("lmgs-")) and config and "guidance" in config:
+        method["components"] = lmgs_components(config)  # what the lmgs adapter declares for such a config
     rec = R.make_record(method=method, subject=SUBJECT,
                         protocol={"name": protocol, "version": "1", "clip": clip, "split": "test", "n_frames": N_ITEMS},
                         metrics=metrics, seed=seed, config=config or {"name": name}, cost=cost, code=CODE,

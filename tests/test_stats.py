@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import stats as sps
 
-from lmgs_eval.stats import bootstrap_ci, bootstrap_ci_seeds, mean_over_seeds, paired_test
+from lmgs_eval.report.stats import bootstrap_ci, bootstrap_ci_seeds, mean_over_seeds, paired_test
 
 
 def test_bootstrap_ci_matches_numpy_percentile_reference():

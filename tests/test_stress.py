@@ -9,13 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lmgs_eval import methods
+from baselines import protocol as methods
 from lmgs_eval.errors import UserError
-from lmgs_eval.methods import MethodInfo
-from lmgs_eval.perturb import make_conditions
-from lmgs_eval.protocols import RunConfig
+from baselines.protocol import MethodInfo
+from lmgs_eval.protocols.perturb import make_conditions
+from lmgs_eval.runner import RunConfig
 from lmgs_eval.results import load_records, validate
-from lmgs_eval.stress import check_output, jitter_result, run_stress, silence_open_result
+from lmgs_eval.protocols.stress import check_output, jitter_result, run_stress, silence_open_result
 
 SUBJECT = "astronaut-64px-2s"
 
@@ -102,7 +102,7 @@ def test_every_condition_runs_and_broken_methods_are_recorded_as_failed(monkeypa
     records2, _ = run_stress(RunConfig(subject=SUBJECT, methods=("toy-ok",), results=tmp_path, progress=False), long_seconds=60.0)
     assert records2 == []
     # the stability table and heat-map come from these records
-    from lmgs_eval import tables
+    from lmgs_eval.report import tables
 
     md = tables.table_stability(recs, "jitter").markdown() if any("jitter" in r["metrics"] for r in recs) else \
         tables.table_stability(recs, "lse_c").markdown()
@@ -144,7 +144,7 @@ def test_stress_lse_of_uint8_frames_equals_lse_of_float_frames(monkeypatch):
     import cv2
     from skimage import data
 
-    from lmgs_eval import stress
+    from lmgs_eval.protocols import stress
     from lmgs_eval.metrics.sync import lse
 
     face = cv2.resize(data.astronaut(), (256, 256), interpolation=cv2.INTER_AREA)
@@ -169,7 +169,7 @@ def test_jobs_run_the_suites_in_worker_processes_with_the_same_results(monkeypat
     cfg = RunConfig(subject=SUBJECT, methods=("toy-ok", "toy-raise"), progress=False)
     serial, _ = run_stress(dataclasses.replace(cfg, results=tmp_path / "serial"), conds, long_seconds=60.0)
     # with jobs > 1 the workers build the context (subject, conditions, landmarks); the parent only checks names
-    import lmgs_eval.stress as stress_mod
+    import lmgs_eval.protocols.stress as stress_mod
 
     monkeypatch.setattr(stress_mod, "_context", lambda *a, **k: pytest.fail("the parent built the stress context"))
     with pytest.raises(UserError, match="unknown condition.*gargle"):
@@ -202,7 +202,7 @@ def test_a_method_registered_at_run_time_keeps_its_scene_budget_flag_in_a_worker
     import pickle
     import types
 
-    from lmgs_eval import stress as stress_mod
+    from lmgs_eval.protocols import stress as stress_mod
 
     monkeypatch.setitem(methods._REGISTRY, "toy-sized", ToySized)
     monkeypatch.setattr(methods, "_SCENE_BUDGET", methods._SCENE_BUDGET | {"toy-sized"})
@@ -225,7 +225,7 @@ class ToyCached(_Toy):  # a method whose model is already trained: fit() does no
 
 
 def test_the_training_clip_is_loaded_only_when_a_method_reads_it(monkeypatch, tmp_path):
-    import lmgs_eval.methods as M
+    import lmgs_eval.protocols.stress as M
 
     loads = []
     real = M.subject_to_clip

@@ -11,8 +11,9 @@ from pathlib import Path
 
 import pytest
 
-from lmgs_eval import charts as C
-from lmgs_eval import tables as T
+from lmgs_eval.report import charts as C
+from lmgs_eval.report import tables as T
+from lmgs_eval.results.migrate import lmgs_components
 from test_results import fixture_records, items, metric, record, write_store
 
 GOLDEN = Path(__file__).parent / "golden"
@@ -146,17 +147,18 @@ def test_footnotes_name_standins_backends_and_descriptions():
 
 
 def test_a_subject_own_gaussian_budget_is_named_with_the_rows_that_used_it():
-    from lmgs_eval.results import BUDGET_NOTE
+    from lmgs_eval.results import BUDGET_NOTE, budget_note
 
     recs = fixture_records()
-    note = f"{BUDGET_NOTE}0.55 per pixel of face area, this subject's capacity knee"
+    note = budget_note(0.55, 0.3)
+    assert note.startswith(f"{BUDGET_NOTE}0.55 per pixel of face area, this subject's capacity knee")
     for r in recs:
         if r["method"]["name"] in ("lmgs", "talkinggaussian"):
-            r["notes"] = [note]
+            r["run"] = {"budget": {"density": 0.55, "preset_density": 0.3}}
     other = copy.deepcopy([r for r in recs if r["method"]["name"] == "lmgs" and r["protocol"]["name"] == "self"])
     for r in other:  # another subject, at the preset's budget: nothing to say
         r["subject"] = dict(r["subject"], name="may", bundled=False, standin=None)
-        r["notes"] = []
+        r.pop("run")
     md = T.table_self(recs + other).markdown()
     assert f"- Subject astronaut: {note} (Ours (lmgs), TalkingGaussian)." in md
     assert md.count(BUDGET_NOTE) == 1
@@ -204,37 +206,55 @@ def test_table2_cross_layout():
     assert "\\cmidrule(lr){2-3} \\cmidrule(lr){4-5}" in tex
 
 
+def declared(recs: list[dict]) -> list[dict]:
+    """Copies of hand-written records with the components the lmgs adapter declares for their configs
+    (the tests below state a variant by editing its config, as a version-1 record did)."""
+    out = copy.deepcopy(recs)
+    for r in out:
+        name = r["method"]["name"]
+        if (name == "lmgs" or name.startswith("lmgs-")) and "guidance" in r["config"]:
+            r["method"]["components"] = lmgs_components(r["config"])
+    return out
+
+
+def table_ablation(recs):
+    return T.table_ablation(declared(recs))
+
+
+def table_theta(recs):
+    return T.table_theta(declared(recs))
+
+
 def test_table3_theta_and_table4_ablation():
     recs = fixture_records()
-    md3 = T.table_theta(recs).markdown()
+    md3 = table_theta(recs).markdown()
     labels = [ln.split("|")[1].strip() for ln in md3.splitlines() if ln.startswith("| 0.")]
     assert labels == ["0.4", "0.6", "0.8"]
     assert _row(md3, "θ")[1] == "Points enhanced" and _row(md3, "0.6")[1] == "–"  # no note, no number
     assert _row(md3, "0.6")[2].startswith("**")
-    # The share of points SE selected comes from the self protocol's note, averaged over seeds.
-    from lmgs_eval.results import SE_NOTE, se_fraction
+    # The share of points SE selected comes from the record's run.se_fraction, averaged over seeds.
+    from lmgs_eval.results import se_fraction
 
     noted = copy.deepcopy(recs)
     for r in noted:
         if r["method"]["name"] == "lmgs" and r["protocol"]["name"] == "self":
-            r["notes"] = [SE_NOTE.format(pct=70.0 + 2 * r["seed"]) + " (theta = 0.6; the paper reports about 20% at 0.6)"]
-    assert se_fraction({"notes": ["other", "spatial enhancement selected 73.3% of face points on average (theta = 0.6)"]}) \
-        == pytest.approx(0.733) and se_fraction({"notes": []}) is None
-    assert _row(T.table_theta(noted).markdown(), "0.6")[1] == "71.0% (70.0-72.0)"  # seeds 0 and 1: mean (range)
-    md4 = T.table_ablation(recs).markdown()
+            r["run"] = {"se_fraction": (70.0 + 2 * r["seed"]) / 100}
+    assert se_fraction({"run": {"se_fraction": 0.733}}) == pytest.approx(0.733) and se_fraction({"notes": []}) is None
+    assert _row(table_theta(noted).markdown(), "0.6")[1] == "71.0% (70.0-72.0)"  # seeds 0 and 1: mean (range)
+    md4 = table_ablation(recs).markdown()
     order = [ln.split("|")[1].strip() for ln in md4.splitlines() if ln.startswith("| w/o") or ln.startswith("| Full")]
     assert order == ["w/o SE", "w/o LC", "w/o GR", "Full model"]
     assert _row(md4, "w/o SE")[1:4] == ["✗", "✓", "✓"] and _row(md4, "Full model")[1:4] == ["✓", "✓", "✓"]
-    tex4 = T.table_ablation(recs).latex()
+    tex4 = table_ablation(recs).latex()
     assert "$\\times$ & \\checkmark" in tex4
     # A baseline on the same backbone (config keys alike, SE/LC off, GR on) is another method,
     # not the "w/o SE, LC" ablation row, and it must not be merged into a variant's row either.
     degs = copy.deepcopy(next(r for r in recs if r["method"]["name"] == "lmgs-no-se"))
     degs["method"].update(name="degstalk", display_name="DEGSTalk", variant=None)
     degs["config"] = {"guidance": {"se": False, "lc": False, "theta": 0.6}, "gr": True}
-    md4b = T.table_ablation(recs + [degs]).markdown()
+    md4b = table_ablation(recs + [degs]).markdown()
     assert md4b == md4 and "w/o SE, LC" not in md4b
-    assert T.table_theta(recs + [degs]).markdown() == md3
+    assert table_theta(recs + [degs]).markdown() == md3
 
 
 
@@ -251,7 +271,7 @@ def test_table4_has_the_papers_audio_rows_first():
         r["method"].update(name=name, display_name=name, variant=name.removeprefix("lmgs-"))
         r["config"] = {**r["config"], "gr": True, "audio": audio}
         recs.append(r)
-    md4 = T.table_ablation(recs).markdown()
+    md4 = table_ablation(recs).markdown()
     order = [ln.split("|")[1].strip() for ln in md4.splitlines()
              if ln.startswith(("| w/o", "| Full", "| Replacing"))]
     assert order == ["Replacing Audio Net with DS", "w/o Audio Encoder", "w/o SE", "w/o LC", "w/o GR", "Full model"]
@@ -261,7 +281,7 @@ def test_table4_has_the_papers_audio_rows_first():
     r["method"].update(name="lmgs-gr-mean", display_name="lmgs-gr-mean", variant="gr-mean")
     r["config"] = {**r["config"], "gr": True, "audio": {"frontend": "logmel", "use_encoder": True},
                    "train": {"normal_reduce": "mean", "lambda_normal": 0.05}}
-    md4 = T.table_ablation(recs + [r]).markdown()
+    md4 = table_ablation(recs + [r]).markdown()
     label = "GR, normal term per pixel (mean, λ_N = 0.05)"
     assert _row(md4, label)[1:4] == ["✓", "✓", "✓"]
     rows = [ln.split("|")[1].strip() for ln in md4.splitlines() if ln.startswith("| ")]
@@ -275,27 +295,27 @@ def test_table4_has_the_papers_audio_rows_first():
     paper = copy.deepcopy(r)
     paper["method"].update(name="lmgs-gr-paper", display_name="lmgs-gr-paper", variant="gr-paper")
     paper["config"] = {**paper["config"], "train": {}}
-    md4c = T.table_ablation(per_pixel + [paper]).markdown()
+    md4c = table_ablation(per_pixel + [paper]).markdown()
     summed = "GR as the paper writes it (normal term summed, λ_N = 0.0001)"
     assert _row(md4c, summed)[1:4] == ["✓", "✓", "✓"] and label not in md4c
     rows = [ln.split("|")[1].strip() for ln in md4c.splitlines() if ln.startswith("| ")]
     assert rows.index("w/o GR") < rows.index(summed) < rows.index("Full model")
     # Neither audio row is a θ row of Table III.
-    assert T.table_theta(recs).markdown() == T.table_theta(fixture_records()).markdown()
+    assert table_theta(recs).markdown() == table_theta(fixture_records()).markdown()
     # Training on out-of-fold landmarks (lmgs-oof) is its own row, SE / LC / GR ticked, not a θ row.
     oof = copy.deepcopy(next(x for x in recs if x["method"]["name"] == "lmgs"))
     oof["method"].update(name="lmgs-oof", display_name="lmgs-oof", variant="oof")
     oof["config"] = {**oof["config"], "train": {**(oof["config"].get("train") or {}), "landmark_folds": 5}}
-    md4d = T.table_ablation(recs + [oof]).markdown()
+    md4d = table_ablation(recs + [oof]).markdown()
     assert _row(md4d, "Training landmarks out of fold (5 folds)")[1:4] == ["✓", "✓", "✓"]
-    assert T.table_theta(recs + [oof]).markdown() == T.table_theta(recs).markdown()
+    assert table_theta(recs + [oof]).markdown() == table_theta(recs).markdown()
     # SE capped at a share of the points, against a full model by θ alone, likewise
     cap20 = copy.deepcopy(next(x for x in recs if x["method"]["name"] == "lmgs"))
     cap20["method"].update(name="lmgs-cap20", display_name="lmgs-cap20", variant="cap20")
     cap20["config"] = {**cap20["config"], "guidance": {**cap20["config"]["guidance"], "select_fraction": 0.2}}
-    md4e = T.table_ablation(recs + [cap20]).markdown()
+    md4e = table_ablation(recs + [cap20]).markdown()
     assert _row(md4e, "SE capped at 20% of the points")[1:4] == ["✓", "✓", "✓"]
-    assert T.table_theta(recs + [cap20]).markdown() == T.table_theta(recs).markdown()
+    assert table_theta(recs + [cap20]).markdown() == table_theta(recs).markdown()
     # the label says how a row's SE differs from the full model's: with the full model capped (lmgs's
     # default), the row by θ alone is the variant, and a record made before the option counts as uncapped
     capped = [copy.deepcopy(x) for x in recs]
@@ -304,7 +324,7 @@ def test_table4_has_the_papers_audio_rows_first():
             x["config"] = {**x["config"], "guidance": {**x["config"].get("guidance", {}), "select_fraction": 0.2}}
     uncapped = copy.deepcopy(next(x for x in recs if x["method"]["name"] == "lmgs"))
     uncapped["method"].update(name="lmgs-uncapped", display_name="lmgs-uncapped", variant="uncapped")
-    md4f = T.table_ablation(capped + [uncapped]).markdown()
+    md4f = table_ablation(capped + [uncapped]).markdown()
     assert _row(md4f, "SE by θ alone (uncapped)")[1:4] == ["✓", "✓", "✓"] and "SE capped" not in md4f
     assert _row(md4f, "Full model")[1:4] == ["✓", "✓", "✓"]
 

@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from lmgs_eval.protocols import HostSpeed, OthersCPU, host_cpu_seconds, probe_ms
+from lmgs_eval.hosttime import HostSpeed, OthersCPU, host_cpu_seconds, probe_ms
 
 needs_proc = pytest.mark.skipif(host_cpu_seconds() is None, reason="needs /proc/stat (Linux)")
 
@@ -97,7 +97,7 @@ def test_training_records_the_contention_and_a_reused_checkpoint_keeps_it(tmp_pa
     import json
     from types import SimpleNamespace
 
-    from lmgs_eval import protocols
+    from lmgs_eval import runner as protocols
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
 
@@ -132,5 +132,5 @@ def test_training_records_the_contention_and_a_reused_checkpoint_keeps_it(tmp_pa
 
     fit_json.write_text(json.dumps({**saved, "peak_mb": 1e6}))  # a training that peaked far above this process
     reused = protocols.fit_method(Toy(), None, subject, 0, progress=False)
-    assert protocols._cost_block(Cost(), reused, {})["peak_mb"] == 1e6
-    assert protocols._cost_block(Cost(), first, {})["peak_mb"] < 1e6  # trained here: this process's own peak
+    assert protocols.cost_block(Cost(), reused, {})["peak_mb"] == 1e6
+    assert protocols.cost_block(Cost(), first, {})["peak_mb"] < 1e6  # trained here: this process's own peak

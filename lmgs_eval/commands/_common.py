@@ -25,8 +25,8 @@ def add_run_arguments(p: argparse.ArgumentParser, default_methods: tuple[str, ..
 
 
 def run_config(args: argparse.Namespace):
-    from lmgs_eval.methods import list_methods
-    from lmgs_eval.protocols import RunConfig
+    from baselines.protocol import list_methods
+    from lmgs_eval.runner import RunConfig
 
     methods = tuple(args.methods or args._default_methods)
     known = list_methods()
@@ -52,7 +52,8 @@ def run_config(args: argparse.Namespace):
 
 def print_rows(records: list[dict]) -> None:
     """The records just made, as a small table on stdout (§: FPS timed on a busy host)."""
-    from lmgs_eval.tables import BUSY, BUSY_NOTE, BUSY_SHARE, busy_text, timed_busy, trained_busy
+    from lmgs_eval.report.cells import BUSY_NOTE, busy_text, timed_busy, trained_busy
+    from lmgs_eval.report.table_model import BUSY, BUSY_SHARE
 
     cols = [("psnr", "PSNR↑", "{:.2f}"), ("lpips", "LPIPS↓", "{:.4f}"), ("lmd", "LMD↓", "{:.2f}"),
             ("lse_d", "LSE-D↓", "{:.3f}"), ("lse_c", "LSE-C↑", "{:.3f}")]

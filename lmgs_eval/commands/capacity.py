@@ -28,9 +28,9 @@ def _print_row(width: int, head: str, p: dict, mark: str) -> None:
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from lmgs_eval.capacity import (DEFAULT_BUDGETS, budget_means, failed_points, knee, points_from_records, run_capacity,
-                                    tolerance_text)
-    from lmgs_eval.charts import capacity_charts
+    from lmgs_eval.protocols.capacity import DEFAULT_BUDGETS, run_capacity
+    from lmgs_eval.report.capacity import budget_means, failed_points, knee, points_from_records, tolerance_text
+    from lmgs_eval.report.charts import capacity_charts
     from lmgs_eval.commands._common import run_config
     from lmgs_eval.errors import UserError
     from lmgs_eval.results import load_records

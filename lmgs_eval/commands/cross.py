@@ -17,7 +17,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from lmgs_eval.commands._common import print_rows, run_config
-    from lmgs_eval.protocols import run_cross
+    from lmgs_eval.protocols.cross import run_cross
 
     cfg = run_config(args)
     records, errors = run_cross(cfg, args.audio)

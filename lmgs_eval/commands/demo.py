@@ -62,10 +62,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run_full(args: argparse.Namespace) -> int:
     """``make bench``: every stage resumes from the results store, so it can be finished over sittings."""
-    from lmgs_eval.capacity import DEFAULT_BUDGETS, run_capacity
+    from lmgs_eval.protocols.capacity import DEFAULT_BUDGETS, run_capacity
     from lmgs_eval.commands import table
-    from lmgs_eval.protocols import RunConfig, log, run_cross, run_self
-    from lmgs_eval.stress import run_stress
+    from lmgs_eval.protocols.cross import run_cross
+    from lmgs_eval.protocols.self_driven import run_self
+    from lmgs_eval.runner import RunConfig, log
+    from lmgs_eval.protocols.stress import run_stress
 
     t0 = time.perf_counter()
     results = Path(args.results)
@@ -129,7 +131,9 @@ def run(args: argparse.Namespace) -> int:
     if args.full:
         return run_full(args)
     from lmgs_eval.commands._common import print_rows
-    from lmgs_eval.protocols import RunConfig, log, run_cross, run_self
+    from lmgs_eval.protocols.cross import run_cross
+    from lmgs_eval.protocols.self_driven import run_self
+    from lmgs_eval.runner import RunConfig, log
 
     t0 = time.perf_counter()
     results = Path(args.results)

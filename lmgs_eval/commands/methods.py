@@ -14,7 +14,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from lmgs_eval.methods import create_method, list_methods
+    from baselines.protocol import create_method, list_methods
 
     rows = []
     for name in list_methods():

@@ -48,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
     if subject.budget_density is not None:
         print(f"  Gaussian budget: {subject.budget_density:g} per face pixel for the methods sized by face area "
               "(this subject's capacity knee, not the quick preset's)")
-    from lmgs_eval.protocols import plate_reference_psnr
+    from lmgs_eval.protocols.plate import plate_reference_psnr
 
     ceiling = plate_reference_psnr(subject)
     if ceiling is not None:

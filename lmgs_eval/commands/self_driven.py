@@ -15,7 +15,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from lmgs_eval.commands._common import print_rows, run_config
-    from lmgs_eval.protocols import run_self
+    from lmgs_eval.protocols.self_driven import run_self
 
     cfg = run_config(args)
     records = run_self(cfg)

@@ -24,7 +24,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from lmgs_eval.commands._common import run_config
-    from lmgs_eval.stress import run_stress
+    from lmgs_eval.protocols.stress import run_stress
 
     cfg = run_config(args)
     t0 = time.perf_counter()

@@ -25,7 +25,7 @@ def run(args: argparse.Namespace) -> int:
     """Load the store (warning about skipped files), write every table and chart, print Table I."""
     from lmgs_eval.paths import atomic_write_text
     from lmgs_eval.results import load_records
-    from lmgs_eval.tables import all_tables
+    from lmgs_eval.report.tables import all_tables
 
     records_dir = args.records
     if records_dir is not None:
@@ -49,10 +49,10 @@ def run(args: argparse.Namespace) -> int:
             atomic_write_text(path, text)
             written.append(path)
     if not args.no_charts:
-        from lmgs_eval.charts import all_charts
+        from lmgs_eval.report.charts import all_charts
 
         written += all_charts(records, out)
-        from lmgs_eval.charts import render_sheets
+        from lmgs_eval.report.charts import render_sheets
 
         written += render_sheets(records, args.results, out)
     if records_dir is not None:

@@ -70,7 +70,7 @@ class Subject:
 
         Set for the bundled subjects whose measured knee is not at the quick preset's density
         (:data:`lmgs_eval.data.registry.KNEE_DENSITY`); None otherwise. Methods that size their
-        Gaussians by face area take it (:func:`lmgs_eval.methods.create_method`).
+        Gaussians by face area take it (:func:`baselines.protocol.create_method`).
         """
         from lmgs_eval.data.registry import knee_density
 

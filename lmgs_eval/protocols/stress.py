@@ -1,6 +1,6 @@
 """The stability suite (issue 8): drive trained models with perturbed audio, record where they break.
 
-For each method and each condition of :mod:`lmgs_eval.perturb` (made from the subject's
+For each method and each condition of :mod:`lmgs_eval.protocols.perturb` (made from the subject's
 clean test audio and, for "another voice", the bundled cross-driven clip A), the driving
 audio goes through the same loading path as a user's file (:func:`~lmgs_eval.data.io.to_mono_16k`:
 stereo mixed down, other rates resampled), is rendered, and is recorded under protocol
@@ -20,18 +20,35 @@ stereo mixed down, other rates resampled), is rendered, and is recorded under pr
 
 from __future__ import annotations
 
+import dataclasses
+import multiprocessing
+import os
+import pickle
 import time
 import traceback
+from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
+import torch
+from tqdm import tqdm
 
+from baselines import protocol as methods
+from baselines.protocol import create_method
 from lmgs.types import DrivingAudio
+from lmgs_eval import results as store
+from lmgs_eval.convert import driving_from_subject, subject_to_clip
+from lmgs_eval.data.io import to_mono_16k
+from lmgs_eval.data.registry import find_subject
 from lmgs_eval.errors import UserError
 from lmgs_eval.metrics.base import MetricResult, MetricSpec
-from lmgs_eval.perturb import VERSION as PERTURB_VERSION
-from lmgs_eval.perturb import SR, Condition, make_conditions
-from lmgs_eval.protocols import (RunConfig, _cost_block, _cycle, _write_render, build_record, bundled_cross_clips, render_stem,
-                                 REPEATS, fit_method, log, metrics_block, timed_render)
+from lmgs_eval.metrics.landmarks import DlibBackend, lmd_result
+from lmgs_eval.metrics.sync import lse
+from lmgs_eval.protocols.cross import bundled_cross_clips
+from lmgs_eval.protocols.perturb import VERSION as PERTURB_VERSION
+from lmgs_eval.protocols.perturb import SR, Condition, make_conditions
+from lmgs_eval.results.records import build_record, metrics_block, stored
+from lmgs_eval.runner import (REPEATS, RunConfig, cost_block, cycle, fit_method, log, render_stem, timed_render,
+                              write_render)
 
 MOUTH = slice(48, 68)
 JITTER_SPEC = MetricSpec(
@@ -84,8 +101,6 @@ def landmarks_u8(backend, frames: np.ndarray, chunk: int = 256) -> np.ndarray:
 def lse_u8(frames: np.ndarray, audio: np.ndarray):
     """LSE of uint8 frames (cropped a chunk at a time by ``lse``, no float copy of the clip);
     a long clip detects faces every 5 frames (the boxes are median-smoothed anyway)."""
-    from lmgs_eval.metrics.sync import lse
-
     if len(frames) <= LONG_CLIP_FRAMES:
         return lse(frames, audio)
     r = lse(frames, audio, detect_every=5)
@@ -112,14 +127,12 @@ def condition_driving(cond: Condition, test_clip) -> tuple[np.ndarray, DrivingAu
     if n < 1:
         raise UserError(f"condition {cond.name}: shorter than one frame")
     audio = audio[: n * 640]
-    driving = DrivingAudio(audio=audio, w2c=_cycle(test_clip.w2c, n), backgrounds=_cycle(test_clip.backgrounds, n),
-                           blink=None if test_clip.blink is None else _cycle(test_clip.blink, n))
+    driving = DrivingAudio(audio=audio, w2c=cycle(test_clip.w2c, n), backgrounds=cycle(test_clip.backgrounds, n),
+                           blink=None if test_clip.blink is None else cycle(test_clip.blink, n))
     return audio, driving, notes
 
 
 def to_16k(cond: Condition) -> tuple[np.ndarray, list[str]]:
-    from lmgs_eval.data.io import to_mono_16k
-
     return to_mono_16k(cond.audio, cond.sample_rate, f"condition {cond.name}")
 
 
@@ -127,10 +140,6 @@ def _context(cfg: RunConfig, long_seconds: float) -> dict:
     """What every method's run shares: the subject, its test clip, the conditions, the landmark
     backend and the ground truth's landmarks; built once per process (a worker of ``jobs`` > 1
     keeps it across the methods it runs)."""
-    from lmgs_eval.data.registry import find_subject
-    from lmgs_eval.methods import subject_to_clip
-    from lmgs_eval.metrics.landmarks import DlibBackend
-
     key = (cfg.subject, cfg.data_root, float(long_seconds))
     if key not in _CONTEXTS:
         subject = find_subject(cfg.subject, cfg.data_root, progress=cfg.progress)
@@ -223,11 +232,6 @@ def run_stress(cfg: RunConfig, conditions: tuple[str, ...] | None = None, max_mi
 def _run_parallel(cfg: RunConfig, pairs, conditions, max_minutes: float, long_seconds: float,
                   jobs: int) -> tuple[list[dict], list[str]]:
     """Each (method, seed) suite in a worker process (spawned: no forked torch threads)."""
-    import dataclasses
-    import multiprocessing
-    import os
-    from concurrent.futures import ProcessPoolExecutor
-
     shipped = _ship(cfg.methods)
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     threads = max(1, cores // jobs)
@@ -242,8 +246,6 @@ def _run_parallel(cfg: RunConfig, pairs, conditions, max_minutes: float, long_se
                                max_minutes, long_seconds, note, {name: shipped.get(name)}) for name, seed in pairs]
         bar = None
         if cfg.progress:
-            from tqdm import tqdm
-
             bar = tqdm(total=len(futures), desc="stress suites", unit="suite", leave=False)
         try:
             for fut in futures:  # in submission order: the records come back as a serial run lists them
@@ -269,17 +271,12 @@ def _ship(names) -> dict:
     knee density as a serial run does; None for a built-in (the worker registers it, flag and
     all, by importing its module: a built-in's lambda does not pickle, a class goes by reference).
     """
-    import pickle
-
-    from lmgs_eval import methods
-
-    methods._load_builtin()
     shipped = {}
     for name in names:
-        factory = methods._REGISTRY.get(name)
+        reg = methods.registration(name)
         try:
-            pickle.dumps(factory)
-            shipped[name] = (factory, name in methods._SCENE_BUDGET)
+            pickle.dumps(reg[0] if reg else None)
+            shipped[name] = reg
         except Exception:
             shipped[name] = None
     return shipped
@@ -287,18 +284,14 @@ def _ship(names) -> dict:
 
 def _adopt(shipped: dict) -> None:
     """In a worker: register what :func:`_ship` sent, with its flag."""
-    from lmgs_eval import methods
-
-    methods._load_builtin()
+    methods.load_adapters()
     for name, item in shipped.items():
-        if item is not None and name not in methods._REGISTRY:
+        if item is not None and not methods.is_registered(name):
             factory, scene_budget = item
             methods.register(name, scene_budget=scene_budget)(factory)
 
 
 def _worker_init(threads: int) -> None:
-    import torch
-
     torch.set_num_threads(threads)
 
 
@@ -314,11 +307,6 @@ def _worker(cfg: RunConfig, conditions, max_minutes: float, long_seconds: float,
 def _stress_one(cfg: RunConfig, ctx: dict, conds, name: str, seed: int, max_minutes: float,
                 note: str | None = None) -> tuple[list[dict], list[str]]:
     """Every condition of ``conds`` for one method and seed (resumable: finished ones are skipped)."""
-    from lmgs_eval import results as store
-    from lmgs_eval.methods import create_method, driving_from_subject, subject_to_clip
-    from lmgs_eval.metrics.landmarks import lmd_result
-    from lmgs_eval.protocols import score_clip
-
     subject, test, other, backend = ctx["subject"], ctx["test"], ctx["other"], ctx["backend"]
     gt_lms, gt_found = ctx["gt_lms"], ctx["gt_found"]
     messages, records = [], []
@@ -374,7 +362,7 @@ def _stress_one(cfg: RunConfig, ctx: dict, conds, name: str, seed: int, max_minu
                 if gl is not None:
                     res["lmd"] = lmd_result(lms, gl)
                 if cond.name == "clean":  # the reference-based metrics too (no audio: LSE is above)
-                    res.update({k: v for k, v in score_clip(frames, test.frames, None, lmd=False).items() if k != "lse"})
+                    res.update({k: v for k, v in cfg.suite.score(frames, test.frames, None, lmd=False).items() if k != "lse"})
                 metrics = metrics_block(res)
                 found = float(np.isfinite(lms).all(axis=(1, 2)).mean())
                 if gt_found >= 0.5 and found < 0.5:  # only when dlib finds the ground truth's face
@@ -385,14 +373,14 @@ def _stress_one(cfg: RunConfig, ctx: dict, conds, name: str, seed: int, max_minu
             if why is not None:
                 status = {"state": "failed", "reason": why}
             if n <= LONG_CLIP_FRAMES:
-                art = {"render": _write_render(cfg.results, f"renders/{subject.name}/stress/{render_stem(info, seed)}-{cond.name}.mp4",
+                art = {"render": write_render(cfg.results, f"renders/{subject.name}/stress/{render_stem(info, seed)}-{cond.name}.mp4",
                                                frames, audio)}
         except Exception as exc:  # a crash on one condition is a recorded failure, the suite goes on
             if isinstance(exc, KeyboardInterrupt):
                 raise
             status = {"state": "failed", "reason": f"crash: {exc.__class__.__name__}: {str(exc)[:200]}"}
             notes = list(notes) + ["traceback: " + traceback.format_exc(limit=3).replace("\n", " | ")[-600:]]
-        cost = _cost_block(method, fit_cost, rc) if rc else {}
+        cost = cost_block(method, fit_cost, rc) if rc else {}
         cost["wall_seconds"] = time.perf_counter() - t0
         rec = build_record(info=info, subject=subject, protocol="stress", clip=cond.name, split=cond.description,
                            n_frames=n, seed=seed, metrics=metrics, cost=cost, artefacts=art,
@@ -409,6 +397,4 @@ def _stress_one(cfg: RunConfig, ctx: dict, conds, name: str, seed: int, max_minu
 
 def _done(root, method: str, subject, clip: str, seed: int, ch: str) -> bool:
     """A finished record (a failed run is retried: the failure may have been fixed)."""
-    from lmgs_eval.protocols import stored
-
     return stored(root, subject, method, "stress", clip, seed, ch, finished=True) is not None

@@ -1,121 +1,30 @@
-"""How small a model each scene needs (issue 8): ``lmgs`` trained at a range of Gaussian budgets.
+"""How small a model each scene needs: ``lmgs`` trained at a range of Gaussian budgets.
 
 Each budget is a run of the self-driven protocol recorded under protocol ``capacity`` with
 clip ``budget-<N>`` (the budget is set through ``train.budget_density = N / face area``, so
-the config hash changes with it). The *knee* is the smallest budget whose quality is within
-:data:`TOLERANCE` of the best budget on every quality metric.
+the config hash changes with it). The knee and the curves are read from the records
+(:mod:`lmgs_eval.report.capacity`).
 """
 
 from __future__ import annotations
 
+import time
 from typing import Any, Sequence
 
-import numpy as np
-
-from lmgs_eval.protocols import RunConfig, log
-from lmgs_eval.results import is_failed
+from baselines.protocol import create_method
+from lmgs.errors import TrainingDiverged
+from lmgs.init import face_area_px
+from lmgs.strategy import budget_from_face_area
+from lmgs_eval import results as store
+from lmgs_eval.convert import driving_from_subject, subject_to_clip
+from lmgs_eval.data.registry import find_subject
+from lmgs_eval.results.records import build_record, stored
+from lmgs_eval.runner import RunConfig, fit_method, fit_render_score, head_of, log, model_dir, render_stem
 
 DEFAULT_BUDGETS = (500, 1000, 2000, 5000, 10000, 20000)
-# (metric, higher is better, kind, amount): within `amount` of the best, absolute or relative.
-TOLERANCE = (("psnr", True, "abs", 0.3), ("lpips", False, "rel", 0.05), ("lmd", False, "rel", 0.05))
-
-
-def tolerance_text() -> str:
-    parts = []
-    for m, hib, kind, amt in TOLERANCE:
-        parts.append(f"{m.upper()} {'>= best - ' if hib else '<= best + '}{amt:g}{' dB' if m == 'psnr' else ''}"
-                     if kind == "abs" else f"{m.upper()} {'>=' if hib else '<='} best x {1 - amt if hib else 1 + amt:g}")
-    return "; ".join(parts)
-
-
-def knee(points: Sequence[dict[str, Any]]) -> dict[str, Any] | None:
-    """The smallest-budget point within :data:`TOLERANCE` of the best on every metric it has.
-
-    ``points``: dicts with ``budget`` and metric values (None where missing).
-    """
-    pts = sorted(points, key=lambda p: p["budget"])
-    if not pts:
-        return None
-    best = {}
-    for m, hib, _, _ in TOLERANCE:
-        vals = [p[m] for p in pts if p.get(m) is not None]
-        if vals:
-            best[m] = max(vals) if hib else min(vals)
-    for p in pts:
-        ok = True
-        for m, hib, kind, amt in TOLERANCE:
-            if m not in best or p.get(m) is None:
-                continue
-            b = best[m]
-            lim = (b - amt if hib else b + amt) if kind == "abs" else (b * (1 - amt) if hib else b * (1 + amt))
-            ok &= p[m] >= lim if hib else p[m] <= lim
-        if ok:
-            return p
-    return pts[-1]
-
-
-def budget_means(points: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
-    """One point per budget: each value the mean over that budget's seeds, with ``n_seeds``.
-
-    The knee is taken on these (:func:`knee`), never on single seeds: on hopper the seed moves
-    PSNR by 0.8 dB at a fixed budget, more than the tolerance.
-    """
-    by_budget: dict[int, list[dict[str, Any]]] = {}
-    for p in points:
-        by_budget.setdefault(p["budget"], []).append(p)
-    out = []
-    for b, ps in sorted(by_budget.items()):
-        row: dict[str, Any] = {"budget": b, "n_seeds": len(ps)}
-        for k in ("n_gaussians", "psnr", "lpips", "lmd", "fps", "model_mb", "train_seconds"):
-            vals = [q[k] for q in ps if q.get(k) is not None]
-            row[k] = float(np.mean(vals)) if vals else None
-        out.append(row)
-    return out
-
-
-def _budget(rec: dict) -> int:
-    """The Gaussian budget of a capacity record (its clip is ``budget-<N>``)."""
-    return int(rec["protocol"]["clip"].split("-", 1)[1])
-
-
-def points_from_records(records: Sequence[dict]) -> dict[str, list[dict[str, Any]]]:
-    """Per subject, one point per capacity record: budget, count, quality and cost.
-
-    ``fps`` is the side-by-side figure only when every point of the subject was timed in one
-    and the same side-by-side run (a later ``capacity --budget N`` re-times only the budgets
-    it was given); otherwise every point uses its own run's FPS, so an axis never mixes them.
-    """
-    raw: dict[str, list[tuple[dict[str, Any], Any, Any, Any]]] = {}
-    for r in records:
-        if r["protocol"]["name"] != "capacity" or is_failed(r):
-            continue
-        m, c = r["metrics"], r.get("cost") or {}
-        point = {"budget": _budget(r), "n_gaussians": c.get("n_gaussians"),
-                 "psnr": m.get("psnr", {}).get("value"), "lpips": m.get("lpips", {}).get("value"),
-                 "lmd": m.get("lmd", {}).get("value"), "model_mb": c.get("model_mb"),
-                 "train_seconds": c.get("train_seconds"), "seed": r["seed"]}
-        raw.setdefault(r["subject"]["name"], []).append(
-            (point, c.get("fps"), c.get("fps_side_by_side"), c.get("fps_side_by_side_run")))
-    out: dict[str, list[dict[str, Any]]] = {}
-    for subject, rows in raw.items():
-        side = all(sbs is not None for _, _, sbs, _ in rows) and len({run for *_, run in rows}) == 1
-        out[subject] = [{**p, "fps": sbs if side else fps, "fps_side_by_side": side} for p, fps, sbs, _ in rows]
-    return out
-
-
-def failed_points(records: Sequence[dict]) -> dict[str, list[dict[str, Any]]]:
-    """Per subject, the capacity runs that failed: ``{"budget", "seed", "reason"}``."""
-    out: dict[str, list[dict[str, Any]]] = {}
-    for r in records:
-        if r["protocol"]["name"] == "capacity" and is_failed(r):
-            out.setdefault(r["subject"]["name"], []).append({"budget": _budget(r), "seed": r["seed"], "reason": r["status"].get("reason", "")})
-    return out
 
 
 def _failed_record(cfg: RunConfig, info, subject, clip: str, seed: int, reason: str) -> dict:
-    from lmgs_eval import results as store
-    from lmgs_eval.protocols import build_record
-
     rec = build_record(info=info, subject=subject, protocol="capacity", clip=clip, split="test", n_frames=0, seed=seed,
                        metrics={}, cost={}, artefacts={}, notes=list(subject.notes))
     rec["status"] = {"state": "failed", "reason": reason[:500]}
@@ -125,14 +34,6 @@ def _failed_record(cfg: RunConfig, info, subject, clip: str, seed: int, reason: 
 
 def run_capacity(cfg: RunConfig, budgets: Sequence[int] = DEFAULT_BUDGETS) -> list[dict]:
     """Train ``lmgs`` at each budget on the subject, score it, record it (resumable)."""
-    from lmgs.init import face_area_px
-    from lmgs.strategy import budget_from_face_area
-    from lmgs.errors import TrainingDiverged
-    from lmgs_eval import results as store
-    from lmgs_eval.data.registry import find_subject
-    from lmgs_eval.methods import create_method, driving_from_subject, subject_to_clip
-    from lmgs_eval.protocols import fit_render_score, render_stem, stored
-
     subject = find_subject(cfg.subject, cfg.data_root, progress=cfg.progress)
     train = subject_to_clip(subject, subject.train_ids, progress=cfg.progress)
     test = subject_to_clip(subject, subject.test_ids, progress=cfg.progress)
@@ -191,11 +92,6 @@ def retime_side_by_side(cfg: RunConfig, subject, train, driving, trained: Sequen
 
     Returns ``{(budget, seed): fps}``.
     """
-    import time
-
-    from lmgs_eval import results as store
-    from lmgs_eval.protocols import fit_method, head_of, model_dir, stored
-
     clip = head_of(driving, frames)
     n = clip.n_frames
     recorded, away = [], set()

@@ -6,7 +6,11 @@ from pathlib import Path
 
 import numpy as np
 
-from lmgs_eval.methods import MethodInfo, register
+from baselines.protocol import MethodInfo, register
+from lmgs.config import override
+from lmgs.errors import InputError
+from lmgs.presets import preset as make_preset
+from lmgs.train import fit, load_model, save_model
 
 LANDMARK_STANDIN = ("audio-to-landmark: a per-subject temporal CNN trained on the training split (GeneFace's pretrained "
                     "model cannot be had offline)")
@@ -24,7 +28,7 @@ def standins(frontend: str) -> tuple[str, ...]:
 # The Geometry Regularizer's form in the toolkit's ``lmgs``: the normal term averaged per face pixel at
 # 2DGS's normal weight 0.05, instead of the paper's sum over pixels at 1e-4 (variant ``lmgs-gr-paper``).
 # On generator-2 bundled data the paper's form, even ramped in (train.gr_warmup), costs appearance and
-# collapsed astronaut seed 2 at step 913; the per-pixel form trained on every run (issue 5's note).
+# collapsed astronaut seed 2 at step 913; the per-pixel form trained on every run.
 GR_PER_PIXEL = {"train.normal_reduce": "mean", "train.lambda_normal": 0.05}
 
 # Named variants for Tables III and IV: dotted config changes on the quick preset. Every variant
@@ -46,13 +50,29 @@ VARIANTS: dict[str, dict] = {
     "lmgs-no-ae": {"audio.use_encoder": False, **GR_PER_PIXEL},
     "lmgs-ds": {"audio.frontend": "ds", **GR_PER_PIXEL},
     # The landmarks guiding training as wrong as at test time: out-of-fold predictions of the per-subject
-    # predictor (5 folds) instead of its in-sample ones (lmgs.landmarks.cross_fit_landmarks; issue 5's note).
+    # predictor (5 folds) instead of its in-sample ones (lmgs.landmarks.cross_fit_landmarks).
     "lmgs-oof": {"train.landmark_folds": 5, **GR_PER_PIXEL},
     # SE by θ alone, as the paper writes it, without the cap at the share the paper reports (the default
     # guidance.select_fraction = 0.2): at θ = 0.6 it selected 61-79 % of astronaut's face points, where lmgs
-    # did worse than without SE; the records of lmgs before the cap (issue 5's note).
+    # did worse than without SE; the records of lmgs before the cap.
     "lmgs-uncapped": {"guidance.select_fraction": 0.0, **GR_PER_PIXEL},
 }
+
+
+def components(cfg) -> dict:
+    """The parts of an lmgs config that its variants switch, as records and Table III/IV read them.
+
+    A part switched off reports its neutral setting (no cap without SE, no folds without SE or LC),
+    as the config hash leaves those settings out.
+    """
+    g, t, a = cfg.guidance, cfg.train, cfg.audio
+    return {
+        "se": bool(g.se), "lc": bool(g.lc), "gr": bool(cfg.gr), "theta": float(g.theta),
+        "se_cap": float(g.select_fraction) if g.se else 0.0,
+        "landmark_folds": int(t.landmark_folds) if (g.se or g.lc) else 0,
+        "gr_reduce": str(t.normal_reduce), "gr_weight": float(t.lambda_normal),
+        "audio_frontend": a.frontend, "audio_encoder": bool(a.use_encoder),
+    }
 
 
 class LMGSMethod:
@@ -60,25 +80,19 @@ class LMGSMethod:
 
     def __init__(self, variant: str = "lmgs", preset: str = "quick", overrides: dict | None = None, device: str | None = None,
                  budget_density: float | None = None):
-        from lmgs.presets import preset as make_preset
-
         self.variant = variant
         # a subject's knee density (create_method); an explicit --set train.budget_density wins
         density = {} if budget_density is None else {"train.budget_density": float(budget_density)}
         try:
-            self.cfg = make_preset(preset).replace(**{**VARIANTS[variant], **density, **(overrides or {})})
-        except (TypeError, AttributeError, ValueError) as exc:
-            from lmgs_eval.errors import UserError
-
-            what = "a value lmgs does not take" if isinstance(exc, ValueError) else "not a config field of lmgs"
-            raise UserError(f"--set: {what} ({exc})") from None
+            self.cfg = override(make_preset(preset), {**VARIANTS[variant], **density}, what="variant")
+            self.cfg = override(self.cfg, overrides or {})
+        except ValueError as exc:  # a config's own check of a value (e.g. a fraction outside [0, 1])
+            raise InputError(f"--set: a value lmgs does not take ({exc})") from None
         self.device = device
         self.model = None
         self.report = None
 
     def fit(self, clip, *, seed: int, workdir: Path, progress: bool = True) -> None:
-        from lmgs.train import fit, load_model, save_model
-
         workdir = Path(workdir)
         final = workdir / "model.pt"
         if final.exists():
@@ -127,6 +141,7 @@ class LMGSMethod:
             config=self.cfg.to_dict(),
             config_hash=self.cfg.hash(),
             variant=None if self.variant == "lmgs" else self.variant.removeprefix("lmgs-"),
+            components=components(self.cfg),
         )
 
     def cost(self) -> dict:

@@ -15,8 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from lmgs_eval.errors import UserError
-from lmgs_eval.methods import MethodInfo
+from baselines.protocol import MethodInfo
+from lmgs.errors import InputError
+from lmgs_eval.data import io
 
 IMAGE_EXT = {".jpg", ".jpeg", ".png", ".bmp", ".webp"}
 SIDECAR_KEYS = ("fps", "train_hours", "device", "n_gaussians", "model_mb", "notes")
@@ -30,14 +31,12 @@ def _number_key(p: Path):
 def list_frames(folder: Path) -> list[Path]:
     files = [p for p in Path(folder).iterdir() if p.suffix.lower() in IMAGE_EXT]
     if not files:
-        raise UserError(f"{folder}: no image files (.jpg/.png) found")
+        raise InputError(f"{folder}: no image files (.jpg/.png) found")
     return sorted(files, key=_number_key)
 
 
 def read_frames(path: Path) -> np.ndarray:
     """A video or a folder of images as uint8 ``[T, H, W, 3]``."""
-    from lmgs_eval.data import io
-
     path = Path(path)
     if path.is_dir():
         return np.stack([io.read_rgb_u8(p) for p in list_frames(path)])
@@ -53,17 +52,17 @@ def read_sidecar(path: Path) -> dict:
     try:
         d = json.loads(side.read_text())
     except json.JSONDecodeError as exc:
-        raise UserError(f"{side}: not valid JSON ({exc.msg})") from None
+        raise InputError(f"{side}: not valid JSON ({exc.msg})") from None
     unknown = sorted(set(d) - set(SIDECAR_KEYS))
     if unknown:
-        raise UserError(f"{side}: unknown keys {unknown}; allowed: {', '.join(SIDECAR_KEYS)}")
+        raise InputError(f"{side}: unknown keys {unknown}; allowed: {', '.join(SIDECAR_KEYS)}")
     for k in ("fps", "train_hours", "n_gaussians", "model_mb"):
         v = d.get(k)
         if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not v >= 0):
-            raise UserError(f"{side}: {k!r} must be a non-negative number, got {v!r}")
+            raise InputError(f"{side}: {k!r} must be a non-negative number, got {v!r}")
     for k in ("device", "notes"):
         if d.get(k) is not None and not isinstance(d[k], str):
-            raise UserError(f"{side}: {k!r} must be a string, got {d[k]!r}")
+            raise InputError(f"{side}: {k!r} must be a string, got {d[k]!r}")
     return d
 
 
@@ -74,13 +73,13 @@ class ExternalRenders:
 
     def __init__(self, name: str, renders: str | Path | None = None, **_):
         if not name:
-            raise UserError("external method needs a name: --method external:NAME")
+            raise InputError("external method needs a name: --method external:NAME")
         if renders is None:
-            raise UserError(f"--method external:{name} needs --renders PATH (a video or a folder of frames)")
+            raise InputError(f"--method external:{name} needs --renders PATH (a video or a folder of frames)")
         self.name = name
         self.path = Path(renders)
         if not self.path.exists():
-            raise UserError(f"{self.path}: renders not found")
+            raise InputError(f"{self.path}: renders not found")
         self.sidecar = read_sidecar(self.path)
 
     def fit(self, clip, *, seed: int, workdir: Path, progress: bool = True) -> None:
@@ -90,7 +89,7 @@ class ExternalRenders:
         frames = read_frames(self.path)
         n = driving.n_frames
         if len(frames) != n:
-            raise UserError(f"{self.path}: {len(frames)} frames, but the protocol's clip has {n} (same split, same frames expected)")
+            raise InputError(f"{self.path}: {len(frames)} frames, but the protocol's clip has {n} (same split, same frames expected)")
         return frames
 
     def describe(self) -> MethodInfo:

@@ -19,7 +19,11 @@ from typing import Any
 
 import numpy as np
 
-from lmgs_eval import tables as T
+from lmgs_eval.data.io import read_video
+from lmgs_eval.report.capacity import budget_means, failed_points, knee, points_from_records, tolerance_text
+from lmgs_eval.report.cells import by_subject, cost_cell, is_ok, is_variant, make_rows, metric_cell
+from lmgs_eval.report.table_model import METRICS
+from lmgs_eval.report.tables import table_stability
 
 FAMILY_COLOURS = {"2D": "#8c564b", "NeRF": "#1f77b4", "3DGS": "#2ca02c", "external": "#9467bd",
                   "ground-truth": "#7f7f7f", "control": "#d62728"}
@@ -59,13 +63,13 @@ def pareto_front(xs: Sequence[float], ys: Sequence[float], x_higher: bool = True
 
 
 def _points(records: Sequence[dict[str, Any]], cost_key: str, metric: str) -> list[dict[str, Any]]:
-    use = [r for r in records if r["protocol"]["name"] == "self" and T.is_ok(r) and not T.is_variant(r)
+    use = [r for r in records if r["protocol"]["name"] == "self" and is_ok(r) and not is_variant(r)
            and r["method"]["family"] not in ("control", "ground-truth", "reference")]
     pts = []
-    for subject, recs in T._by_subject(use).items():
-        for row in T._rows(recs):
-            c = T.cost_cell(row.records, cost_key)
-            m = T.metric_cell(row.records, metric)
+    for subject, recs in by_subject(use).items():
+        for row in make_rows(recs):
+            c = cost_cell(row.records, cost_key)
+            m = metric_cell(row.records, metric)
             if c.mean is None or m.mean is None or c.mean <= 0:
                 continue
             x = c.mean / 60 if cost_key == "train_seconds" else c.mean
@@ -130,7 +134,7 @@ def speed_charts(records: Sequence[dict[str, Any]], out_dir: str | Path) -> list
         pts = _points(records, cost_key, metric)
         if not pts:
             continue
-        label, y_higher, _ = T.METRICS[metric]
+        label, y_higher, _ = METRICS[metric]
         with matplotlib.rc_context(_RC):
             fig, ax = plt.subplots(figsize=(5.2, 3.8))
             for fam in sorted({p["family"] for p in pts}):
@@ -179,7 +183,7 @@ def stability_heatmap(records: Sequence[dict[str, Any]], out_dir: str | Path, me
     Cells with failed runs are hatched and marked with the failure count. Nothing is written
     without stress records carrying ``metric``.
     """
-    table = T.table_stability(records, metric)
+    table = table_stability(records, metric)
     cols = [c for c in table.columns if c.kind == "metric"]
     rows = [(sec.title, row) for sec in table.sections for row in sec.rows]
     if not rows or not cols:
@@ -197,7 +201,7 @@ def stability_heatmap(records: Sequence[dict[str, Any]], out_dir: str | Path, me
             cell = row.cells.get(c.id)
             if cell is not None and cell.mean is not None:
                 grid[i, j] = cell.mean
-    label, hib, digits = T.METRICS[metric]
+    label, hib, digits = METRICS[metric]
     lim = float(np.nanmax(np.abs(grid))) if np.isfinite(grid).any() else 1.0
     multi = len(table.sections) > 1
     with matplotlib.rc_context(_RC):
@@ -227,11 +231,9 @@ def capacity_charts(records: Sequence[dict[str, Any]], out_dir: str | Path) -> l
     """``capacity_<subject>.png/svg``: quality and cost against the Gaussian count, the knee marked.
 
     One column per quantity (PSNR, LPIPS, LMD, FPS, MB, training minutes), x = the final number
-    of Gaussians (log); a dashed line at the knee (:func:`lmgs_eval.capacity.knee`) and a
+    of Gaussians (log); a dashed line at the knee (:func:`lmgs_eval.report.capacity.knee`) and a
     dotted one at the count of the ``lmgs`` self-driven run (the quick preset's default).
     """
-    from lmgs_eval.capacity import budget_means, failed_points, knee, points_from_records, tolerance_text
-
     per_subject = points_from_records(records)
     failed = failed_points(records)
     if not per_subject:
@@ -285,7 +287,7 @@ def capacity_charts(records: Sequence[dict[str, Any]], out_dir: str | Path) -> l
 def all_charts(records: Sequence[dict[str, Any]], out_dir: str | Path) -> list[Path]:
     """Every chart the records allow: speed charts, one heat-map per stressed metric, capacity."""
     files = speed_charts(records, out_dir) + capacity_charts(records, out_dir)
-    stressed = sorted({k for r in records if r["protocol"]["name"] == "stress" for k in r["metrics"] if k in T.METRICS})
+    stressed = sorted({k for r in records if r["protocol"]["name"] == "stress" for k in r["metrics"] if k in METRICS})
     for m in stressed:
         files += stability_heatmap(records, out_dir, m)
     return files
@@ -309,12 +311,11 @@ def render_sheets(records: Sequence[dict[str, Any]], root: str | Path, out_dir: 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from lmgs_eval.data.io import read_video
 
     root, out_dir = Path(root), Path(out_dir)
     by_subject: dict[str, dict[str, dict]] = {}
     for r in records:
-        if r["protocol"]["name"] != "self" or not T.is_ok(r) or T.is_variant(r) or r["method"]["family"] == "reference":
+        if r["protocol"]["name"] != "self" or not is_ok(r) or is_variant(r) or r["method"]["family"] == "reference":
             continue
         row = by_subject.setdefault(r["subject"]["name"], {})
         name = r["method"]["name"]

@@ -29,6 +29,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.stats import wilcoxon
 
 N_RESAMPLES = 2000
 SEED = 0
@@ -169,8 +170,6 @@ def paired_test(a: Sequence[float | None], b: Sequence[float | None], n_resample
     Raises:
         ValueError: when ``a`` and ``b`` differ in length (the items are not the same).
     """
-    from scipy import stats
-
     xa = np.asarray([np.nan if v is None else v for v in a], dtype=np.float64).ravel()
     xb = np.asarray([np.nan if v is None else v for v in b], dtype=np.float64).ravel()
     if xa.shape != xb.shape:
@@ -186,7 +185,7 @@ def paired_test(a: Sequence[float | None], b: Sequence[float | None], n_resample
     if np.all(d == 0):
         p_w = 1.0
     else:
-        p_w = float(stats.wilcoxon(d, zero_method="wilcox", alternative="two-sided").pvalue)
+        p_w = float(wilcoxon(d, zero_method="wilcox", alternative="two-sided").pvalue)
     return PairedTest(mean, CI(mean, float(lo), float(hi), int(d.size)), p_boot, p_w, int(d.size))
 
 

@@ -1,0 +1,142 @@
+"""The talking-head protocol every method implements, and the registry of method names.
+
+This module is the bottom of the adapter layer: it imports nothing of the toolkit, so an
+adapter (and the reference model behind it) never depends on protocols, metrics or results.
+A method is any object with ``fit`` / ``render`` / ``describe`` / ``cost``
+(:class:`TalkingHead`, a structural ``typing.Protocol``), built by a factory registered
+under a name with :func:`register`. The adapters' modules are listed in
+:data:`baselines.ADAPTERS`; :func:`create_method` imports them on first use.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+from baselines import ADAPTERS
+from lmgs.errors import InputError
+from lmgs.types import DrivingAudio, TrainingClip
+
+
+@dataclass(frozen=True)
+class MethodInfo:
+    """What a method says about itself; goes into every result and the tables' footnotes.
+
+    Attributes:
+        name: registry name (``lmgs``, ``talkinggaussian``, ``external:ernerf``...).
+        display_name: as printed in tables.
+        family: ``3DGS``, ``NeRF``, ``2D``, ``external`` or ``ground-truth``.
+        description: what was kept from the original method and what was simplified.
+        standins: components replaced because the original cannot be had here.
+        config: the full configuration (JSON-able).
+        config_hash: a short hash of ``config``; a trained model is reused when it matches.
+        variant: an ablation / sweep variant of a base method (rows of Tables III-IV, not I).
+        components: the method's switchable parts and their settings, as the method declares them
+            (lmgs: ``se``, ``lc``, ``gr``, ``theta``, ``se_cap``...); tables label ablation rows
+            from these, never from config keys. None for a method without such parts.
+    """
+
+    name: str
+    display_name: str
+    family: str
+    description: str
+    standins: tuple[str, ...] = ()
+    config: dict = field(default_factory=dict)
+    config_hash: str = ""
+    variant: str | None = None
+    components: dict[str, Any] | None = None
+
+
+@runtime_checkable
+class TalkingHead(Protocol):
+    """fit / render / describe: the whole contract between the toolkit and a method."""
+
+    def fit(self, clip: TrainingClip, *, seed: int, workdir: Path, progress: bool = True) -> None:
+        """Train on ``clip`` (the subject's training split); checkpoints go under ``workdir``."""
+
+    def render(self, driving: DrivingAudio) -> np.ndarray:
+        """Frames ``[T, H, W, 3]`` uint8 driven by ``driving`` (audio in, frames out)."""
+
+    def describe(self) -> MethodInfo:
+        """Name, family, what was simplified, config and its hash."""
+
+    def cost(self) -> dict[str, Any]:
+        """Size figures: ``n_params``, ``n_gaussians`` (or None), ``model_mb``."""
+
+
+_REGISTRY: dict[str, Callable[..., TalkingHead]] = {}
+# Methods whose Gaussian count is ``budget_density`` x face area (the lmgs backbone family):
+# they take a subject's own knee density, all alike, so a comparison between them stays fair.
+_SCENE_BUDGET: set[str] = set()
+EXTERNAL_PREFIX = "external:"
+
+
+def register(name: str, *, scene_budget: bool = False) -> Callable:
+    """Decorator registering a method factory under ``name`` (duplicates are rejected).
+
+    ``scene_budget``: the factory takes ``budget_density`` (Gaussians per face pixel), which
+    :func:`create_method` sets from a subject that has its own (``subject.budget_density``).
+    """
+
+    def deco(factory):
+        if name in _REGISTRY:
+            raise ValueError(f"method '{name}' registered twice")
+        _REGISTRY[name] = factory
+        if scene_budget:
+            _SCENE_BUDGET.add(name)
+        return factory
+
+    return deco
+
+
+def registration(name: str) -> tuple[Callable[..., TalkingHead], bool] | None:
+    """``(factory, scene_budget)`` of a registered method (after loading the adapters), or None."""
+    load_adapters()
+    return (_REGISTRY[name], name in _SCENE_BUDGET) if name in _REGISTRY else None
+
+
+def is_registered(name: str) -> bool:
+    return name in _REGISTRY
+
+
+def load_adapters() -> None:
+    """Import every module of :data:`baselines.ADAPTERS` (importing one registers its methods)."""
+    for mod in ADAPTERS:
+        importlib.import_module(mod)
+
+
+def list_methods() -> list[str]:
+    load_adapters()
+    return sorted(_REGISTRY) + [f"{EXTERNAL_PREFIX}NAME"]
+
+
+def create_method(name: str, subject: Any = None, **options) -> TalkingHead:
+    """Build a method by name; ``external:NAME`` scores renders made by any other code.
+
+    With ``subject`` (anything with a ``budget_density`` attribute, e.g. the toolkit's
+    ``Subject``), a method sized by face area (``register(..., scene_budget=True)``) takes the
+    subject's knee density when it has one and ``options`` set none; the density is in the
+    method's config, so its hash, and the records and model cache, follow it.
+    """
+    load_adapters()
+    if name.startswith(EXTERNAL_PREFIX):
+        from baselines.external import ExternalRenders
+
+        return ExternalRenders(name.removeprefix(EXTERNAL_PREFIX), **options)
+    if name not in _REGISTRY:
+        raise InputError(f"unknown method '{name}'; known: {', '.join(list_methods())}")
+    density = getattr(subject, "budget_density", None)
+    if density is not None and name in _SCENE_BUDGET:
+        options.setdefault("budget_density", density)
+    return _REGISTRY[name](**options)
+
+
+def scene_budget_methods() -> list[str]:
+    """The registered methods that size their Gaussians by face area (and take a subject's knee)."""
+    load_adapters()
+    return sorted(_SCENE_BUDGET)

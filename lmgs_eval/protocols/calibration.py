@@ -1,0 +1,83 @@
+"""The calibration protocol: the ground truth against its negative controls, on the subject itself.
+
+Does each metric separate good from bad on this very subject? The controls are the ground
+truth with its audio shifted or taken from elsewhere, and a still frame; each names the
+metrics it is a negative control for.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from baselines.protocol import MethodInfo
+from lmgs_eval import results as store
+from lmgs_eval.errors import UserError
+from lmgs_eval.metrics.sync import crop_faces, face_boxes
+from lmgs_eval.results.records import build_record, metrics_block, stored
+from lmgs_eval.runner import RunConfig, cycle, log
+
+
+CONTROLS_VERSION = "1"
+
+
+SHIFTS = (-10, -5, 5, 10)
+
+
+def shift_audio(audio: np.ndarray, frames: int, fps: int = 25, sr: int = 16000) -> np.ndarray:
+    """The audio moved by ``frames`` video frames (positive: later), circularly, same length."""
+    return np.roll(np.asarray(audio, np.float32), int(round(frames * sr / fps)))
+
+
+def control_clips(gt: np.ndarray, audio: np.ndarray, other_audio: np.ndarray) -> list[tuple[str, str, dict, np.ndarray, np.ndarray]]:
+    """The negative controls of issue 9: ``(name, display, control, frames, audio)``.
+
+    * ground truth with its audio shifted by -10, -5, +5, +10 frames: LSE-D/LSE-C take the
+      best of +-15 offsets by definition, so these target the AV offset;
+    * ground truth with audio from elsewhere in the recording (same voice, other words):
+      targets LSE-D, LSE-C and the AV offset;
+    * the first ground-truth frame repeated, with the true audio: targets LMD and LSE.
+    """
+    n = len(audio)
+    other = np.asarray(other_audio, np.float32)
+    if len(other) >= 2 * n:  # start half-way in, far from the test split's neighbour frames
+        other = other[len(other) // 2 - n // 2:][:n] if len(other) // 2 + n // 2 <= len(other) else other[-n:]
+    other = cycle(other, n) if len(other) else np.zeros(n, np.float32)
+    out = []
+    for k in SHIFTS:
+        out.append((f"control:gt-audio{k:+d}", f"GT, audio {k:+d} frames", {"kind": "audio-shift", "frames": k, "targets": ["av_offset"]},
+                    gt, shift_audio(audio, k)))
+    out.append(("control:gt-other-audio", "GT, other audio", {"kind": "other-audio", "targets": ["lse_d", "lse_c", "av_offset"]},
+                gt, other))
+    still = np.repeat(gt[:1], len(gt), axis=0)
+    out.append(("control:still-frame", "Still frame", {"kind": "still-frame", "targets": ["lmd", "lse_d", "lse_c"]}, still, audio))
+    return out
+
+
+def run_controls(cfg: RunConfig, subject, gt: np.ndarray, audio: np.ndarray, other_audio: np.ndarray) -> list[dict]:
+    """Score the calibration controls (recorded under protocol ``calibration``); skips those in the store."""
+    todo = [c for c in control_clips(gt, audio, other_audio)
+            if cfg.force or stored(cfg.results, subject, c[0], "calibration", "test", 0, f"controls-v{CONTROLS_VERSION}") is None]
+    if not todo:
+        return []
+    log(f"scoring {len(todo)} calibration controls")
+    gf = gt.astype(np.float32) / 255.0
+    gt_crops = None
+    records = []
+    for name, display, control, frames, aud in todo:
+        if frames is gt:  # same frames as the ground truth: reuse its face crops
+            if gt_crops is None:
+                try:
+                    gt_crops = crop_faces(gf, face_boxes(gf)[0])
+                except UserError:  # no face: lse() reports it as unavailable
+                    gt_crops = False
+            res = {"lse": cfg.suite.lse(gf, aud, crops=gt_crops if gt_crops is not False else None)}
+        else:
+            pf = frames.astype(np.float32) / 255.0
+            res = {"lse": cfg.suite.lse(pf, aud), "lmd": cfg.suite.paired("lmd", pf, gf)}
+        info = MethodInfo(name, display, "control", f"negative control: {display} (targets {', '.join(control['targets'])})",
+                          config={"control": control, "version": CONTROLS_VERSION}, config_hash=f"controls-v{CONTROLS_VERSION}")
+        rec = build_record(info=info, subject=subject, protocol="calibration", clip="test", split="test", n_frames=len(frames),
+                           seed=0, metrics=metrics_block(res), cost={}, artefacts={}, notes=list(subject.notes), control=control)
+        store.write_record(cfg.results, rec)
+        records.append(rec)
+    return records

@@ -1,0 +1,1 @@
+"""Tables, charts and sheets made only from result records (never by re-running anything)."""

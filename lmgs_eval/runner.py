@@ -1,0 +1,259 @@
+"""The one runner of every protocol: fit (or reload) a method, render timed, score, write the record.
+
+A protocol (:mod:`lmgs_eval.protocols`) says what to run: which subject split, which driving
+audio, which controls and metrics. This module says how: the model cache and its data marker,
+FPS audio in to frames out after a warm-up (median of repeats, host contention beside it),
+the metric suite on uint8 frames, the render written with its audio, and one record per run.
+"""
+
+from __future__ import annotations
+
+import inspect
+import json
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from lmgs.types import DrivingAudio
+from lmgs_eval import results as store
+from lmgs_eval.data.io import write_video
+from lmgs_eval.errors import UserError
+from lmgs_eval.hosttime import HostSpeed, OthersCPU, peak_rss_mb
+from lmgs_eval.metrics.metric_suite import MetricSuite
+from lmgs_eval.paths import atomic_write_text, cache_root
+from lmgs_eval.results.notes import se_note
+from lmgs_eval.results.records import build_record, metrics_block, subject_sha
+
+WARMUP_FRAMES = 3
+REPEATS = 3  # timed renders of the clip (median reported) ...
+REPEAT_BUDGET_S = 20.0  # ... while another one fits in this many seconds (slow methods are timed once)
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """What a protocol run needs from the command line."""
+
+    subject: str = "astronaut"
+    methods: tuple[str, ...] = ("lmgs",)
+    preset: str = "quick"
+    seeds: tuple[int, ...] = (0,)
+    results: Path = Path("results")
+    data_root: str | None = None
+    device: str | None = None
+    progress: bool = True
+    renders: str | None = None  # for external:NAME
+    force: bool = False
+    method_options: dict = field(default_factory=dict)
+    # the metrics of the whole run, each network loaded once (not an option: left out of comparisons)
+    suite: MetricSuite = field(default_factory=MetricSuite, compare=False, repr=False)
+
+
+def log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def model_dir(subject, method_name: str, config_hash: str, seed: int) -> Path:
+    return cache_root() / "models" / subject.name / method_name / f"{config_hash}-seed{seed}"
+
+
+DATA_MARKER = "subject.sha256"
+
+
+def claim_model_dir(workdir: Path, subject) -> None:
+    """A cached model (or checkpoint) is reused only on the data it was trained on.
+
+    The folder keeps the subject's manifest hash (:data:`DATA_MARKER`); a model of the same
+    method, config and seed but other data of a subject of the same name (re-generated,
+    re-processed) is a :class:`UserError`, not a silent reuse. A folder from before the
+    marker is taken to be of the current data. Subjects without a manifest are not checked.
+    """
+    sha = subject_sha(subject)
+    if sha is None:
+        return
+    marker = Path(workdir) / DATA_MARKER
+    old = marker.read_text().strip() if marker.exists() else None
+    if old == sha:
+        return
+    if old is not None and any((Path(workdir) / f).exists() for f in ("model.pt", "checkpoint.pt")):
+        raise UserError(f"{workdir}: a model trained on other data of subject '{subject.name}' (manifest sha256 "
+                        f"{old[:12]}, now {sha[:12]}); delete the folder to train on this data")
+    Path(workdir).mkdir(parents=True, exist_ok=True)
+    atomic_write_text(marker, sha + "\n")
+
+
+def head_of(driving: DrivingAudio, k: int) -> DrivingAudio:
+    """The first ``k`` frames (at most all) of a driving clip: audio, cameras, backgrounds, blink, features."""
+    k = min(int(k), driving.n_frames)
+    spf = driving.sample_rate // driving.fps
+    return DrivingAudio(
+        audio=driving.audio[: k * spf],
+        w2c=None if driving.w2c is None else driving.w2c[:k],
+        backgrounds=None if driving.backgrounds is None else driving.backgrounds[:k],
+        blink=None if driving.blink is None else driving.blink[:k],
+        audio_features=None if not driving.audio_features else {a: v[:k] for a, v in driving.audio_features.items()},
+    )
+
+
+def timed_render(method, driving: DrivingAudio, timings: dict | None = None,
+                 repeats: int = REPEATS) -> tuple[np.ndarray, dict]:
+    """Render after a short warm-up; FPS is audio in to frames out, I/O outside the timer.
+
+    The clip is rendered up to ``repeats`` times (while the next repeat fits in
+    :data:`REPEAT_BUDGET_S`) and the median run is reported (``repeats`` in the result). A method whose ``render`` takes
+    ``timings=`` fills in seconds per stage (audio, network, raster) of that run.
+    """
+    kw = {"timings": timings} if timings is not None and "timings" in inspect.signature(method.render).parameters else {}
+    n = driving.n_frames
+    warm = head_of(driving, WARMUP_FRAMES)
+    t0 = time.perf_counter()
+    method.render(warm)
+    first = time.perf_counter() - t0
+    runs = []  # (seconds, stage timings) of each timed repeat; the median is reported
+    frames = None
+    with HostSpeed() as host, OthersCPU() as busy:
+        while True:
+            tk: dict = {} if kw else None
+            t0 = time.perf_counter()
+            out = method.render(driving, **({"timings": tk} if kw else {}))
+            runs.append((time.perf_counter() - t0, tk))
+            if frames is None:
+                frames = out
+            if len(runs) >= repeats or sum(r[0] for r in runs) + runs[-1][0] > REPEAT_BUDGET_S:
+                break
+    runs.sort(key=lambda r: r[0])
+    secs, tk = runs[(len(runs) - 1) // 2]
+    secs = float(np.median([r[0] for r in runs]))
+    if kw and tk is not None:
+        timings.update(tk)
+    if np.issubdtype(frames.dtype, np.floating) and not np.isfinite(frames).all():
+        raise RuntimeError(f"{method.describe().name} rendered non-finite output")
+    if frames.shape[0] != n or frames.dtype != np.uint8:
+        raise RuntimeError(f"{method.describe().name} rendered {frames.shape} {frames.dtype}, expected {n} uint8 frames")
+    return frames, {"fps": n / secs if secs > 0 else None, "render_seconds": secs, "first_frame_ms": 1000 * first / max(warm.n_frames, 1),
+                    "realtime_factor": (n / driving.fps) / secs if secs > 0 else None, "repeats": len(runs),
+                    "others_cpu_share": busy.share, **host.cost()}
+
+
+def fit_method(method, clip, subject, seed: int, progress: bool) -> dict:
+    """Fit (or reload) a method; returns the cost of training."""
+    info = method.describe()
+    workdir = model_dir(subject, info.name, info.config_hash, seed)
+    claim_model_dir(workdir, subject)
+    reused = (workdir / "model.pt").exists()
+    t0 = time.perf_counter()
+    with OthersCPU() as busy:
+        method.fit(clip, seed=seed, workdir=workdir, progress=progress)
+    secs = time.perf_counter() - t0
+    # a training resumed from a checkpoint: add what the interrupted runs had trained (lmgs saves it;
+    # a reused model's time comes from its fit.json below)
+    secs += float(getattr(getattr(method, "report", None), "prior_seconds", 0.0) or 0.0)
+    rec = {"train_seconds": secs, "train_others_cpu_share": busy.share, "reused_checkpoint": reused, "workdir": str(workdir)}
+    if reused:
+        fit = _recorded_fit(workdir)
+        rec["train_seconds"] = fit.get("train_seconds")
+        rec["train_others_cpu_share"] = fit.get("train_others_cpu_share")
+        rec["train_peak_mb"] = fit.get("peak_mb")  # this process did not train: the training's peak is there
+    else:
+        atomic_write_text(workdir / "fit.json", json.dumps({"train_seconds": secs, "peak_mb": peak_rss_mb(),
+                                                            "train_others_cpu_share": busy.share}))
+    return rec
+
+
+def _recorded_fit(workdir: Path) -> dict:
+    """What ``fit.json`` says of the training that made a checkpoint (empty if it is not there)."""
+    p = workdir / "fit.json"
+    if p.exists():
+        try:
+            d = json.loads(p.read_text())
+            return d if isinstance(d, dict) else {}
+        except ValueError:
+            return {}
+    return {}
+
+
+def cost_block(method, fit_cost: dict | None, render_cost: dict, timings: dict | None = None) -> dict:
+    c = dict(method.cost() or {})
+    # Prerendered frames (fit_cost None, render_cost {}): only what the user's sidecar states;
+    # neither memory nor device of this process is theirs.
+    pre = getattr(method, "prerendered", False)
+    n = (timings or {}).get("frames") or 0
+    ms = None
+    if timings and n:
+        ms = {k: 1000.0 * timings[k] / n for k in ("audio", "network", "raster") if k in timings}
+        ms["total"] = 1000.0 / render_cost["fps"] if render_cost.get("fps") else None
+    return {
+        "train_seconds": (fit_cost or {}).get("train_seconds", c.get("train_seconds")),
+        "train_others_cpu_share": (fit_cost or {}).get("train_others_cpu_share"),
+        "fps": render_cost.get("fps") if render_cost.get("fps") is not None else c.get("fps"),
+        "ms_per_frame": ms,
+        "first_frame_ms": render_cost.get("first_frame_ms"),
+        "render_repeats": render_cost.get("repeats"),
+        "others_cpu_share": render_cost.get("others_cpu_share"),
+        "host_slowdown": render_cost.get("host_slowdown"),
+        "host_probe_ms": render_cost.get("host_probe_ms"),
+        "host_probe_best_ms": render_cost.get("host_probe_best_ms"),
+        "realtime_factor": render_cost.get("realtime_factor"),
+        "n_params": c.get("n_params"),
+        "n_gaussians": c.get("n_gaussians"),
+        "model_mb": c.get("model_mb"),
+        # the protocol's peak: this process's, or the training's that made a reused checkpoint if higher
+        "peak_mb": None if pre else max(peak_rss_mb(), (fit_cost or {}).get("train_peak_mb") or 0.0),
+        "device": c.get("device") or (None if pre else "cuda" if torch.cuda.is_available() else "cpu"),
+    }
+
+
+def render_stem(info, seed: int) -> str:
+    """``<method>-<config hash[:8]>-seed<N>``: the file name of a run's render, distinct per config.
+
+    Without the hash a re-run under a changed config overwrote the render an older record
+    still points to (and hashes); the record then failed ``lmgs-eval verify``.
+    """
+    return f"{info.name.replace(':', '_')}-{info.config_hash[:8]}-seed{seed}"
+
+
+def write_render(root: Path, rel: str, frames: np.ndarray, audio: np.ndarray) -> dict:
+    """Write an mp4 with its driving audio under the store root; the artefact entry (relative path)."""
+    path = Path(root) / rel
+    write_video(path, frames, 25, audio, 16000)
+    return {"path": rel, "sha256": store.sha256_file(path)}
+
+
+def fit_render_score(cfg: RunConfig, method, subject, seed: int, train, driving: DrivingAudio, gt: np.ndarray, render_rel: str,
+                     protocol: str = "self", clip: str = "test") -> dict:
+    """Fit (or reload) one method, render the test split from its audio, score, record; returns the record."""
+    info = method.describe()
+    timings: dict = {}
+    if getattr(method, "prerendered", False):
+        # Frames rendered elsewhere: nothing to fit and nothing to time here (reading files is
+        # not rendering); the cost comes from the method's sidecar or stays empty.
+        fit_cost, rc = None, {}
+        frames = method.render(driving)
+        log(f"{info.name}: {len(frames)} frames read from its renders; scoring")
+    else:
+        log(f"{info.name} seed {seed}: fitting on {len(train)} frames")
+        fit_cost = fit_method(method, train, subject, seed, cfg.progress)
+        frames, rc = timed_render(method, driving, timings)
+        log(f"{info.name}: {len(frames)} frames at {rc['fps']:.1f} FPS; scoring")
+    res = cfg.suite.score(frames, gt, driving.audio)
+    art = {"render": write_render(cfg.results, render_rel, frames, driving.audio)}
+    ck = Path(fit_cost["workdir"]) / "model.pt" if fit_cost else None
+    if ck is not None and ck.exists():
+        art["checkpoint"] = {"path": str(ck), "sha256": store.sha256_file(ck)}
+    notes, run = list(subject.notes), {}
+    if timings.get("se_fraction") is not None:
+        run["se_fraction"] = float(timings["se_fraction"])
+        notes.append(se_note(run["se_fraction"], (info.components or {}).get("theta")))
+    rec = build_record(info=info, subject=subject, protocol=protocol, clip=clip, split="test", n_frames=len(frames),
+                       seed=seed, metrics=metrics_block(res), cost=cost_block(method, fit_cost, rc, timings or None),
+                       artefacts=art, notes=notes, run=run)
+    store.write_record(cfg.results, rec)
+    return rec
+
+
+def cycle(a: np.ndarray, n: int) -> np.ndarray:
+    reps = int(np.ceil(n / len(a)))
+    return np.concatenate([a] * reps)[:n]
