@@ -86,6 +86,8 @@ class LMGSMethod:
         try:
             self.cfg = override(make_preset(preset), {**VARIANTS[variant], **density}, what="variant")
             self.cfg = override(self.cfg, overrides or {})
+        except InputError:
+            raise
         except ValueError as exc:  # a config's own check of a value (e.g. a fraction outside [0, 1])
             raise InputError(f"--set: a value lmgs does not take ({exc})") from None
         self.device = device

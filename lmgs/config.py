@@ -70,6 +70,9 @@ def _type_name(tp: Any) -> str:
     if tp is type(None):
         return "null"
     if get_origin(tp) is tuple:
+        args = get_args(tp)
+        if args and args[-1] is not Ellipsis:
+            return f"a list of {len(args)} {_type_name(args[0]).removeprefix('an ').removeprefix('a ')}s"
         return "a list"
     return {int: "an integer", float: "a number", bool: "true or false", str: "a string"}.get(tp, getattr(tp, "__name__", str(tp)))
 
@@ -102,9 +105,11 @@ def _coerce(value: Any, tp: Any) -> tuple[bool, Any]:
         if not isinstance(value, (list, tuple)):
             return False, value
         args = get_args(tp)
-        item = args[0] if args else Any
+        if args and args[-1] is not Ellipsis and len(args) != len(value):
+            return False, value  # a fixed-length tuple
+        items = [args[0] if (not args or args[-1] is Ellipsis) else args[i] for i in range(len(value))] if args else []
         out = []
-        for x in value:
+        for x, item in zip(value, items or [Any] * len(value)):
             ok, v = _coerce(x, item)
             if not ok:
                 return False, value

@@ -16,8 +16,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import torch
 
+from baselines.protocol import TalkingHead, create_method
+from lmgs.device import choose_device
 from lmgs.types import DrivingAudio
 from lmgs_eval import results as store
 from lmgs_eval.data.io import write_video
@@ -50,6 +51,21 @@ class RunConfig:
     method_options: dict = field(default_factory=dict)
     # the metrics of the whole run, each network loaded once (not an option: left out of comparisons)
     suite: MetricSuite = field(default_factory=MetricSuite, compare=False, repr=False)
+
+
+def build_method(cfg: RunConfig, name: str, subject, **options) -> TalkingHead:
+    """A method as every protocol builds it: the run's ``--set`` overrides, preset and device.
+
+    ``options`` add to (and win over) the run's; ``external:NAME`` takes ``--renders``. A bad
+    override or preset is an :class:`~lmgs.errors.InputError` here, before anything is scored.
+    """
+    opts = {**cfg.method_options, **options}
+    if name.startswith("external:"):
+        opts.setdefault("renders", cfg.renders)
+    else:
+        opts.setdefault("preset", cfg.preset)
+        opts.setdefault("device", cfg.device)
+    return create_method(name, subject=subject, **opts)
 
 
 def log(msg: str) -> None:
@@ -202,7 +218,8 @@ def cost_block(method, fit_cost: dict | None, render_cost: dict, timings: dict |
         "model_mb": c.get("model_mb"),
         # the protocol's peak: this process's, or the training's that made a reused checkpoint if higher
         "peak_mb": None if pre else max(peak_rss_mb(), (fit_cost or {}).get("train_peak_mb") or 0.0),
-        "device": c.get("device") or (None if pre else "cuda" if torch.cuda.is_available() else "cpu"),
+        # the device the method ran on, chosen as the method chose it (--device, LMGS_DEVICE, else CUDA when present)
+        "device": c.get("device") or (None if pre else str(choose_device(getattr(method, "device", None)))),
     }
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 
 
@@ -26,6 +27,7 @@ def add_run_arguments(p: argparse.ArgumentParser, default_methods: tuple[str, ..
 
 def run_config(args: argparse.Namespace):
     from baselines.protocol import list_methods
+    from lmgs.device import choose_device
     from lmgs_eval.runner import RunConfig
 
     methods = tuple(args.methods or args._default_methods)
@@ -35,6 +37,8 @@ def run_config(args: argparse.Namespace):
             from lmgs_eval.errors import UserError
 
             raise UserError(f"unknown method '{m}'; known: {', '.join(known)}")
+    if args.device is not None or os.environ.get("LMGS_DEVICE"):
+        choose_device(args.device)  # a device this machine lacks stops the run before any work
     return RunConfig(
         method_options=parse_overrides(args.overrides),
         subject=args.subject,

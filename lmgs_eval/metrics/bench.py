@@ -138,12 +138,12 @@ def _alex_timing_session():
 
     import torch
 
-    from lmgs_eval.metrics.lpips import export_lpips, modules
+    from lmgs_eval.metrics.lpips import export_lpips
+    from lmgs_eval.metrics.lpips_nets import AlexTrunk, LPIPSNet
     from lmgs_eval.metrics.ort import load_session
 
     torch.manual_seed(0)
-    alex, _, net_cls = modules()
-    net = net_cls(alex()).eval()
+    net = LPIPSNet(AlexTrunk()).eval()
     with tempfile.TemporaryDirectory() as d:
         path = Path(d) / "lpips_alex_timing.onnx"
         export_lpips(net, path)

@@ -11,7 +11,6 @@ from __future__ import annotations
 import time
 from typing import Any, Sequence
 
-from baselines.protocol import create_method
 from lmgs.errors import TrainingDiverged
 from lmgs.init import face_area_px
 from lmgs.strategy import budget_from_face_area
@@ -19,7 +18,7 @@ from lmgs_eval import results as store
 from lmgs_eval.convert import driving_from_subject, subject_to_clip
 from lmgs_eval.data.registry import find_subject
 from lmgs_eval.results.records import build_record, stored
-from lmgs_eval.runner import RunConfig, fit_method, fit_render_score, head_of, log, model_dir, render_stem
+from lmgs_eval.runner import RunConfig, build_method, fit_method, fit_render_score, head_of, log, model_dir, render_stem
 
 DEFAULT_BUDGETS = (500, 1000, 2000, 5000, 10000, 20000)
 
@@ -40,9 +39,8 @@ def run_capacity(cfg: RunConfig, budgets: Sequence[int] = DEFAULT_BUDGETS) -> li
     driving = driving_from_subject(subject, subject.test_ids, test)
     area = face_area_px(train)
     base = dict(cfg.method_options.get("overrides", {}))
-    opts0 = {**cfg.method_options, "preset": cfg.preset}
-    density = create_method("lmgs", subject=subject, **opts0).cfg.train.budget_density
-    preset_density = create_method("lmgs", **opts0).cfg.train.budget_density
+    density = build_method(cfg, "lmgs", subject).cfg.train.budget_density
+    preset_density = build_method(cfg, "lmgs", None).cfg.train.budget_density
     default = budget_from_face_area(area, density)
     # Budgets that are a density of their own (the preset's, the subject's knee) are trained at
     # exactly that density, so their configs, and trained models, are those of the other protocols.
@@ -57,8 +55,7 @@ def run_capacity(cfg: RunConfig, budgets: Sequence[int] = DEFAULT_BUDGETS) -> li
         for seed in cfg.seeds:
             # the default as every other protocol builds it; any other budget at its density
             over = {**base} if n == default else {**base, "train.budget_density": exact.get(n, round(n / area, 6))}
-            opts = {**{k: v for k, v in cfg.method_options.items() if k != "overrides"}, "overrides": over, "preset": cfg.preset}
-            method = create_method("lmgs", subject=subject, **opts)
+            method = build_method(cfg, "lmgs", subject, overrides=over)
             info = method.describe()
             clip = f"budget-{n}"
             trained.append((n, seed, method))

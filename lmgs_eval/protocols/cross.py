@@ -12,7 +12,6 @@ from pathlib import Path
 
 import numpy as np
 
-from baselines.protocol import create_method
 from lmgs.types import Camera, DrivingAudio
 from lmgs_eval import results as store
 from lmgs_eval.convert import subject_to_clip
@@ -20,7 +19,7 @@ from lmgs_eval.data.io import load_audio, read_rgb_u8
 from lmgs_eval.data.registry import find_subject
 from lmgs_eval.errors import UserError
 from lmgs_eval.results.records import build_record, metrics_block, stored
-from lmgs_eval.runner import RunConfig, cost_block, cycle, fit_method, log, render_stem, timed_render, write_render
+from lmgs_eval.runner import RunConfig, build_method, cost_block, cycle, fit_method, log, render_stem, timed_render, write_render
 
 
 @dataclass(frozen=True)
@@ -97,7 +96,7 @@ def run_cross(cfg: RunConfig, audio_paths: list[str] | None = None) -> tuple[lis
             errors.append(f"{name}: cross-driven renders of external methods are scored with `lmgs-eval score --pred`")
             continue
         for seed in cfg.seeds:
-            method = create_method(name, subject=subject, **{"preset": cfg.preset, **cfg.method_options})
+            method = build_method(cfg, name, subject)
             info = method.describe()
             todo = [c for c in clips if cfg.force or not stored(cfg.results, subject, info.name, "cross", c.name, seed, info.config_hash)]
             if not todo:

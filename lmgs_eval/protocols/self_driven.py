@@ -9,14 +9,14 @@ ER-NeRF / TalkingGaussian do). The run also scores the ground truth itself (the 
 
 from __future__ import annotations
 
-from baselines.protocol import MethodInfo, create_method
+from baselines.protocol import MethodInfo
 from lmgs_eval import results as store
 from lmgs_eval.convert import driving_from_subject, subject_to_clip
 from lmgs_eval.data.registry import find_subject
 from lmgs_eval.protocols.calibration import run_controls
 from lmgs_eval.protocols.plate import run_plate_reference
 from lmgs_eval.results.records import build_record, metrics_block, stored
-from lmgs_eval.runner import RunConfig, fit_render_score, log, render_stem, write_render
+from lmgs_eval.runner import RunConfig, build_method, fit_render_score, log, render_stem, write_render
 
 
 def run_self(cfg: RunConfig) -> list[dict]:
@@ -30,6 +30,8 @@ def run_self(cfg: RunConfig) -> list[dict]:
     gt = test.frames
     renders_dir = f"renders/{subject.name}"
     records = []
+    # every method built before anything is scored: a bad --set or --preset stops the run here
+    planned = [(build_method(cfg, name, subject), seed) for name in cfg.methods for seed in cfg.seeds]
 
     # The paper's "Ground Truth" row: the real test video scored like any method.
     gt_info = MethodInfo("ground-truth", "Ground Truth", "ground-truth", "the test split's own frames and audio", config={}, config_hash="gt")
@@ -45,18 +47,11 @@ def run_self(cfg: RunConfig) -> list[dict]:
     records += run_plate_reference(cfg, subject, test)
     records += run_controls(cfg, subject, gt, test.audio, train.audio)
 
-    for name in cfg.methods:
-        for seed in cfg.seeds:
-            opts = dict(cfg.method_options)
-            if name.startswith("external:"):
-                opts["renders"] = cfg.renders
-            else:
-                opts.setdefault("preset", cfg.preset)
-            method = create_method(name, subject=subject, **opts)
-            info = method.describe()
-            if not cfg.force and stored(cfg.results, subject, info.name, "self", "test", seed, info.config_hash):
-                log(f"{info.name} seed {seed}: already in {cfg.results} (same config {info.config_hash}); skipped")
-                continue
-            records.append(fit_render_score(cfg, method, subject, seed, train, driving, gt,
-                                            f"{renders_dir}/{render_stem(info, seed)}.mp4"))
+    for method, seed in planned:
+        info = method.describe()
+        if not cfg.force and stored(cfg.results, subject, info.name, "self", "test", seed, info.config_hash):
+            log(f"{info.name} seed {seed}: already in {cfg.results} (same config {info.config_hash}); skipped")
+            continue
+        records.append(fit_render_score(cfg, method, subject, seed, train, driving, gt,
+                                        f"{renders_dir}/{render_stem(info, seed)}.mp4"))
     return records

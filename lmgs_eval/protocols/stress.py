@@ -33,7 +33,6 @@ import torch
 from tqdm import tqdm
 
 from baselines import protocol as methods
-from baselines.protocol import create_method
 from lmgs.types import DrivingAudio
 from lmgs_eval import results as store
 from lmgs_eval.convert import driving_from_subject, subject_to_clip
@@ -47,7 +46,7 @@ from lmgs_eval.protocols.cross import bundled_cross_clips
 from lmgs_eval.protocols.perturb import VERSION as PERTURB_VERSION
 from lmgs_eval.protocols.perturb import SR, Condition, make_conditions
 from lmgs_eval.results.records import build_record, metrics_block, stored
-from lmgs_eval.runner import (REPEATS, RunConfig, cost_block, cycle, fit_method, log, render_stem, timed_render,
+from lmgs_eval.runner import (REPEATS, RunConfig, build_method, cost_block, cycle, fit_method, log, render_stem, timed_render,
                               write_render)
 
 MOUTH = slice(48, 68)
@@ -310,7 +309,7 @@ def _stress_one(cfg: RunConfig, ctx: dict, conds, name: str, seed: int, max_minu
     subject, test, other, backend = ctx["subject"], ctx["test"], ctx["other"], ctx["backend"]
     gt_lms, gt_found = ctx["gt_lms"], ctx["gt_found"]
     messages, records = [], []
-    method = create_method(name, subject=subject, **{"preset": cfg.preset, **cfg.method_options})
+    method = build_method(cfg, name, subject)
     info = method.describe()
     ch = f"{info.config_hash}-stress{PERTURB_VERSION}"
     todo = [c for c in conds if cfg.force or not _done(cfg.results, info.name, subject, c.name, seed, ch)]
