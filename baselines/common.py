@@ -11,15 +11,20 @@ from __future__ import annotations
 import dataclasses
 import os
 import tempfile
+import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from baselines.protocol import MethodInfo
+from lmgs.audio import compute_features
 from lmgs.config import AudioConfig, config_hash, override
+from lmgs.device import choose_device
 from lmgs.errors import InputError
+from lmgs.landmarks import lift_2d_landmarks
 from lmgs.types import DrivingAudio, TrainingClip
 
 CHECKPOINT_VERSION = 1
@@ -59,8 +64,6 @@ def configured(cls, preset: str, options: dict, method: str):
 
 def audio_windows(audio: np.ndarray, n_frames: int) -> torch.Tensor:
     """Log-mel windows ``[T, 16, 80]`` for ``n_frames`` frames (silence-padded, never truncated)."""
-    from lmgs.audio import compute_features
-
     return torch.from_numpy(np.ascontiguousarray(compute_features(audio, 16000, LOGMEL, n_frames=n_frames), np.float32))
 
 
@@ -174,7 +177,6 @@ def landmark_targets(clip: TrainingClip) -> np.ndarray:
         return np.asarray(clip.landmarks3d, np.float32)
     if clip.landmarks2d is None:
         raise InputError("this method needs landmarks: the training clip has neither 3D nor 2D landmarks")
-    from lmgs.landmarks import lift_2d_landmarks
 
     c2w = np.linalg.inv(clip.w2c) @ np.diag([1.0, -1.0, -1.0, 1.0])
     return lift_2d_landmarks(clip.landmarks2d, c2w, clip.focal, clip.cx, clip.cy).numpy()
@@ -212,8 +214,6 @@ class Adapter:
 
     @property
     def dev(self) -> torch.device:
-        from lmgs.device import choose_device
-
         return choose_device(self.device)
 
     def config(self) -> dict:
@@ -223,8 +223,6 @@ class Adapter:
         return config_hash(self.config())
 
     def fit(self, clip: TrainingClip, *, seed: int, workdir: Path, progress: bool = True) -> None:
-        import time
-
         if len(clip) < 4:
             raise InputError(f"training clip has {len(clip)} frames; {self.name} needs at least 4")
         final = Path(workdir) / "model.pt"
@@ -272,6 +270,5 @@ class Adapter:
 def progress_bar(total: int, desc: str, enabled: bool):
     if not enabled:
         return None
-    from tqdm import tqdm
 
     return tqdm(total=total, desc=desc, unit="step", leave=False)

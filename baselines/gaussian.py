@@ -42,12 +42,21 @@ from baselines.common import (
     seed_all,
     to_u8,
 )
-from lmgs.audio import AudioNet
-from lmgs.config import AudioConfig, DeformConfig, TriplaneConfig
-from lmgs.encoders import TriplaneEncoder
-from lmgs.presets import TrainConfig
 from baselines.lmgs_method import GR_PER_PIXEL
 from baselines.protocol import MethodInfo, register
+from lmgs import losses
+from lmgs.audio import AudioNet
+from lmgs.config import AudioConfig, DeformConfig, TriplaneConfig
+from lmgs.device import choose_device
+from lmgs.encoders import TriplaneEncoder
+from lmgs.gaussians import PARAM_NAMES, GaussianSet
+from lmgs.init import face_area_px, init_face
+from lmgs.model import to_image
+from lmgs.presets import TrainConfig, quick
+from lmgs.render import rasterize
+from lmgs.strategy import Strategy, accumulate, budget_from_face_area, initialize_state, step_post_backward
+from lmgs.train import fit, load_model, save_model
+from lmgs.types import Camera
 
 STANDINS = ("audio front end: log-mel computed in the project (DeepSpeech / HuBERT / WavLM cannot be had offline)",)
 
@@ -95,8 +104,6 @@ class LMGSConfigMethod:
     changes: dict = {}
 
     def __init__(self, preset: str = "quick", device: str | None = None, **overrides):
-        from lmgs.presets import quick
-
         self.preset = preset
         self.budget = configured(GSBudget, preset, overrides, self.name)
         t = self.budget
@@ -109,9 +116,6 @@ class LMGSConfigMethod:
         self.fit_seconds: float | None = None
 
     def fit(self, clip, *, seed: int, workdir: Path, progress: bool = True) -> None:
-        from lmgs.device import choose_device
-        from lmgs.train import fit, load_model, save_model
-
         final = Path(workdir) / "model.pt"
         if final.exists():
             self.model = load_model(final, cfg=self.cfg, device=choose_device(self.device))
@@ -225,7 +229,6 @@ class GaussianTalkerModel(nn.Module):
 
     def __init__(self, n_gaussians: int, in_channels: int, window: int, box_min, box_max, intrinsics, n_train_frames: int):
         super().__init__()
-        from lmgs.gaussians import GaussianSet
 
         self.gs = GaussianSet(torch.zeros(n_gaussians, 3), torch.full((n_gaussians, 3), 0.5), 0.01)
         self.audio_net = AudioNet(in_channels, window, AudioConfig())
@@ -236,14 +239,10 @@ class GaussianTalkerModel(nn.Module):
         self.register_buffer("default_background", torch.zeros(h, w, 3, dtype=torch.uint8))
 
     def camera(self, w2c: torch.Tensor):
-        from lmgs.types import Camera
-
         f, cx, cy, w, h = self.intrinsics
         return Camera(w2c, f, f, cx, cy, int(w), int(h))
 
     def render_frame(self, w2c: torch.Tensor, background: torch.Tensor, audio: torch.Tensor | None, blink: float, feats=None):
-        from lmgs.render import rasterize
-
         g = self.gs
         means, quats, ls = g.means, g.quats, g.log_scales
         if audio is not None:
@@ -283,11 +282,6 @@ class GaussianTalker(Adapter):
         return GaussianTalkerModel(**build)
 
     def _train(self, clip, seed: int, progress: bool):
-        from lmgs import losses
-        from lmgs.gaussians import PARAM_NAMES
-        from lmgs.init import face_area_px, init_face
-        from lmgs.model import to_image
-        from lmgs.strategy import Strategy, accumulate, budget_from_face_area, initialize_state, step_post_backward
         dev = self.dev
         rng = seed_all(seed)
         b = self.cfg
@@ -345,8 +339,6 @@ class GaussianTalker(Adapter):
 
     @torch.no_grad()
     def render(self, driving) -> np.ndarray:
-        from lmgs.model import to_image
-
         self._check_fitted()
         m = self.model
         dev = m.gs.means.device

@@ -54,9 +54,11 @@ from baselines.common import (
     seed_all,
     to_u8,
 )
+from baselines.protocol import register
 from lmgs.audio import AudioNet
 from lmgs.config import AudioConfig, TriplaneConfig
-from baselines.protocol import register
+from lmgs.encoders import TriplaneEncoder
+from lmgs.landmarks import LandmarkPredictor, fit_landmark_predictor
 
 STANDINS = ("audio front end: the project's log-mel windows (DeepSpeech / HuBERT features cannot be had offline)",)
 
@@ -288,8 +290,6 @@ class NeRFHead(nn.Module):
         self.register_buffer("default_background", torch.zeros(h, w, 3, dtype=torch.uint8))
         cond = 32
         if kind == "geneface":
-            from lmgs.landmarks import LandmarkPredictor
-
             self.predictor = LandmarkPredictor(in_channels, window, n_landmark_coef)
             # components whose spread is numerical noise are switched off (whitening would blow them up)
             self.register_buffer("coef_mask", torch.ones(n_landmark_coef))
@@ -305,8 +305,6 @@ class NeRFHead(nn.Module):
             self.aud_grid = nn.Parameter(torch.empty(1, 8, 32, 32).uniform_(-1e-2, 1e-2))
             self.mlp = FieldMLP(self.grid.out_dim + 8, hidden, n_layers=2)
         elif kind == "ernerf":
-            from lmgs.encoders import TriplaneEncoder
-
             tcfg = TriplaneConfig(n_levels=6, n_features=2, log2_table_size=14, base_resolution=8, finest_resolution=128)
             self.triplane = TriplaneEncoder(tcfg, torch.full((3,), -1.0), torch.full((3,), 1.0))
             D = self.triplane.out_dim
@@ -431,8 +429,6 @@ class NeRFMethod(Adapter):
         lm_coef = None
         predictor = None
         if self.name == "geneface":
-            from lmgs.landmarks import fit_landmark_predictor
-
             targets = torch.from_numpy(landmark_targets(clip)).to(dev)
             predictor = fit_landmark_predictor(feats, targets, steps=b.landmark_steps, seed=seed)
             build["n_landmark_coef"] = predictor.n_components

@@ -23,6 +23,7 @@ feathered seam.
 
 from __future__ import annotations
 
+import importlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -31,9 +32,10 @@ from torch import nn
 from torch.nn import functional as F
 
 from baselines.common import Adapter, audio_windows, landmark_targets, n_frames_of, progress_bar, project, seed_all
+from baselines.protocol import register
 from lmgs.audio.encoder import AudioEncoder
 from lmgs.config import AudioConfig
-from baselines.protocol import register
+from lmgs.landmarks import LandmarkPredictor, fit_landmark_predictor
 
 STANDINS = ("audio front end: the project's log-mel windows (Wav2Lip's 16 x 80 mel windows at 16 kHz, same shape)",)
 JAW_MOUTH = list(range(2, 15)) + list(range(48, 68))
@@ -77,8 +79,6 @@ def find_sync_loss():
     Looks for ``lmgs_eval.metrics.sync.sync_loss(lower_faces [B, 3, h, w] in [0, 1],
     audio_windows [B, 16, 80]) -> scalar``; any missing piece means the loss stays off.
     """
-    import importlib
-
     try:
         mod = importlib.import_module("lmgs_eval.metrics.sync")
     except ImportError:
@@ -206,7 +206,6 @@ class IPLAPNet(nn.Module):
 
     def __init__(self, in_channels: int, window: int, width: int, box, crop_size: int, n_components: int):
         super().__init__()
-        from lmgs.landmarks import LandmarkPredictor
 
         self.predictor = LandmarkPredictor(in_channels, window, n_components)
         self.unet = UNet(10, width)
@@ -379,8 +378,6 @@ class IPLAP(TwoDMethod):
         return np.stack([project(lms3d[k], w2c[k], *self.intr) for k in range(len(lms3d))]).astype(np.float32)
 
     def _train(self, clip, seed: int, progress: bool):
-        from lmgs.landmarks import fit_landmark_predictor
-
         dev = self.dev
         rng = seed_all(seed)
         b = self.cfg

@@ -16,12 +16,18 @@ Structure (paper, Method; TalkingGaussian's face/mouth decomposition):
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import nn
+from tqdm import tqdm
 
+from lmgs.audio import AudioNet, compute_features, frontend_from_array
+from lmgs.config import GuidanceConfig
+from lmgs.deform import DeformNet
+from lmgs.errors import InputError
 from lmgs.gaussians import GaussianSet
 from lmgs.render import rasterize
 from lmgs.types import Camera
@@ -107,9 +113,6 @@ class LMGSModel(nn.Module):
 
     def __init__(self, cfg, face: GaussianSet, mouth: GaussianSet, in_channels: int, window: int, box_min, box_max, intrinsics):
         super().__init__()
-        from lmgs.audio import AudioNet
-        from lmgs.config import GuidanceConfig
-        from lmgs.deform import DeformNet
 
         self.cfg = cfg
         self.face = face
@@ -158,15 +161,11 @@ class LMGSModel(nn.Module):
     # ------------------------------------------------------------------ inference
     def audio_windows(self, audio: np.ndarray, n_frames: int, features: dict | None = None) -> torch.Tensor:
         """Per-frame audio windows ``[T, W, C]`` from the configured front end."""
-        from lmgs.audio import compute_features, frontend_from_array
-
         kind = self.cfg.audio.frontend
         if kind in ("logmel", "mfcc"):
             arr = compute_features(audio, 16000, self.cfg.audio, n_frames=n_frames)
         else:
             if not features or kind not in features:
-                from lmgs.errors import InputError
-
                 raise InputError(f"the model uses precomputed '{kind}' audio features; none were given with the audio")
             arr = frontend_from_array(kind, features[kind])[:n_frames]
         return torch.from_numpy(np.ascontiguousarray(arr, dtype=np.float32))
@@ -180,8 +179,6 @@ class LMGSModel(nn.Module):
         ``timings`` (if a dict) receives seconds spent in ``audio``, ``network`` and ``raster``,
         and, with Spatial Enhancement on, ``se_fraction``: the mean fraction of face points selected.
         """
-        import time
-
         dev = self.face.means.device
         t0 = time.perf_counter()
         n = driving.n_frames
@@ -196,8 +193,6 @@ class LMGSModel(nn.Module):
         fracs = []
         it = range(n)
         if progress:
-            from tqdm import tqdm
-
             it = tqdm(it, desc="rendering", unit="frame", leave=False)
         for t in it:
             w2c = torch.from_numpy(np.asarray(driving.w2c[t], np.float32)) if driving.w2c is not None else self.train_w2c[t % len(self.train_w2c)]

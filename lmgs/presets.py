@@ -11,7 +11,16 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 
-from lmgs.config import AudioConfig, DeformConfig, GuidanceConfig, TriplaneConfig, added_option, config_dict, config_hash
+from lmgs.config import (
+    AudioConfig,
+    DeformConfig,
+    GuidanceConfig,
+    TriplaneConfig,
+    added_option,
+    config_dict,
+    config_hash,
+)
+from lmgs.errors import InputError
 
 
 @dataclass(frozen=True)
@@ -161,8 +170,6 @@ PRESETS = {"quick": quick, "paper": paper}
 
 
 def preset(name: str) -> LMGSConfig:
-    from lmgs.errors import InputError
-
     if name not in PRESETS:
         raise InputError(f"unknown preset '{name}'; known: {', '.join(PRESETS)}")
     return PRESETS[name]()
@@ -170,8 +177,6 @@ def preset(name: str) -> LMGSConfig:
 
 def config_from_dict(d: dict) -> LMGSConfig:
     """Rebuild a config from :meth:`LMGSConfig.to_dict` (checkpoints, results files)."""
-    from lmgs.config import AudioConfig, DeformConfig, GuidanceConfig, TriplaneConfig
-
     def make(cls, v):
         fields = {f.name for f in dataclasses.fields(cls)}
         return cls(**{k: tuple(x) if isinstance(x, list) else x for k, x in v.items() if k in fields})

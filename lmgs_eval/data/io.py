@@ -13,8 +13,11 @@ from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
+from scipy.signal import resample_poly
 
+from lmgs.fileio import atomic_path
 from lmgs_eval.errors import UserError
+from lmgs_eval.paths import atomic_write_bytes
 
 JPEG_QUALITY = 95
 
@@ -172,8 +175,6 @@ def _read_audio_av(path: Path) -> tuple[np.ndarray, int]:
 
 def to_mono_16k(x: np.ndarray, sr: int, name: str = "audio") -> tuple[np.ndarray, list[str]]:
     """Mix ``[S, C]`` audio to mono and resample to 16 kHz; returns the signal and notes."""
-    from scipy.signal import resample_poly
-
     notes: list[str] = []
     x = np.asarray(x, np.float32)
     if x.ndim == 2:
@@ -204,7 +205,6 @@ def write_wav(path: Path, x: np.ndarray, sr: int = 16000) -> None:
         w.setsampwidth(2)
         w.setframerate(int(sr))
         w.writeframes(pcm.tobytes())
-    from lmgs_eval.paths import atomic_write_bytes
 
     atomic_write_bytes(Path(path), buf.getvalue())
 
@@ -245,7 +245,6 @@ def write_video(path: Path, frames: np.ndarray, fps: int = 25, audio: np.ndarray
     """
     import av
 
-    from lmgs.fileio import atomic_path
 
     frames = to_u8(np.asarray(frames))
     t, h, w, _ = frames.shape

@@ -12,11 +12,14 @@ Lookup order for ``--subject X``:
 from __future__ import annotations
 
 import fcntl
+import json
 import re
 import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+from lmgs_eval.data import bundled
+from lmgs_eval.data.layout import read_subject
 from lmgs_eval.data.subject import Subject
 from lmgs_eval.errors import UserError
 from lmgs_eval.paths import atomic_dir, data_root
@@ -93,8 +96,6 @@ def knee_density(meta: dict) -> float | None:
 
 
 def _generator_version() -> str:
-    from lmgs_eval.data import bundled
-
     return bundled.GENERATOR_VERSION
 
 
@@ -104,10 +105,6 @@ def ensure_bundled(spec: BundledSpec, root: Path | None = None, *, force: bool =
     The build runs in a temporary folder renamed at the end, under a lock file, so an
     interrupted build leaves nothing half-written and two processes never build twice.
     """
-    import json
-
-    from lmgs_eval.data import bundled
-
     if spec.size < 32 or spec.size > 2048:
         raise UserError(f"--size {spec.size}: must be between 32 and 2048 pixels")
     if not (1.0 <= spec.seconds <= 600.0):
@@ -162,8 +159,6 @@ def resolve_subject_dir(subject: str, root: str | Path | None = None, *, build: 
 
 def find_subject(subject: str, root: str | Path | None = None, *, progress: bool = True) -> Subject:
     """Read a subject by name or path, building a bundled one on first use."""
-    from lmgs_eval.data.layout import read_subject
-
     folder = resolve_subject_dir(subject, root, progress=progress)
     return read_subject(folder, name=folder.name)
 
@@ -176,8 +171,6 @@ def _found_dirs(root: Path) -> list[Path]:
 
 def list_subjects(root: str | Path | None = None) -> list[dict]:
     """Every bundled subject (built or not) and every subject folder found under the data root."""
-    from lmgs_eval.data.layout import read_subject
-
     droot = data_root(root)
     rows: list[dict] = []
     seen: set[str] = set()

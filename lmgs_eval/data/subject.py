@@ -12,6 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
+from lmgs.types import Camera
+from lmgs_eval.data.io import read_depth, read_normal, read_rgb, read_rgb_u8, read_rgba
+
 FPS = 25
 SAMPLE_RATE = 16000
 
@@ -72,7 +75,7 @@ class Subject:
         (:data:`lmgs_eval.data.registry.KNEE_DENSITY`); None otherwise. Methods that size their
         Gaussians by face area take it (:func:`baselines.protocol.create_method`).
         """
-        from lmgs_eval.data.registry import knee_density
+        from lmgs_eval.data.registry import knee_density  # the registry reads subjects: imported here, not above
 
         return knee_density(self.meta) if self.bundled else None
 
@@ -99,8 +102,6 @@ class Subject:
 
     def frame(self, i: int) -> np.ndarray:
         """Ground-truth frame ``i`` (``gt_imgs``) as float32 ``[H, W, 3]`` RGB in [0, 1]."""
-        from lmgs_eval.data.io import read_rgb
-
         return read_rgb(self._img("gt_imgs", i, "jpg"))
 
     def frames(self, ids) -> np.ndarray:
@@ -109,27 +110,19 @@ class Subject:
 
     def original_frame(self, i: int) -> np.ndarray:
         """Frame ``i`` as recorded (``ori_imgs``), float32 ``[H, W, 3]`` in [0, 1]."""
-        from lmgs_eval.data.io import read_rgb
-
         return read_rgb(self._img("ori_imgs", i, "jpg"))
 
     def background(self) -> np.ndarray:
         """``bc.jpg`` as float32 ``[H, W, 3]`` in [0, 1]."""
-        from lmgs_eval.data.io import read_rgb
-
         return read_rgb(self.root / "bc.jpg")
 
     def torso(self, i: int) -> np.ndarray | None:
         """``torso_imgs/<i>.png`` as float32 RGBA ``[H, W, 4]`` in [0, 1], or None if absent."""
-        from lmgs_eval.data.io import read_rgba
-
         p = self._img("torso_imgs", i, "png")
         return read_rgba(p) if p.exists() else None
 
     def parsing(self, i: int) -> np.ndarray | None:
         """``parsing/<i>.png`` as uint8 RGB ``[H, W, 3]`` (ER-NeRF colours), or None."""
-        from lmgs_eval.data.io import read_rgb_u8
-
         p = self._img("parsing", i, "png")
         return read_rgb_u8(p) if p.exists() else None
 
@@ -140,15 +133,11 @@ class Subject:
 
     def depth(self, i: int) -> np.ndarray | None:
         """Depth map ``[H, W]`` float32 (camera z, world units; 0 = background), or None."""
-        from lmgs_eval.data.io import read_depth
-
         p = self._img("depth", i, "png")
         return read_depth(p, float(self.meta.get("depth_scale", 1000.0))) if p.exists() else None
 
     def normal(self, i: int) -> np.ndarray | None:
         """Normal map ``[H, W, 3]`` float32, unit camera-space normals (OpenCV axes), or None."""
-        from lmgs_eval.data.io import read_normal
-
         p = self._img("normal", i, "png")
         return read_normal(p) if p.exists() else None
 
@@ -158,8 +147,6 @@ class Subject:
 
     def camera(self, i: int):
         """The :class:`lmgs.types.Camera` of frame ``i``."""
-        from lmgs.types import Camera
-
         return Camera.from_nerf_c2w(self.c2w[i], self.focal, self.width, self.height, self.cx, self.cy)
 
     def describe(self) -> dict:

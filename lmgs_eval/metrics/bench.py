@@ -7,9 +7,19 @@ same network (same weights) on the same frames.
 from __future__ import annotations
 
 import argparse
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
+import torch
+
+from lmgs_eval.metrics.image import psnr_per_frame, ssim_per_frame
+from lmgs_eval.metrics.landmarks import DlibBackend
+from lmgs_eval.metrics.lpips import LPIPS, build_stlpips_torch, export_lpips
+from lmgs_eval.metrics.lpips_nets import AlexTrunk, LPIPSNet
+from lmgs_eval.metrics.ort import load_session, n_threads
+from lmgs_eval.metrics.sync import find_scorer, lse
 
 HELP = "frames/s per metric (256, 512) and LPIPS ONNX Runtime vs eager torch, same run"
 
@@ -43,14 +53,6 @@ def _best(fn, reps: int = 2) -> float:
 
 
 def run(args: argparse.Namespace) -> dict:
-    import torch
-
-    from lmgs_eval.metrics.image import psnr_per_frame, ssim_per_frame
-    from lmgs_eval.metrics.landmarks import DlibBackend
-    from lmgs_eval.metrics.lpips import LPIPS, build_stlpips_torch
-    from lmgs_eval.metrics.ort import n_threads
-    from lmgs_eval.metrics.sync import find_scorer, lse
-
     torch.set_num_threads(n_threads())
     n = int(args.frames)
     rows = []
@@ -133,15 +135,6 @@ def _alex_timing_session():
     Only for timing: the network (and so its cost) is the official metric's; its values
     mean nothing and are never reported. Used when the torchvision trunk file is absent.
     """
-    import tempfile
-    from pathlib import Path
-
-    import torch
-
-    from lmgs_eval.metrics.lpips import export_lpips
-    from lmgs_eval.metrics.lpips_nets import AlexTrunk, LPIPSNet
-    from lmgs_eval.metrics.ort import load_session
-
     torch.manual_seed(0)
     net = LPIPSNet(AlexTrunk()).eval()
     with tempfile.TemporaryDirectory() as d:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from lmgs_eval.errors import UserError
 from lmgs_eval.metrics.base import MetricResult, MetricSpec, check_pair, mean_result
 
 PSNR_CAP_DB = 100.0
@@ -122,7 +123,6 @@ def ssim_per_frame(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
     """
     import cv2
 
-    from lmgs_eval.errors import UserError
 
     pred, gt = check_pair(pred, gt)
     t, h, w, c = pred.shape

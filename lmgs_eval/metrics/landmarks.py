@@ -16,14 +16,19 @@ The scale-normalised variant divides each frame's value by the GT inter-ocular d
 from __future__ import annotations
 
 import functools
+import hashlib
 import importlib.util
+import io
 from pathlib import Path
 from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from lmgs.device import choose_device
+from lmgs_eval.data.io import to_u8
 from lmgs_eval.errors import UserError
 from lmgs_eval.metrics.base import MetricResult, MetricSpec, check_frames
+from lmgs_eval.paths import atomic_write_bytes, cache_root
 
 MOUTH = slice(48, 68)
 EYE_OUTER = (36, 45)
@@ -192,8 +197,6 @@ class DlibBackend:
                               int(round(d.right() / s + x0)), int(round(d.bottom() / s + y0)))
 
     def landmarks(self, frames: np.ndarray) -> np.ndarray:
-        from lmgs_eval.data.io import to_u8
-
         frames = check_frames(frames, "frames")
         out = np.full((frames.shape[0], 68, 2), np.nan)
         box, age = None, 0
@@ -244,16 +247,13 @@ class FanBackend:
     def __init__(self, device: str | None = None):
         if importlib.util.find_spec("face_alignment") is None:
             raise UserError("landmark backend 'fan' needs the face_alignment package")
-        import face_alignment
-        import torch
+        import face_alignment  # optional, and heavy
 
-        dev = device or ("cuda" if torch.cuda.is_available() else "cpu")
+        dev = str(choose_device(device))
         lt = getattr(face_alignment.LandmarksType, "TWO_D", None) or face_alignment.LandmarksType._2D
         self.fa = face_alignment.FaceAlignment(lt, device=dev)
 
     def landmarks(self, frames: np.ndarray) -> np.ndarray:
-        from lmgs_eval.data.io import to_u8
-
         frames = check_frames(frames, "frames")
         out = np.full((frames.shape[0], 68, 2), np.nan)
         for t in range(frames.shape[0]):
@@ -290,10 +290,7 @@ def cached_landmarks(backend: LandmarkBackend, frames: np.ndarray) -> np.ndarray
     version = getattr(backend, "version", None)
     if not version or getattr(backend, "name", "") == "given":
         return backend.landmarks(frames)
-    import hashlib
-    import io
 
-    from lmgs_eval.paths import atomic_write_bytes, cache_root
 
     frames = np.ascontiguousarray(frames)
     h = hashlib.sha256(f"{frames.shape}|{frames.dtype}|{backend.name}|{version}|".encode())

@@ -3,11 +3,17 @@
 from __future__ import annotations
 
 import hashlib
+import io
 import os
+import pickle
+import warnings
+import zipfile
 from pathlib import Path
 
+import torch
+
 from lmgs_eval.errors import UserError
-from lmgs_eval.paths import cache_root
+from lmgs_eval.paths import atomic_write_bytes, cache_root
 
 
 def sha256_file(path: Path) -> str:
@@ -70,13 +76,6 @@ def export_onnx(module, args: tuple, path: Path, input_names: list[str], output_
     notes) are silenced: they concern the exporter, not the graph, which the ONNX-vs-torch
     tests check.
     """
-    import io
-    import warnings
-
-    import torch
-
-    from lmgs_eval.paths import atomic_write_bytes
-
     buf = io.BytesIO()
     module.eval()
     with torch.no_grad(), warnings.catch_warnings():
@@ -88,11 +87,6 @@ def export_onnx(module, args: tuple, path: Path, input_names: list[str], output_
 
 def load_torch_state(path: Path, what: str) -> dict:
     """``torch.load`` a state dict on CPU (weights only); a clear error when the file is bad."""
-    import pickle
-    import zipfile
-
-    import torch
-
     path = Path(path)
     if not path.is_file():
         raise UserError(f"{path}: {what} not found")

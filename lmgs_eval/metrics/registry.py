@@ -5,38 +5,40 @@ from __future__ import annotations
 import importlib.util
 
 from lmgs_eval.metrics.base import MetricSpec, Registry
+from lmgs_eval.metrics.image import PSNR, PSNR_SPEC, SSIM, SSIM_SPEC
+from lmgs_eval.metrics.landmarks import LMD, LMD_SPEC, available_backends, create_backend
+from lmgs_eval.metrics.lpips import (
+    LPIPS,
+    LPIPS_ALEX_SPEC,
+    STLPIPS_ALEX_SPEC,
+    find_alexnet,
+    lpips_heads_path,
+    stlpips_weights_path,
+)
+from lmgs_eval.metrics.sync import LSE_SPEC, find_scorer_status
 
 METRICS = Registry("metric")
 
 
 def _psnr(**kw):
-    from lmgs_eval.metrics.image import PSNR
-
     return PSNR()
 
 
 def _ssim(**kw):
-    from lmgs_eval.metrics.image import SSIM
-
     return SSIM()
 
 
 def _lpips_alex(alexnet=None, **kw):
-    from lmgs_eval.metrics.lpips import LPIPS
-
     return LPIPS("lpips-alex", alexnet=alexnet, **kw)
 
 
 def _stlpips_alex(**kw):
     kw.pop("alexnet", None)
-    from lmgs_eval.metrics.lpips import LPIPS
 
     return LPIPS("stlpips-alex", **kw)
 
 
 def _lmd(backend="dlib", **kw):
-    from lmgs_eval.metrics.landmarks import LMD, create_backend
-
     return LMD(create_backend(backend))
 
 
@@ -56,20 +58,11 @@ def create_metric(name: str, **kw):
 
 
 def specs() -> dict[str, MetricSpec]:
-    from lmgs_eval.metrics.image import PSNR_SPEC, SSIM_SPEC
-    from lmgs_eval.metrics.landmarks import LMD_SPEC
-    from lmgs_eval.metrics.lpips import LPIPS_ALEX_SPEC, STLPIPS_ALEX_SPEC
-    from lmgs_eval.metrics.sync import LSE_SPEC
-
     return {s.name: s for s in (PSNR_SPEC, SSIM_SPEC, LPIPS_ALEX_SPEC, STLPIPS_ALEX_SPEC, LMD_SPEC, LSE_SPEC)}
 
 
 def list_metrics(alexnet=None) -> list[dict]:
     """Every metric with its spec and whether it can run on this machine (and why not)."""
-    from lmgs_eval.metrics.landmarks import available_backends
-    from lmgs_eval.metrics.lpips import find_alexnet, lpips_heads_path, stlpips_weights_path
-    from lmgs_eval.metrics.sync import find_scorer_status
-
     trunk = find_alexnet(alexnet)
     lm = available_backends()
     ok_ort = importlib.util.find_spec("onnxruntime") is not None

@@ -9,8 +9,12 @@ from pathlib import Path
 
 import numpy as np
 
+from lmgs_eval.data.io import load_audio, read_rgb, read_video, to_mono_16k
 from lmgs_eval.errors import UserError
 from lmgs_eval.metrics.base import align_lengths, check_frames
+from lmgs_eval.metrics.lpips import find_alexnet
+from lmgs_eval.metrics.registry import create_metric
+from lmgs_eval.metrics.sync import lse
 
 IMAGE_EXT = {".jpg", ".jpeg", ".png", ".bmp", ".webp"}
 RECORD_SCHEMA = "lmgs-eval/score/1"
@@ -25,8 +29,6 @@ def load_frames(path: str | Path) -> tuple[np.ndarray, float | None, np.ndarray 
 
     Returns frames ``[T, H, W, 3]`` float32 [0, 1], fps (None for a folder), audio, sample rate, notes.
     """
-    from lmgs_eval.data.io import read_rgb, read_video
-
     path = Path(path)
     if path.is_dir():
         files = sorted((p for p in path.iterdir() if p.suffix.lower() in IMAGE_EXT), key=_natural_key)
@@ -65,10 +67,6 @@ def score(pred: str | Path, gt: str | Path | None = None, audio: str | Path | No
         landmarks: LMD backend name.
         metrics: subset of names to run (default all).
     """
-    from lmgs_eval.data.io import load_audio, to_mono_16k
-    from lmgs_eval.metrics.registry import create_metric
-    from lmgs_eval.metrics.sync import lse
-
     want = set(metrics or ["psnr", "ssim", "lpips", "lmd", "lse"])
     p_frames, fps, p_audio, p_sr, notes = load_frames(pred)
     check_frames(p_frames, str(pred))
@@ -88,8 +86,6 @@ def score(pred: str | Path, gt: str | Path | None = None, audio: str | Path | No
             raise UserError(f"{pred} and {gt}: frame sizes differ {pf.shape[1:3]} vs {gf.shape[1:3]}")
         names = [m for m in ("psnr", "ssim") if m in want]
         if "lpips" in want:
-            from lmgs_eval.metrics.lpips import find_alexnet
-
             names.append(lpips or ("lpips-alex" if find_alexnet(alexnet) else "stlpips-alex"))
         if "lmd" in want:
             names.append("lmd")

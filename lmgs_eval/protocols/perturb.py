@@ -32,6 +32,7 @@ from dataclasses import dataclass
 from fractions import Fraction
 
 import numpy as np
+from scipy.signal import istft, resample_poly, stft
 
 VERSION = "1"
 SR = 16000
@@ -72,8 +73,6 @@ def time_stretch(x: np.ndarray, rate: float, n_fft: int = 512, hop: int = 128) -
     STFT with a Hann window, phase advance accumulated from the instantaneous frequency of
     each bin (Flanagan & Golden 1966; Laroche & Dolson 1999), overlap-add resynthesis.
     """
-    from scipy.signal import istft, stft
-
     _, _, Z = stft(x.astype(np.float64), nperseg=n_fft, noverlap=n_fft - hop, boundary="zeros", padded=True)
     n_bins, n_frames = Z.shape
     steps = np.arange(0, n_frames - 1, rate)
@@ -95,8 +94,6 @@ def time_stretch(x: np.ndarray, rate: float, n_fft: int = 512, hop: int = 128) -
 
 
 def resample(x: np.ndarray, sr_in: int, sr_out: int) -> np.ndarray:
-    from scipy.signal import resample_poly
-
     f = Fraction(int(sr_out), int(sr_in))
     return resample_poly(x.astype(np.float64), f.numerator, f.denominator).astype(np.float32)
 
