@@ -92,3 +92,37 @@ def test_docs_links_resolve(doc):
     for link in re.findall(r"\]\(([^)#\s]+)(?:#[^)]*)?\)", doc.read_text()):
         if "://" not in link:
             assert (doc.parent / link).exists(), f"{doc.name} links to {link}, which is not in the repository"
+
+
+def _subcommands(parser) -> dict:
+    import argparse
+
+    for a in parser._actions:
+        if isinstance(a, argparse._SubParsersAction):
+            return a.choices
+    return {}
+
+
+def test_readme_command_lines_name_real_commands_and_flags():
+    """Every ``lmgs-eval COMMAND [TARGET] --flag`` the README shows exists in the CLI as it is."""
+    from lmgs_eval.cli import build_parser
+
+    commands = _subcommands(build_parser())
+    lines = [ln.split("#", 1)[0] for block in re.findall(r"^```sh\n(.*?)^```", README.read_text(), flags=re.S | re.M)
+             for ln in block.splitlines() if ln.startswith("lmgs-eval ")]
+    assert len(lines) >= 10
+    for line in lines:
+        words = line.split()
+        name = words[1]
+        assert name in commands, f"README.md shows 'lmgs-eval {name}', which the CLI does not have"
+        parsers = [commands[name]]
+        targets = _subcommands(commands[name])
+        if targets:  # bench raster|metrics|model, weights import-syncnet
+            parsers = []
+            for target in words[2].split("|"):
+                assert target in targets, f"README.md shows 'lmgs-eval {name} {target}', which the CLI does not have"
+                parsers.append(targets[target])
+        for parser in parsers:
+            known = {s for a in parser._actions for s in a.option_strings}
+            for flag in re.findall(r"(?<![\w-])--[a-z][\w-]*", line):
+                assert flag in known, f"README.md shows 'lmgs-eval {name} {flag}', which the CLI does not accept"
