@@ -186,7 +186,8 @@ def fit(
         clip: frames, cameras, audio, landmarks and optional geometry.
         cfg: an :class:`~lmgs.presets.LMGSConfig`.
         seed: seeds every random choice (frame order, initialisation, densification).
-        workdir: where checkpoints and the training curve go (resumes from there).
+        workdir: where checkpoints and the training curve go (``curve.csv``, and ``curve.png`` when
+            matplotlib is installed); a run resumes from there.
         progress: show a progress bar with loss and PSNR.
         device: torch device (default: chosen by :func:`lmgs.device.choose_device`).
         log: optional callable receiving one line of text per stage.
