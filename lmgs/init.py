@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+from scipy.spatial import ConvexHull, QhullError
 
 from lmgs.gaussians import GaussianSet, knn_scale
 from lmgs.types import TrainingClip
@@ -22,11 +23,22 @@ def face_area_px(clip: TrainingClip) -> float:
     if clip.head_masks is not None:
         return float(clip.head_masks[:: max(1, len(clip) // 20)].sum(axis=(1, 2)).mean())
     if clip.landmarks2d is not None:
-        import cv2
-
-        areas = [cv2.contourArea(cv2.convexHull(l.astype(np.float32))) for l in clip.landmarks2d[:: max(1, len(clip) // 20)]]
+        areas = [hull_area(l) for l in clip.landmarks2d[:: max(1, len(clip) // 20)]]
         return float(np.mean(areas)) * 1.6
     return 0.25 * clip.width * clip.height
+
+
+def hull_area(points: np.ndarray) -> float:
+    """Area in pixels of the convex hull of 2D points ``[K, 2]``; 0 when they span no area.
+
+    The points are rounded to float32 first, as OpenCV's ``contourArea(convexHull(...))``
+    (which this replaces, so that the model library needs no OpenCV) takes them.
+    """
+    pts = np.asarray(points, np.float32).astype(np.float64)
+    try:
+        return float(ConvexHull(pts).volume)  # in 2D, qhull's "volume" is the area
+    except (QhullError, ValueError):  # fewer than 3 points, or all on one line
+        return 0.0
 
 
 def _backproject(clip: TrainingClip, i: int, mask: np.ndarray, n: int, rng: np.random.Generator):

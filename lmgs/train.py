@@ -186,7 +186,8 @@ def fit(
         clip: frames, cameras, audio, landmarks and optional geometry.
         cfg: an :class:`~lmgs.presets.LMGSConfig`.
         seed: seeds every random choice (frame order, initialisation, densification).
-        workdir: where checkpoints and the training curve go (resumes from there).
+        workdir: where checkpoints and the training curve go (``curve.csv``, and ``curve.png`` when
+            matplotlib is installed); a run resumes from there.
         progress: show a progress bar with loss and PSNR.
         device: torch device (default: chosen by :func:`lmgs.device.choose_device`).
         log: optional callable receiving one line of text per stage.
@@ -330,8 +331,8 @@ def fit(
                 bar.close()
             where = f"; the last good checkpoint is {ckpt}" if ckpt is not None and ckpt.exists() else ""
             if workdir is not None:
-                _write_failed_curve(workdir, curve_rows, step, dynamic, loss_value, r, gt)
-                where += f"; the training curve up to it is {Path(workdir) / 'curve.png'}"
+                drawn = _write_failed_curve(workdir, curve_rows, step, dynamic, loss_value, r, gt)
+                where += f"; the training curve up to it is {drawn}"
             raise TrainingDiverged(f"loss became non-finite at step {step} (frame {i}){where}")
         ratio = guard.update(loss_value, "dynamic" if dynamic else "static")
         if ratio is not None:
@@ -343,8 +344,8 @@ def fit(
                 if step - saved_at < guard.window:
                     where += f" (written less than {guard.window} steps before: it may already hold the collapse)"
             if workdir is not None:
-                _write_failed_curve(workdir, curve_rows, step, dynamic, loss_value, r, gt)
-                where += f"; the training curve up to it is {Path(workdir) / 'curve.png'}"
+                drawn = _write_failed_curve(workdir, curve_rows, step, dynamic, loss_value, r, gt)
+                where += f"; the training curve up to it is {drawn}"
             raise TrainingDiverged(
                 f"training collapsed at step {step} ({'dynamic' if dynamic else 'static'} stage): the mean loss of the last "
                 f"{guard.window} steps is {ratio:.1f}x the lowest earlier in the stage (training PSNR {_psnr(r.rgb.detach(), gt):.1f} dB)"
@@ -382,19 +383,21 @@ def fit(
     report = FitReport(total - start, seconds, model.n_gaussians(), budget, last_psnr, last_frac, start, t_lms, curve_rows,
                        prior_seconds=prior)
     if workdir is not None:
-        write_curve(Path(workdir), curve_rows)
+        drawn = write_curve(Path(workdir), curve_rows)
+        if drawn is not None and drawn.suffix == ".csv":
+            say(f"training curve written to {drawn}; no plot: matplotlib is not installed (pip install 'lmgs[eval]')")
         if ckpt is not None and ckpt.exists():
             ckpt.unlink()
     return model, report
 
 
-def _write_failed_curve(workdir, rows: list[dict], step: int, dynamic: bool, loss_value: float, r, gt) -> None:
+def _write_failed_curve(workdir, rows: list[dict], step: int, dynamic: bool, loss_value: float, r, gt) -> Path | None:
     """The curve of a stopped run, up to the step that stopped it, for the user to look at."""
     last = {"step": step, "stage": "dynamic" if dynamic else "static", "loss": loss_value,
             "psnr": _psnr(r.rgb.detach(), gt) if math.isfinite(loss_value) else float("nan"),
             "n_face": rows[-1]["n_face"] if rows else 0, "n_mouth": rows[-1]["n_mouth"] if rows else 0,
             "se_fraction": r.se_fraction, "seconds": rows[-1]["seconds"] if rows else 0.0}
-    write_curve(Path(workdir), [*rows, last])
+    return write_curve(Path(workdir), [*rows, last])
 
 
 def gr_ramp(dynamic_step: int, warmup: int) -> float:
@@ -462,17 +465,27 @@ def _resume(path: Path, model, g_opt, n_opt, cfg, dev, curve_rows) -> int:
     return int(blob["step"]), float(elapsed)
 
 
-def write_curve(workdir: Path, rows: list[dict]) -> None:
-    """The training curve as CSV and a PNG plot (loss and PSNR against step)."""
+def write_curve(workdir: Path, rows: list[dict]) -> Path | None:
+    """The training curve as CSV, and as a PNG plot (loss and PSNR against step) when matplotlib is there.
+
+    matplotlib is not a dependency of the model library (it comes with ``pip install 'lmgs[eval]'``):
+    without it only ``curve.csv`` is written.
+
+    Returns:
+        The plot's path, the CSV's when matplotlib is missing, or None when there are no rows.
+    """
     if not rows:
-        return
+        return None
     workdir.mkdir(parents=True, exist_ok=True)
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=list(rows[0]))
     w.writeheader()
     w.writerows(rows)
     (workdir / "curve.csv").write_text(buf.getvalue())
-    import matplotlib
+    try:
+        import matplotlib
+    except ImportError:
+        return workdir / "curve.csv"
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -486,3 +499,4 @@ def write_curve(workdir: Path, rows: list[dict]) -> None:
     fig.tight_layout()
     fig.savefig(workdir / "curve.png", dpi=90)
     plt.close(fig)
+    return workdir / "curve.png"

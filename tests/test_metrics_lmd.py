@@ -65,7 +65,7 @@ def test_dlib_on_astronaut_nose_tip_and_no_face():
     img = data.astronaut().astype(np.float32) / 255.0
     blank = np.full_like(img, 0.5)
     lms = DlibBackend().landmarks(np.stack([img, blank, img]))
-    assert np.linalg.norm(lms[0, 30] - (225, 127)) <= 3.0  # REFERENCE.md: about (225, 127)
+    assert np.linalg.norm(lms[0, 30] - (225, 127)) <= 3.0  # docs/field.md, LMD: about (225, 127)
     assert np.isnan(lms[1]).all()
     np.testing.assert_allclose(lms[2], lms[0], atol=2.0)
     r = lmd_result(lms, lms)

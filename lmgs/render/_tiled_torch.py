@@ -1,4 +1,4 @@
-"""Pure-torch per-tile compositor: the speed anchor (REFERENCE.md section 5) and a fallback.
+"""Pure-torch per-tile compositor: the speed anchor (docs/field.md) and a fallback.
 
 Same inputs and result as :func:`lmgs.render._cpu.composite`, written the way one would
 in eager torch: a Python loop over 16x16 tiles, each tile dense over its own Gaussians

@@ -1,6 +1,6 @@
 """Reader of the ER-NeRF / TalkingGaussian processed-subject layout.
 
-The layout (``../shared/REFERENCE.md`` §1), ``data/<ID>/``::
+The layout (the repository's ``docs/field.md``), ``data/<ID>/``::
 
     <ID>.mp4  aud.wav  bc.jpg  track_params.pt  au.csv
     ori_imgs/<i>.jpg  ori_imgs/<i>.lms  gt_imgs/<i>.jpg  torso_imgs/<i>.png  parsing/<i>.png

@@ -1,7 +1,7 @@
 """The one ``Subject`` type every part of the toolkit reads.
 
 A subject is a talking-head video processed into the ER-NeRF / TalkingGaussian layout
-(``../shared/REFERENCE.md`` §1). Frames are read lazily from disk; everything small
+(the repository's ``docs/field.md``). Frames are read lazily from disk; everything small
 (cameras, landmarks, audio, blink track) is held in memory.
 """
 

@@ -1,7 +1,7 @@
 """Closed-form full-reference image metrics: PSNR and SSIM, per frame then mean.
 
 Both take float frames ``[T, H, W, 3]`` in [0, 1] (data range 1), full frame, no crop,
-which is how ER-NeRF and TalkingGaussian score (REFERENCE.md section 2).
+which is how ER-NeRF and TalkingGaussian score (docs/field.md, "Metric definitions").
 """
 
 from __future__ import annotations
