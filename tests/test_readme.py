@@ -126,3 +126,23 @@ def test_readme_command_lines_name_real_commands_and_flags():
             known = {s for a in parser._actions for s in a.option_strings}
             for flag in re.findall(r"(?<![\w-])--[a-z][\w-]*", line):
                 assert flag in known, f"README.md shows 'lmgs-eval {name} {flag}', which the CLI does not accept"
+
+
+def test_the_worked_example_of_adding_a_method_runs_in_the_protocol(tmp_path, monkeypatch):
+    """docs/adding-a-method.md's adapter, registered as written, goes through `lmgs-eval self` and gets a record."""
+    from conftest import run_cli
+
+    from baselines import protocol
+    from lmgs_eval.results import load_records
+
+    monkeypatch.setattr(protocol, "_REGISTRY", dict(protocol._REGISTRY))  # the example's name leaves with the test
+    (block,) = python_blocks("\n".join(ln[3:] if ln.startswith("   ") else ln
+                                       for ln in (ROOT / "docs" / "adding-a-method.md").read_text().splitlines()) + "\n")
+    exec(compile(block, "docs/adding-a-method.md", "exec"), {"__name__": "mean_frame_example"})
+    assert "mean-frame" in protocol.list_methods()
+    rc, out, err = run_cli("self", "--subject", "astronaut-64px-2s", "--method", "mean-frame", "--results", str(tmp_path),
+                           "--no-progress")
+    assert rc == 0, err
+    (rec,) = [r for r in load_records(tmp_path)[0] if r["method"]["name"] == "mean-frame"]
+    assert rec["method"]["family"] == "2D" and rec["metrics"]["psnr"]["value"] > 10
+    assert "Mean frame" in out  # the run's row
