@@ -12,6 +12,9 @@ HELP = "write the benchmark as a static site from a results store: leaderboards,
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--results", default="results", type=Path, help="results store (default: results/)")
     p.add_argument("--out", default=None, type=Path, help="site folder, replaced (default: RESULTS/report)")
+    p.add_argument("--renders", default=None, type=Path, metavar="DIR",
+                   help="folder the records' relative render paths are under (default: the store; e.g. "
+                        "--results tables/records --renders results)")
     p.add_argument("--no-previews", action="store_true", help="do not encode video previews of the renders")
     p.add_argument("--no-static-charts", action="store_true", help="skip the matplotlib PNG / SVG charts")
 
@@ -21,7 +24,7 @@ def run(args: argparse.Namespace) -> int:
 
     out = args.out if args.out is not None else Path(args.results) / "report"
     index, warnings = build_site(args.results, out, previews=not args.no_previews,
-                                 charts=not args.no_static_charts, log=lambda s: print(s, file=sys.stderr))
+                                 charts=not args.no_static_charts, renders=args.renders, log=lambda s: print(s, file=sys.stderr))
     for w in warnings:
         print(f"warning: {w}", file=sys.stderr)
     print(index.resolve())

@@ -56,7 +56,8 @@ def _env():
 
 
 def build_site(store: str | os.PathLike, out: str | os.PathLike, previews: bool = True,
-               charts: bool = True, log: Callable[[str], None] = lambda s: None) -> tuple[Path, list[str]]:
+               charts: bool = True, renders: str | os.PathLike | None = None,
+               log: Callable[[str], None] = lambda s: None) -> tuple[Path, list[str]]:
     """Write the site for results store ``store`` into folder ``out`` (replaced atomically).
 
     Args:
@@ -64,6 +65,8 @@ def build_site(store: str | os.PathLike, out: str | os.PathLike, previews: bool 
         out: the site's folder; an older site there is replaced, its video previews reused.
         previews: encode video previews of the renders found on this machine.
         charts: write the static PNG / SVG charts (matplotlib) beside the interactive ones.
+        renders: the folder that records' relative render paths are under (default ``store``): a
+            snapshot of records (``tables/records``) with the store that made them.
         log: called with one line per step.
 
     Returns:
@@ -94,7 +97,7 @@ def build_site(store: str | os.PathLike, out: str | os.PathLike, previews: bool 
     with atomic_dir(out) as tmp:
         shutil.copytree(HERE / "static", tmp / "static")
         # atomic_dir removes the old site only once this one is written: its previews can be reused
-        watches = _watch_players(tmp, store, groups, previews, old_media, log)
+        watches = _watch_players(tmp, Path(renders) if renders is not None else store, groups, previews, old_media, log)
         static_files = _static_charts(records, store, tmp, log) if charts else []
         from lmgs_eval.report.site.svgcharts import speed_charts_svg
 
@@ -119,7 +122,7 @@ def build_site(store: str | os.PathLike, out: str | os.PathLike, previews: bool 
         for run in runs:
             rel_json = os.path.relpath(run.path.resolve(), (out / "runs").resolve())
             arts = [{"role": role, "path": a["path"], "sha256": a["sha256"],
-                     "here": resolve_artefact(store, a["path"]).is_file()}
+                     "here": resolve_artefact(renders if renders is not None else store, a["path"]).is_file()}
                     for role, a in sorted((run.record.get("artefacts") or {}).items())]
             (tmp / "runs" / f"{run.id}.html").write_text(
                 tpl.render(**common, title=f"Run {run.label} / {run.record['subject']['name']}", run=run,
