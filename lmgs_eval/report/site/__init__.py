@@ -31,7 +31,7 @@ from typing import Any
 
 from lmgs_eval.errors import UserError
 from lmgs_eval.paths import atomic_dir
-from lmgs_eval.report.site.model import (FILTER_FAMILIES, MARKS_LEGEND, WatchRun, curve_meta, curves, leaderboards,
+from lmgs_eval.report.site.model import (CURVE_METRICS, FILTER_FAMILIES, MARKS_LEGEND, WatchRun, curve_meta, curves, leaderboards,
                                          make_runs, watch_groups)
 from lmgs_eval.results import iter_store, resolve_artefact
 
@@ -111,6 +111,8 @@ def build_site(store: str | os.PathLike, out: str | os.PathLike, previews: bool 
             page(f"board-{_slug(s)}.html", "board.html.j2", title=f"Leaderboard: {s}", subject=s,
                  tables=boards.get(s, []), legend=MARKS_LEGEND)
         svg = speed_charts_svg(records, run_ids)
+        for c in svg:
+            c["png"] = f"charts/{c['static']}.png" if (tmp / "charts" / f"{c['static']}.png").is_file() else None
         calibration = [t for s in subjects for t in boards.get(s, []) if t.id.startswith("calibration")]
         stability = [t for s in subjects for t in boards.get(s, []) if t.id.startswith("stability")]
         page("charts.html", "charts.html.j2", title="Charts", charts=svg, static=static_files,
@@ -166,7 +168,8 @@ def _watch_players(tmp: Path, store: Path, groups: dict, previews: bool, reuse: 
         name = f"watch-{_slug(subject)}-{_slug(clip)}.html"
         n_frames = next((r.record["protocol"]["n_frames"] for r in by_method.values() if r.record["protocol"]["n_frames"]),
                         None)
-        data = {"fps": made.fps or 25.0, "n_frames": n_frames, "metrics": curve_meta(), "gain": ERROR_GAIN,
+        data = {"fps": made.fps or 25.0, "n_frames": n_frames, "metrics": curve_meta(), "order": list(CURVE_METRICS),
+                "gain": ERROR_GAIN,
                 "players": [{"id": w.run.id, "label": w.run.label, "family": w.run.record["method"]["family"],
                              "gt": w.run is gt, "video": w.video, "error": w.error, "missing": w.missing,
                              "seed": w.run.record["seed"], "config_hash": w.run.record["config_hash"],
@@ -181,7 +184,10 @@ def _static_charts(records: list[dict[str, Any]], store: Path, tmp: Path, log: C
     from lmgs_eval.report.charts import all_charts
 
     files = all_charts(records, tmp / "charts")
-    log(f"[report] {len(files)} static chart files")
+    for p in files:  # the site keeps the PNGs; the SVGs for papers are `lmgs-eval table`'s
+        if p.suffix == ".svg":
+            p.unlink()
+    log(f"[report] {sum(p.suffix == '.png' for p in files)} static charts")
     # the speed charts are drawn interactive on the page (their PNG / SVG are linked from there)
     return sorted(p.relative_to(tmp).as_posix() for p in files
                   if p.suffix == ".png" and not p.name.startswith(("speed_", "train_")))

@@ -65,6 +65,7 @@ class HtmlCell:
     mark: str = ""
     flag: str = ""
     title: str = ""
+    style: str = ""
 
 
 @dataclass
@@ -91,6 +92,7 @@ class HtmlTable:
     columns: list[dict[str, Any]]
     rows: list[HtmlRow]
     notes: list[str]
+    collapsed: bool = False
 
 
 def _fmt(v: float, c: Column) -> str:
@@ -167,9 +169,30 @@ def leaderboards(tables: Sequence[Table], run_ids: dict[int, str]) -> dict[str, 
                     standins=_row_standins(row.records), rule_before=row.rule_before,
                     failed=any(not is_ok(r) for r in row.records)))
             standin = recs[0]["subject"].get("standin") if key and recs else None
+            stability = t.name.startswith("stability_")
+            if stability:
+                _heat(t, rows)
             out[key].append(HtmlTable(f"{t.name}-{k}", t.title, sec.title, standin, t.label_header, cols, rows,
-                                      list(sec.notes) + list(t.notes)))
+                                      list(sec.notes) + list(t.notes), collapsed=stability))
     return dict(out)
+
+
+def _heat(t: Table, rows: Sequence[HtmlRow]) -> None:
+    """Colour a stability section's cells as a heat map: green where the change under stress is for the
+    better (by the metric's direction), red where for the worse, stronger with the size of the change."""
+    idx = [i for i, c in enumerate(t.columns) if c.kind == "metric" and c.key in METRICS]
+    vals = [abs(r.cells[i].sort) for r in rows for i in idx if r.cells[i].sort is not None]
+    lim = max(vals, default=0.0)
+    if lim <= 0:
+        return
+    for r in rows:
+        for i in idx:
+            v = r.cells[i].sort
+            if v is None or v == 0:
+                continue
+            better = (v > 0) == METRICS[t.columns[i].key][1]
+            rgb = "44,160,44" if better else "214,39,40"
+            r.cells[i].style = f"background: rgba({rgb},{0.12 + 0.5 * abs(v) / lim:.2f})"
 
 
 MARKS_LEGEND = (f"bold: best, significantly better than the runner-up (paired bootstrap and Wilcoxon over the same "

@@ -88,12 +88,25 @@ function shown() {
   return data.players.filter((p) => on.has(p.id));
 }
 
+// a series worth drawing: some values, and for the ground truth not one constant (its PSNR of identical frames)
+function drawable(p, key) {
+  const vs = (p.curves[key] || []).filter((v) => v !== null);
+  if (!vs.length) return false;
+  return !(p.gt && vs.every((v) => v === vs[0]));
+}
+
 function drawCurves() {
   const key = metricSel.value;
   const ns = "http://www.w3.org/2000/svg";
   svg.innerHTML = "";
-  if (!key) return;
-  const series = shown().filter((p) => p.curves[key]);
+  if (!key) {
+    const t = document.createElementNS(ns, "text");
+    Object.entries({ x: 450, y: 110, "text-anchor": "middle", class: "tick" }).forEach(([k, v]) => t.setAttribute(k, v));
+    t.textContent = "no per-frame metric values in these records";
+    svg.appendChild(t);
+    return;
+  }
+  const series = shown().filter((p) => drawable(p, key));
   const vals = series.flatMap((p) => p.curves[key].filter((v) => v !== null));
   if (!vals.length) return;
   let lo = Math.min(...vals), hi = Math.max(...vals);
@@ -144,7 +157,7 @@ function drawWorst(key) {
     const p = data.players.find((q) => q.id === box.dataset.id);
     box.innerHTML = "";
     const vs = p && p.curves[key];
-    if (!vs) { box.textContent = `no per-frame ${meta.label}`; return; }
+    if (!vs || !vs.some((v) => v !== null)) { box.textContent = `no per-frame ${meta.label}`; return; }
     const idx = vs.map((v, i) => [v, i]).filter((x) => x[0] !== null);
     idx.sort((a, b) => (meta.higher ? a[0] - b[0] : b[0] - a[0]));
     box.append(`worst ${meta.label}: `);
@@ -177,7 +190,7 @@ function setChosen() {
   drawCurves();
 }
 
-const keys = Object.keys(data.metrics).filter((k) => data.players.some((p) => p.curves[k]));
+const keys = data.order.filter((k) => data.players.some((p) => drawable(p, k)));
 keys.forEach((k) => {
   const o = document.createElement("option");
   o.value = k;
@@ -208,4 +221,5 @@ svg.addEventListener("click", (e) => {
 videos().forEach((v) => v.addEventListener("timeupdate", () => { if (!playing && v === master()) update(frameOf(v.currentTime)); }));
 if (!videos().length) { playBtn.disabled = true; document.getElementById("controls").classList.add("novideo"); }
 setChosen();
+update(0);
 window.lmgsWatch = { seekAll, play, pause, frameOf, master, videos, isPlaying: () => playing };
