@@ -20,7 +20,7 @@ from lmgs_eval.report.table_model import METRICS
 
 W, H = 720, 420
 LEFT, RIGHT, TOP, BOTTOM = 64, 120, 20, 46
-CHAR_W, LINE_H = 6.6, 12.0  # label box estimate at font-size 11px (DejaVu Sans)
+CHAR_W, LINE_H = 7.5, 13.5  # label box estimate at font-size 12.5px (DejaVu Sans)
 
 
 def chart_points(records: Sequence[dict[str, Any]], cost_key: str, metric: str,
