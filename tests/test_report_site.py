@@ -158,6 +158,32 @@ def test_a_rebuild_reuses_previews_of_the_same_renders(site, tmp_path, monkeypat
     assert {p.name: p.read_bytes() for p in (store / "report" / "media").iterdir()} == before
 
 
+def test_players_link_their_full_render(site):
+    watch = (site / "watch-astronaut-test.html").read_text()
+    links = re.findall(r'<a href="([^"]+)" title="the render itself, full size">', watch)
+    assert sorted(Path(link).name for link in links) == ["gt.mp4", "lmgs.mp4", "talkinggaussian.mp4"]
+    assert all((site / link).resolve().is_file() for link in links)
+
+
+def test_an_out_folder_that_is_not_a_report_is_never_replaced(site, tmp_path):
+    keep = tmp_path / "tables"
+    keep.mkdir()
+    (keep / "table1_self.md").write_text("mine")
+    rc, out, err = run_cli("report", "--results", str(site.parent), "--out", str(keep), "--no-static-charts")
+    assert rc == 2 and "--out" in err and "not a report" in err and "Traceback" not in err
+    assert [p.name for p in keep.iterdir()] == ["table1_self.md"]
+    (tmp_path / "file").write_text("x")
+    rc, out, err = run_cli("report", "--results", str(site.parent), "--out", str(tmp_path / "file"))
+    assert rc == 2 and "is a file" in err
+    # an earlier report is replaced, and the command prints the new index page
+    rc, out, err = run_cli("report", "--results", str(site.parent), "--out", str(tmp_path / "site"), "--no-static-charts",
+                           "--no-previews")
+    assert rc == 0 and out.strip() == str((tmp_path / "site" / "index.html").resolve())
+    rc, out, err = run_cli("report", "--results", str(site.parent), "--out", str(tmp_path / "site"), "--no-static-charts",
+                           "--no-previews")
+    assert rc == 0 and (tmp_path / "site" / "index.html").is_file()
+
+
 def test_bad_results_folder_is_one_line_and_writes_nothing(tmp_path):
     rc, out, err = run_cli("report", "--results", str(tmp_path / "nope"), "--out", str(tmp_path / "site"))
     assert rc == 2 and "--results" in err and "not a folder" in err and "Traceback" not in err

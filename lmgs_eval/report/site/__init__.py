@@ -83,6 +83,7 @@ def build_site(store: str | os.PathLike, out: str | os.PathLike, previews: bool 
         raise UserError(f"--results {store}: no valid result record in it (run `lmgs-eval self` first)")
     if out.resolve() == store.resolve() or out.resolve() in store.resolve().parents:
         raise UserError(f"--out {out}: would replace the results store {store}; choose a folder inside or beside it")
+    _check_out(out)
     from lmgs_eval.report.tables import all_tables
 
     runs = make_runs(items, store)
@@ -96,8 +97,10 @@ def build_site(store: str | os.PathLike, out: str | os.PathLike, previews: bool 
     old_media = out / "media" if (out / "media").is_dir() else None
     with atomic_dir(out) as tmp:
         shutil.copytree(HERE / "static", tmp / "static")
+        (tmp / MARKER).write_text("made by lmgs-eval report; this folder is replaced whole when the report is rebuilt\n")
         # atomic_dir removes the old site only once this one is written: its previews can be reused
-        watches = _watch_players(tmp, Path(renders) if renders is not None else store, groups, previews, old_media, log)
+        watches = _watch_players(tmp, out, Path(renders) if renders is not None else store, groups, previews, old_media,
+                                 log)
         static_files = _static_charts(records, store, tmp, log) if charts else []
         from lmgs_eval.report.site.svgcharts import speed_charts_svg
 
@@ -134,6 +137,19 @@ def build_site(store: str | os.PathLike, out: str | os.PathLike, previews: bool 
     return out / INDEX, warnings
 
 
+MARKER = ".lmgs-report"
+"""A file every site has: an existing ``--out`` folder is replaced only when it holds one (or nothing)."""
+
+
+def _check_out(out: Path) -> None:
+    """The site replaces ``out`` whole: refuse a file, or a folder that is not an earlier site and not empty."""
+    if out.exists() and not out.is_dir():
+        raise UserError(f"--out {out}: is a file, not a folder for the report")
+    if out.is_dir() and not (out / MARKER).is_file() and any(out.iterdir()):
+        raise UserError(f"--out {out}: folder exists and is not a report made by `lmgs-eval report` (it would be "
+                        "replaced whole); choose a new folder")
+
+
 def _protocol_counts(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
     counts: dict[tuple[str, str], int] = {}
     for r in records:
@@ -142,7 +158,7 @@ def _protocol_counts(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return [{"subject": s, "protocol": p, "runs": n} for (s, p), n in sorted(counts.items())]
 
 
-def _watch_players(tmp: Path, store: Path, groups: dict, previews: bool, reuse: Path | None,
+def _watch_players(tmp: Path, out: Path, store: Path, groups: dict, previews: bool, reuse: Path | None,
                    log: Callable[[str], None]) -> list[dict[str, Any]]:
     """One Watch page's context per (subject, protocol, clip), its previews written under ``tmp/media``."""
     from lmgs_eval.report.site.media import ERROR_GAIN, Previews
@@ -155,6 +171,9 @@ def _watch_players(tmp: Path, store: Path, groups: dict, previews: bool, reuse: 
         for run in by_method.values():
             w = WatchRun(run, curves(run.record))
             is_gt = run is gt
+            full = made.full(run.record)
+            if full is not None:  # the render itself, where it lies (relative: the site and store move together)
+                w.full = Path(os.path.relpath(full.resolve(), out.resolve())).as_posix()
             if previews:
                 w.video, w.missing = made.preview(run.record, audio=is_gt)
                 if w.video and gt is not None and not is_gt:
@@ -171,7 +190,7 @@ def _watch_players(tmp: Path, store: Path, groups: dict, previews: bool, reuse: 
         data = {"fps": made.fps or 25.0, "n_frames": n_frames, "metrics": curve_meta(), "order": list(CURVE_METRICS),
                 "gain": ERROR_GAIN,
                 "players": [{"id": w.run.id, "label": w.run.label, "family": w.run.record["method"]["family"],
-                             "gt": w.run is gt, "video": w.video, "error": w.error, "missing": w.missing,
+                             "gt": w.run is gt, "video": w.video, "error": w.error, "missing": w.missing, "full": w.full,
                              "seed": w.run.record["seed"], "config_hash": w.run.record["config_hash"],
                              "curves": w.curves} for w in players]}
         pages.append({"subject": subject, "clip": clip, "protocol": protocol, "file": name, "players": players,

@@ -108,6 +108,10 @@ class Previews:
                                          f"{rec['created'][:10]}): metrics and curves only")
         return path, art["sha256"], None
 
+    def full(self, rec: dict[str, Any]) -> Path | None:
+        """The record's render file when it is on this machine."""
+        return self._source(rec)[0]
+
     def _frames(self, path: Path) -> tuple[np.ndarray, float, Any, Any]:
         key = str(path)
         if key not in self._decoded:

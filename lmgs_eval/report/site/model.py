@@ -211,6 +211,7 @@ class WatchRun:
     video: str | None = None
     error: str | None = None
     missing: str | None = None
+    full: str | None = None  # the full render, relative to the site
 
 
 def watch_groups(runs: Sequence[Run]) -> dict[tuple[str, str, str], dict[str, Run]]:
