@@ -88,7 +88,7 @@ def test_the_site_has_every_page_type(site):
 
 def test_previews_are_h264_and_the_error_map_is_the_gained_absolute_difference(site):
     watch = (site / "watch-astronaut-test.html").read_text()
-    videos = re.findall(r'<video class="(main|err)" src="([^"]+)"', watch)
+    videos = re.findall(r'<video class="(main|err)[^"]*" src="([^"]+)"', watch)
     mains = [s for k, s in videos if k == "main"]
     errs = [s for k, s in videos if k == "err"]
     assert len(mains) == 3 and len(errs) == 2  # ground truth, lmgs, TalkingGaussian; error maps for the two methods
@@ -156,6 +156,17 @@ def test_a_rebuild_reuses_previews_of_the_same_renders(site, tmp_path, monkeypat
     monkeypatch.setattr(media, "_encode", lambda *a, **k: pytest.fail("re-encoded a preview"))
     build_site(store, store / "report", charts=False)
     assert {p.name: p.read_bytes() for p in (store / "report" / "media").iterdir()} == before
+
+
+def test_each_driving_clip_has_a_watch_page_without_ground_truth(site):
+    for clip in ("A", "B"):
+        page = html.unescape((site / f"watch-astronaut-cross-{clip}.html").read_text())
+        ids = re.findall(r'<figure class="player[^"]*" data-id="([^"]+)"', page)
+        assert sorted(i.split("__")[2].split("--")[0] for i in ids) == ["ernerf", "lmgs", "talkinggaussian"]
+        assert all(f"--{clip}--seed0--" in i for i in ids)
+        assert 'id="errmap"' not in page and "Ground Truth" not in page.split('id="players"')[1]
+        players = page.split('id="players"')[1].split('id="watch-data"')[0]
+        assert players.count("this run recorded no render") == 3
 
 
 def test_players_link_their_full_render(site):

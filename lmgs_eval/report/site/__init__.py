@@ -168,6 +168,7 @@ def _watch_players(tmp: Path, out: Path, store: Path, groups: dict, previews: bo
     for (subject, protocol, clip), by_method in groups.items():
         gt = next((r for r in by_method.values() if r.record["method"]["family"] == "ground-truth"), None)
         players = []
+        carrier = None  # the player whose preview has the sound: the ground truth, else the first with a render
         for run in by_method.values():
             w = WatchRun(run, curves(run.record))
             is_gt = run is gt
@@ -175,22 +176,24 @@ def _watch_players(tmp: Path, out: Path, store: Path, groups: dict, previews: bo
             if full is not None:  # the render itself, where it lies (relative: the site and store move together)
                 w.full = Path(os.path.relpath(full.resolve(), out.resolve())).as_posix()
             if previews:
-                w.video, w.missing = made.preview(run.record, audio=is_gt)
+                w.audio = is_gt or (gt is None and carrier is None and full is not None)
+                w.video, w.missing = made.preview(run.record, audio=w.audio)
+                if w.video and w.audio:
+                    carrier = run
                 if w.video and gt is not None and not is_gt:
-                    w.error, why = made.error(run.record, gt.record)
-                    if w.error is None:
-                        w.missing = why
+                    w.error, w.note = made.error(run.record, gt.record)
             else:
                 w.missing = "previews not made (--no-previews)"
             log(f"[report] watch {subject}/{clip}: {run.label}: {w.video or w.missing}")
             players.append(w)
-        name = f"watch-{_slug(subject)}-{_slug(clip)}.html"
+        name = f"watch-{_slug(subject)}-{_slug(clip) if protocol == 'self' else _slug(protocol + '-' + clip)}.html"
         n_frames = next((r.record["protocol"]["n_frames"] for r in by_method.values() if r.record["protocol"]["n_frames"]),
                         None)
         data = {"fps": made.fps or 25.0, "n_frames": n_frames, "metrics": curve_meta(), "order": list(CURVE_METRICS),
                 "gain": ERROR_GAIN,
                 "players": [{"id": w.run.id, "label": w.run.label, "family": w.run.record["method"]["family"],
                              "gt": w.run is gt, "video": w.video, "error": w.error, "missing": w.missing, "full": w.full,
+                             "audio": w.audio, "note": w.note,
                              "seed": w.run.record["seed"], "config_hash": w.run.record["config_hash"],
                              "curves": w.curves} for w in players]}
         pages.append({"subject": subject, "clip": clip, "protocol": protocol, "file": name, "players": players,

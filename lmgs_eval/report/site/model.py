@@ -202,6 +202,10 @@ MARKS_LEGEND = (f"bold: best, significantly better than the runner-up (paired bo
 
 
 # ----------------------------------------------------------------------------- watch
+WATCHED = ("self", "cross")
+"""Protocols with a Watch page, in page order."""
+
+
 @dataclass
 class WatchRun:
     """One player of the Watch page: a method's run (lowest seed) on one subject and clip."""
@@ -212,19 +216,22 @@ class WatchRun:
     error: str | None = None
     missing: str | None = None
     full: str | None = None  # the full render, relative to the site
+    audio: bool = False  # its preview carries the clip's audio (the page's clock)
+    note: str | None = None  # e.g. why it has no error map
 
 
 def watch_groups(runs: Sequence[Run]) -> dict[tuple[str, str, str], dict[str, Run]]:
     """``(subject, protocol, clip) -> {method: run}``: what each Watch page can play.
 
-    Self-driven runs only (the ground truth is a row of that protocol): one run per method,
-    its lowest seed; ablation variants and calibration controls are left out (they have
-    their own tables). The ground truth comes first.
+    Self-driven runs (with the ground truth, a row of that protocol) and cross-driven ones (one page
+    per driving clip; no ground truth exists for another clip's audio): one run per method, its
+    lowest seed; ablation variants and calibration controls are left out (they have their own
+    tables). The ground truth comes first.
     """
     out: dict[tuple[str, str, str], dict[str, Run]] = defaultdict(dict)
     for run in runs:
         r = run.record
-        if r["protocol"]["name"] != "self" or not is_ok(r) or is_variant(r) or r["method"]["family"] == "control":
+        if r["protocol"]["name"] not in WATCHED or not is_ok(r) or is_variant(r) or r["method"]["family"] == "control":
             continue
         key = (r["subject"]["name"], r["protocol"]["name"], r["protocol"]["clip"])
         name = r["method"]["name"]
@@ -232,7 +239,7 @@ def watch_groups(runs: Sequence[Run]) -> dict[tuple[str, str, str], dict[str, Ru
         if have is None or (r["seed"], run.id) < (have.record["seed"], have.id):
             out[key][name] = run
     ordered = {}
-    for key in sorted(out):
+    for key in sorted(out, key=lambda k: (k[0], WATCHED.index(k[1]), k[2])):
         group = out[key]
         names = sorted(group, key=lambda n: (group[n].record["method"]["family"] != "ground-truth",
                                              FILTER_FAMILIES.index(group[n].record["method"]["family"])
