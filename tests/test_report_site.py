@@ -169,6 +169,27 @@ def test_each_driving_clip_has_a_watch_page_without_ground_truth(site):
         assert players.count("this run recorded no render") == 3
 
 
+def test_capacity_panels_mark_the_knee_and_name_each_budgets_runs():
+    from lmgs_eval.report.capacity import budget_means, knee, points_from_records
+    from lmgs_eval.report.site.svgcharts import capacity_svgs
+    from test_results import items, metric, record
+
+    recs = []
+    for b, (psnr, fps) in {500: (30.0, 90.0), 2000: (33.0, 60.0), 8000: (33.1, 30.0)}.items():
+        for seed in (0, 1):
+            recs.append(record("lmgs", "Ours (lmgs)", "3DGS", seed, {"psnr": metric("psnr", items(psnr, 0.2, b + seed))},
+                               protocol="capacity", clip=f"budget-{b}", config={"budget": b},
+                               cost={"fps": fps, "n_gaussians": b}))
+    ids = {id(r): f"run{k}" for k, r in enumerate(recs)}
+    (cap,) = capacity_svgs(recs, ids)
+    want = knee(budget_means(points_from_records(recs)["astronaut"]))
+    assert want["budget"] == 2000 and cap["knee"] == "2000 Gaussians (budget 2000)"  # within 0.3 dB of the best
+    svg = html.unescape(cap["svg"])
+    assert svg.count("<svg") == 2  # PSNR and FPS: the panels the records have values for
+    assert svg.count('<g class="pt"') == 6 and svg.count("knee:") == 2
+    assert "budget 8000, 2 seed(s)" in svg and "runs: run4, run5" in svg
+
+
 def test_players_link_their_full_render(site):
     watch = (site / "watch-astronaut-test.html").read_text()
     links = re.findall(r'<a href="([^"]+)" title="the render itself, full size">', watch)

@@ -102,7 +102,7 @@ def build_site(store: str | os.PathLike, out: str | os.PathLike, previews: bool 
         watches = _watch_players(tmp, out, Path(renders) if renders is not None else store, groups, previews, old_media,
                                  log)
         static_files = _static_charts(records, store, tmp, log) if charts else []
-        from lmgs_eval.report.site.svgcharts import speed_charts_svg
+        from lmgs_eval.report.site.svgcharts import capacity_svgs, speed_charts_svg
 
         common = {"subjects": subjects, "watches": watches, "n_runs": len(runs), "store": str(store),
                   "families": [f for f in FILTER_FAMILIES if any(r["method"]["family"] == f for r in records)]}
@@ -119,6 +119,7 @@ def build_site(store: str | os.PathLike, out: str | os.PathLike, previews: bool 
         calibration = [t for s in subjects for t in boards.get(s, []) if t.id.startswith("calibration")]
         stability = [t for s in subjects for t in boards.get(s, []) if t.id.startswith("stability")]
         page("charts.html", "charts.html.j2", title="Charts", charts=svg, static=static_files,
+             capacity=capacity_svgs(records, run_ids),
              calibration=calibration, stability=stability)
         for w in watches:
             page(w["file"], "watch.html.j2", title=f"Watch: {w['subject']} ({w['protocol']}, {w['clip']})", **w)

@@ -14,6 +14,7 @@ from collections.abc import Sequence
 from html import escape
 from typing import Any
 
+from lmgs_eval.report.capacity import budget_means, knee, points_from_records, tolerance_text
 from lmgs_eval.report.cells import by_subject, cost_cell, is_ok, is_variant, make_rows, metric_cell
 from lmgs_eval.report.charts import FAMILY_COLOURS, SPEED_CHARTS, pareto_front
 from lmgs_eval.report.table_model import METRICS
@@ -178,4 +179,71 @@ def speed_charts_svg(records: Sequence[dict[str, Any]], run_ids: dict[int, str])
                      "(self-driven)")
             out.append({"id": f"{stem}-{subject}", "title": title, "static": stem, "subject": subject,
                         "svg": speed_svg(pts, xlabel, ylabel, logx, x_higher, y_higher, f"chart-{stem}-{subject}")})
+    return out
+
+
+CAPACITY_PANELS = (("psnr", "PSNR (dB) ↑"), ("lpips", "LPIPS ↓"), ("lmd", "LMD (px) ↓"), ("fps", "FPS ↑"))
+PW, PH, PL, PB, PT = 300, 210, 52, 36, 22  # a capacity panel: size and margins
+
+
+def _capacity_panel(mean: list[dict[str, Any]], key: str, label: str, knee_x: float | None,
+                    info: dict[int, tuple[str, str]]) -> str:
+    pts = [(p["n_gaussians"] or p["budget"], p[key], p["budget"]) for p in mean if p.get(key) is not None]
+    if not pts:
+        return ""
+    xs, ys = [p[0] for p in pts], [p[1] for p in pts]
+    lx0, lx1 = math.log10(min(xs)), math.log10(max(xs))
+    pad = max(0.08 * (lx1 - lx0), 0.05)
+    lx0, lx1 = lx0 - pad, lx1 + pad
+    y0, y1 = min(ys), max(ys)
+    ypad = max(0.12 * (y1 - y0), 1e-6 * max(abs(y1), 1.0))
+    y0, y1 = y0 - ypad, y1 + ypad
+    sx = lambda v: PL + (math.log10(v) - lx0) / (lx1 - lx0) * (PW - PL - 8)  # noqa: E731
+    sy = lambda v: PT + (y1 - v) / (y1 - y0) * (PH - PT - PB)  # noqa: E731
+    yt = _ticks_lin(y0, y1, 4)
+    digits = max(0, -math.floor(math.log10(max(yt[1] - yt[0], 1e-12)))) if len(yt) > 1 else 3
+    out = [f'<svg class="chart cap" viewBox="0 0 {PW} {PH}" width="{PW}" height="{PH}" role="img" aria-label="{escape(label)}">',
+           f'<text x="{PW / 2:.0f}" y="14" class="axis" text-anchor="middle">{escape(label)}</text>',
+           f'<rect x="{PL}" y="{PT}" width="{PW - PL - 8}" height="{PH - PT - PB}" class="plot"/>']
+    for v in yt:
+        out.append(f'<text x="{PL - 4}" y="{sy(v) + 4:.1f}" class="tick" text-anchor="end">{v:.{digits}f}</text>'
+                   f'<line x1="{PL}" y1="{sy(v):.1f}" x2="{PW - 8}" y2="{sy(v):.1f}" class="grid"/>')
+    for x in xs:
+        out.append(f'<text x="{sx(x):.1f}" y="{PH - PB + 14}" class="tick" text-anchor="middle">'
+                   f'{x / 1000:.1f}k</text>' if x >= 1000 else
+                   f'<text x="{sx(x):.1f}" y="{PH - PB + 14}" class="tick" text-anchor="middle">{x:.0f}</text>')
+    out.append(f'<text x="{(PL + PW) / 2:.0f}" y="{PH - 4}" class="tick" text-anchor="middle">Gaussians (log)</text>')
+    if knee_x is not None:
+        out.append(f'<line x1="{sx(knee_x):.1f}" y1="{PT}" x2="{sx(knee_x):.1f}" y2="{PH - PB}" class="front">'
+                   f'<title>knee: {escape(tolerance_text())}</title></line>')
+    out.append(f'<polyline points="{" ".join(f"{sx(x):.1f},{sy(y):.1f}" for x, y, _ in pts)}" class="capline"/>')
+    for x, y, b in pts:
+        about, first = info.get(b, ("", ""))
+        text = f"{label.split(' ')[0]} {y:.4g} at {x:.0f} Gaussians; {about}"
+        out.append(f'<g class="pt" data-info="{escape(text)}" data-run="{escape(first)}" '
+                   f'tabindex="0"><circle cx="{sx(x):.1f}" cy="{sy(y):.1f}" r="4.5" fill="{FAMILY_COLOURS["3DGS"]}"/>'
+                   f'<title>{escape(text)}</title></g>')
+    out.append("</svg>")
+    return "".join(out)
+
+
+def capacity_svgs(records: Sequence[dict[str, Any]], run_ids: dict[int, str]) -> list[dict[str, str]]:
+    """Per subject of the capacity protocol, small panels of quality and speed against the Gaussian count
+    (mean over seeds per budget, :func:`lmgs_eval.report.capacity.budget_means`), the knee dashed,
+    a hover card per budget with its runs and config hashes."""
+    out = []
+    for subject, pts in sorted(points_from_records(records).items()):
+        mean = budget_means(pts)
+        k = knee(mean)
+        info: dict[int, tuple[str, str]] = {}
+        for b in {p["budget"] for p in pts}:
+            recs = [r for r in records if r["protocol"]["name"] == "capacity" and r["subject"]["name"] == subject
+                    and r["protocol"]["clip"] == f"budget-{b}" and is_ok(r)]
+            ids = [run_ids.get(id(r), "") for r in recs]
+            info[b] = (f"budget {b}, {len(recs)} seed(s), config {', '.join(sorted({r['config_hash'] for r in recs}))}; "
+                       f"runs: {', '.join(ids)}", ids[0] if ids else "")
+        kx = (k["n_gaussians"] or k["budget"]) if k is not None else None
+        panels = [_capacity_panel(mean, key, label, kx, info) for key, label in CAPACITY_PANELS]
+        out.append({"subject": subject, "svg": "".join(p for p in panels if p),
+                    "knee": None if k is None else f"{kx:.0f} Gaussians (budget {k['budget']})"})
     return out
