@@ -8,7 +8,7 @@ const fps = data.fps;
 const nFrames = data.n_frames || 1;
 const figures = Array.from(document.querySelectorAll("#players figure.player"));
 const videos = () => Array.from(document.querySelectorAll("#players video"));
-const master = () => document.querySelector("#players figure.gt video.main") || videos()[0] || null;
+const master = () => document.querySelector("#players video.clock") || videos()[0] || null;
 const playBtn = document.getElementById("play");
 const seekBar = document.getElementById("seek");
 const frameNo = document.getElementById("frame-no");
@@ -202,7 +202,8 @@ playBtn.addEventListener("click", () => (playing ? pause() : play()));
 document.getElementById("back").addEventListener("click", () => { if (playing) pause(); seekAll(Number(seekBar.value) - 1); });
 document.getElementById("fwd").addEventListener("click", () => { if (playing) pause(); seekAll(Number(seekBar.value) + 1); });
 seekBar.addEventListener("input", () => { if (playing) pause(); seekAll(Number(seekBar.value)); });
-document.getElementById("errmap").addEventListener("change", (e) => setErrorMap(e.target.checked));
+const errBox = document.getElementById("errmap");
+if (errBox) errBox.addEventListener("change", (e) => setErrorMap(e.target.checked));
 document.getElementById("sound").addEventListener("change", (e) => { const m = master(); if (m) m.muted = !e.target.checked; });
 document.getElementById("chooser").addEventListener("change", setChosen);
 document.addEventListener("keydown", (e) => {
