@@ -216,6 +216,21 @@ def test_an_out_folder_that_is_not_a_report_is_never_replaced(site, tmp_path):
     assert rc == 0 and (tmp_path / "site" / "index.html").is_file()
 
 
+def test_a_render_that_does_not_decode_is_named_on_its_player_and_the_site_is_made(site, tmp_path):
+    import shutil
+
+    from lmgs_eval.report.site import build_site
+
+    store = tmp_path / "results"
+    shutil.copytree(site.parent, store, ignore=shutil.ignore_patterns("report"))
+    (store / "renders" / "talkinggaussian.mp4").write_bytes(b"not a video")
+    index, _ = build_site(store, tmp_path / "site", charts=False)
+    watch = html.unescape((index.parent / "watch-astronaut-test.html").read_text())
+    block = watch.split('data-id="astronaut__self__talkinggaussian--test--seed0')[1].split("</figure>")[0]
+    assert "render not readable" in block and "talkinggaussian.mp4" in block and "<video" not in block
+    assert watch.count('<video class="main') == 2  # the ground truth and lmgs still play
+
+
 def test_bad_results_folder_is_one_line_and_writes_nothing(tmp_path):
     rc, out, err = run_cli("report", "--results", str(tmp_path / "nope"), "--out", str(tmp_path / "site"))
     assert rc == 2 and "--results" in err and "not a folder" in err and "Traceback" not in err

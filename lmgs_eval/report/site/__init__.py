@@ -73,7 +73,8 @@ def build_site(store: str | os.PathLike, out: str | os.PathLike, previews: bool 
         The index page's path and one warning per record file that was skipped.
 
     Raises:
-        UserError: ``store`` is not a folder, or holds no valid record.
+        UserError: ``store`` is not a folder or holds no valid record; ``out`` is a file, the store or
+            above it, or a folder that is neither empty nor an earlier report (it is replaced whole).
     """
     store, out = Path(store), Path(out)
     if not store.is_dir():
@@ -101,7 +102,7 @@ def build_site(store: str | os.PathLike, out: str | os.PathLike, previews: bool 
         # atomic_dir removes the old site only once this one is written: its previews can be reused
         watches = _watch_players(tmp, out, Path(renders) if renders is not None else store, groups, previews, old_media,
                                  log)
-        static_files = _static_charts(records, store, tmp, log) if charts else []
+        static_files = _static_charts(records, tmp, log) if charts else []
         from lmgs_eval.report.site.svgcharts import capacity_svgs, speed_charts_svg
 
         common = {"subjects": subjects, "watches": watches, "n_runs": len(runs), "store": str(store),
@@ -202,7 +203,7 @@ def _watch_players(tmp: Path, out: Path, store: Path, groups: dict, previews: bo
     return pages
 
 
-def _static_charts(records: list[dict[str, Any]], store: Path, tmp: Path, log: Callable[[str], None]) -> list[str]:
+def _static_charts(records: list[dict[str, Any]], tmp: Path, log: Callable[[str], None]) -> list[str]:
     """The matplotlib charts (PNG, and SVG where made) under ``charts/``; site-relative paths of the PNGs."""
     from lmgs_eval.report.charts import all_charts
 

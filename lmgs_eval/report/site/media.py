@@ -134,7 +134,14 @@ class Previews:
         return f"media/{name}"
 
     def preview(self, rec: dict[str, Any], audio: bool) -> tuple[str | None, str | None]:
-        """``(site-relative file, None)`` for a record's render preview, or ``(None, why)``."""
+        """``(site-relative file, None)`` for a record's render preview, or ``(None, why)``
+        (no render here, or one that does not decode: the page says so, the rest of the site is made)."""
+        try:
+            return self._preview(rec, audio)
+        except UserError as exc:
+            return None, f"render not readable: {exc}"
+
+    def _preview(self, rec: dict[str, Any], audio: bool) -> tuple[str | None, str | None]:
         path, sha, why = self._source(rec)
         if path is None:
             return None, why
@@ -147,6 +154,12 @@ class Previews:
 
     def error(self, rec: dict[str, Any], gt: dict[str, Any]) -> tuple[str | None, str | None]:
         """``(site-relative file, None)`` for the error map of a render against the ground truth's, or ``(None, why)``."""
+        try:
+            return self._error(rec, gt)
+        except UserError as exc:
+            return None, f"no error map: {exc}"
+
+    def _error(self, rec: dict[str, Any], gt: dict[str, Any]) -> tuple[str | None, str | None]:
         path, sha, why = self._source(rec)
         gpath, gsha, gwhy = self._source(gt)
         if path is None or gpath is None:
