@@ -38,8 +38,8 @@ def test_bench_runs_each_stage_once_and_a_failing_stage_does_not_stop_the_rest(t
     monkeypatch.setattr(stress, "run_stress", stress_)
     monkeypatch.setattr(capacity, "run_capacity", capacity_)
     monkeypatch.setattr(table, "run", lambda a: calls.append(("table", a.out, a.records)))
-    monkeypatch.setattr(demo, "_report", lambda results, out, renders=None: calls.append(
-        ("report", results, out, renders)) or out / "index.html")
+    monkeypatch.setattr(demo, "_report", lambda results, out, renders=None, preview_side=256: calls.append(
+        ("report", results, out, renders, preview_side)) or out / "index.html")
     args = argparse.Namespace(results=str(tmp_path / "results"), out=str(tmp_path / "tables"), data_root=None, no_progress=True)
     rc = demo.run_full(args)
     out = capsys.readouterr().out
@@ -47,7 +47,7 @@ def test_bench_runs_each_stage_once_and_a_failing_stage_does_not_stop_the_rest(t
     assert "failed: hopper / wav2lip: no cross clips" in out and "RuntimeError: worker died" in out
     # the report is made last, from the committed records with this store's renders, and its index printed
     tables = tmp_path / "tables"
-    assert calls[-1] == ("report", tables / "records", tables / "report", tmp_path / "results")
+    assert calls[-1] == ("report", tables / "records", tables / "report", tmp_path / "results", demo.REPORT_PREVIEW_SIDE)
     assert f"report (open in a browser): {(tables / 'report' / 'index.html').resolve()}" in out
     for subject in demo.FULL_SUBJECTS:
         for m in demo.FULL_METHODS:

@@ -108,6 +108,18 @@ def test_previews_are_h264_and_the_error_map_is_the_gained_absolute_difference(s
         assert np.abs(bg - want).mean() < 3, (bg.mean(), want.mean())
 
 
+def test_previews_are_downscaled_to_the_side_asked_for(site, tmp_path):
+    import shutil
+
+    from lmgs_eval.report.site import build_site
+
+    store = tmp_path / "results"
+    shutil.copytree(site.parent, store, ignore=shutil.ignore_patterns("report"))
+    index, _ = build_site(store, tmp_path / "site", charts=False, preview_side=32)
+    for f in (index.parent / "media").iterdir():
+        assert _decode(f)[0].shape[1:3] == (32, 32), f.name
+
+
 def test_a_run_whose_render_is_elsewhere_says_so_on_its_player(site):
     watch = html.unescape((site / "watch-astronaut-test.html").read_text())
     block = watch.split('data-id="astronaut__self__ernerf--test--seed0')[1].split("</figure>")[0]
@@ -204,6 +216,8 @@ def test_an_out_folder_that_is_not_a_report_is_never_replaced(site, tmp_path):
     rc, out, err = run_cli("report", "--results", str(site.parent), "--out", str(keep), "--no-static-charts")
     assert rc == 2 and "--out" in err and "not a report" in err and "Traceback" not in err
     assert [p.name for p in keep.iterdir()] == ["table1_self.md"]
+    rc, out, err = run_cli("report", "--results", str(site.parent), "--out", str(tmp_path / "new"), "--preview-side", "8")
+    assert rc == 2 and "--preview-side 8" in err and not (tmp_path / "new").exists()
     (tmp_path / "file").write_text("x")
     rc, out, err = run_cli("report", "--results", str(site.parent), "--out", str(tmp_path / "file"))
     assert rc == 2 and "is a file" in err

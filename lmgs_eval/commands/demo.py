@@ -17,6 +17,7 @@ HELP = ("the main job: build astronaut, run self and cross with lmgs (quick pres
         "--full: every method on both bundled subjects, ablations, stress and capacity (make bench)")
 
 FULL_SUBJECTS = ("astronaut", "hopper")
+REPORT_PREVIEW_SIDE = 160
 FULL_METHODS = ("lmgs", "talkinggaussian", "degstalk", "gaussiantalker", "wav2lip", "ip_lap",
                 "ernerf", "radnerf", "adnerf", "geneface")
 # Five seeds for the comparison the paper is about (lmgs against its backbone): on astronaut the
@@ -122,8 +123,9 @@ def run_full(args: argparse.Namespace) -> int:
             log(f"[bench] {label} failed: {exc}")
     table.run(argparse.Namespace(results=results, format="all", out=out, ci=False, no_charts=False,
                                  records=archive))
-    # from the committed snapshot of records (its pages link those), with the renders of this store
-    index = _report(archive, out / "report", renders=results)
+    # from the committed snapshot of records (its pages link those), with the renders of this store;
+    # 160 px previews keep the committed report small (24 players and 22 error maps)
+    index = _report(archive, out / "report", renders=results, preview_side=REPORT_PREVIEW_SIDE)
     print(f"\nbenchmark finished in {(time.perf_counter() - t0) / 60:.0f} min; tables and charts: {out.resolve()}")
     print(f"  report (open in a browser): {index.resolve()}")
     for f in failures:
@@ -166,10 +168,10 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _report(results: Path, out: Path, renders: Path | None = None) -> Path:
+def _report(results: Path, out: Path, renders: Path | None = None, preview_side: int = 256) -> Path:
     """The static site of the store (``lmgs-eval report``); returns its index page."""
     from lmgs_eval.report.site import build_site
     from lmgs_eval.runner import log
 
-    index, _ = build_site(results, out, renders=renders, log=log)
+    index, _ = build_site(results, out, renders=renders, preview_side=preview_side, log=log)
     return index

@@ -56,7 +56,7 @@ def _env():
 
 
 def build_site(store: str | os.PathLike, out: str | os.PathLike, previews: bool = True,
-               charts: bool = True, renders: str | os.PathLike | None = None,
+               charts: bool = True, renders: str | os.PathLike | None = None, preview_side: int = 256,
                log: Callable[[str], None] = lambda s: None) -> tuple[Path, list[str]]:
     """Write the site for results store ``store`` into folder ``out`` (replaced atomically).
 
@@ -67,6 +67,7 @@ def build_site(store: str | os.PathLike, out: str | os.PathLike, previews: bool 
         charts: write the static PNG / SVG charts (matplotlib) beside the interactive ones.
         renders: the folder that records' relative render paths are under (default ``store``): a
             snapshot of records (``tables/records``) with the store that made them.
+        preview_side: the longer side of the video previews, in pixels.
         log: called with one line per step.
 
     Returns:
@@ -101,7 +102,7 @@ def build_site(store: str | os.PathLike, out: str | os.PathLike, previews: bool 
         (tmp / MARKER).write_text("made by lmgs-eval report; this folder is replaced whole when the report is rebuilt\n")
         # atomic_dir removes the old site only once this one is written: its previews can be reused
         watches = _watch_players(tmp, out, Path(renders) if renders is not None else store, groups, previews, old_media,
-                                 log)
+                                 preview_side, log)
         static_files = _static_charts(records, tmp, log) if charts else []
         from lmgs_eval.report.site.svgcharts import capacity_svgs, speed_charts_svg
 
@@ -161,11 +162,11 @@ def _protocol_counts(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 def _watch_players(tmp: Path, out: Path, store: Path, groups: dict, previews: bool, reuse: Path | None,
-                   log: Callable[[str], None]) -> list[dict[str, Any]]:
+                   side: int, log: Callable[[str], None]) -> list[dict[str, Any]]:
     """One Watch page's context per (subject, protocol, clip), its previews written under ``tmp/media``."""
     from lmgs_eval.report.site.media import ERROR_GAIN, Previews
 
-    made = Previews(store, tmp / "media", reuse=reuse)
+    made = Previews(store, tmp / "media", reuse=reuse, max_side=side)
     pages = []
     for (subject, protocol, clip), by_method in groups.items():
         gt = next((r for r in by_method.values() if r.record["method"]["family"] == "ground-truth"), None)

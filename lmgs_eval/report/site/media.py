@@ -1,7 +1,7 @@
 """The Watch page's videos: small H.264 previews of the renders and error maps |render - GT|.
 
 A preview is the render downscaled so its longer side is at most ``max_side`` pixels and
-re-encoded as H.264 in mp4 (``yuv420p``, CRF :data:`CRF`), the format every Chromium,
+re-encoded as H.264 in mp4 (``yuv420p``, CRF :data:`CRF`; error maps :data:`ERROR_CRF`), the format every Chromium,
 Firefox and Safari plays; the ground truth's preview keeps the clip's audio (AAC), the
 methods' are silent (the page plays one audio for all). The error map is the per-pixel
 mean over channels of ``|render - GT|`` times :data:`ERROR_GAIN`, clipped to [0, 1], in grey.
@@ -23,6 +23,7 @@ from lmgs_eval.errors import UserError
 from lmgs_eval.results import resolve_artefact
 
 CRF = "30"
+ERROR_CRF = "36"  # error maps are grey noise: at CRF 30 they cost three times a preview (8 s at 256 px: 431 vs 148 KiB)
 ERROR_GAIN = 4.0
 MAX_SIDE = 256
 
@@ -39,7 +40,8 @@ def _downscale(frames: np.ndarray, max_side: int) -> np.ndarray:
     return np.stack([cv2.resize(f, (nw, nh), interpolation=cv2.INTER_AREA) for f in frames])
 
 
-def _encode(path: Path, frames: np.ndarray, fps: float, audio: np.ndarray | None, sr: int | None) -> None:
+def _encode(path: Path, frames: np.ndarray, fps: float, audio: np.ndarray | None, sr: int | None,
+            crf: str = CRF) -> None:
     import av
 
     frames = np.clip(np.rint(frames * 255.0), 0, 255).astype(np.uint8)
@@ -49,7 +51,7 @@ def _encode(path: Path, frames: np.ndarray, fps: float, audio: np.ndarray | None
         vs = c.add_stream("libx264", rate=int(round(fps)))
         vs.width, vs.height = w, h
         vs.pix_fmt = "yuv420p"
-        vs.options = {"crf": CRF, "preset": "medium", "movflags": "+faststart"}
+        vs.options = {"crf": crf, "preset": "medium", "movflags": "+faststart"}
         as_ = None
         if audio is not None and len(audio) and sr:
             as_ = c.add_stream("aac", rate=int(sr))
@@ -150,7 +152,7 @@ class Previews:
             frames, fps, aud, sr = self._frames(path)
             _encode(out, frames, fps, aud if audio else None, sr)
 
-        return self._file(f"{sha[:16]}{'-a' if audio else ''}.mp4", make), None
+        return self._file(f"{sha[:16]}-{self.max_side}{'-a' if audio else ''}.mp4", make), None
 
     def error(self, rec: dict[str, Any], gt: dict[str, Any]) -> tuple[str | None, str | None]:
         """``(site-relative file, None)`` for the error map of a render against the ground truth's, or ``(None, why)``."""
@@ -173,9 +175,9 @@ class Previews:
         def make(out: Path) -> None:
             rr, fps, _, _ = self._frames(path)
             gg = self._frames(gpath)[0]
-            _encode(out, error_map(rr, gg), fps, None, None)
+            _encode(out, error_map(rr, gg), fps, None, None, crf=ERROR_CRF)
 
-        return self._file(f"{sha[:16]}-err-{gsha[:8]}.mp4", make), None
+        return self._file(f"{sha[:16]}-{self.max_side}-err-{gsha[:8]}.mp4", make), None
 
 
-__all__ = ["CRF", "ERROR_GAIN", "MAX_SIDE", "Previews", "error_map"]
+__all__ = ["CRF", "ERROR_CRF", "ERROR_GAIN", "MAX_SIDE", "Previews", "error_map"]

@@ -198,7 +198,8 @@ def _heat(t: Table, rows: Sequence[HtmlRow]) -> None:
 MARKS_LEGEND = (f"bold: best, significantly better than the runner-up (paired bootstrap and Wilcoxon over the same "
                 f"items, p < 0.05); underlined: runner-up; {TIE}: not significantly different from the best (no winner); "
                 f"{MIXED}: the column mixes metric backends and is not ranked; {BUSY}: timed on a busy or slowed host; "
-                "[lo, hi]: bootstrap 95% CI over items and seeds.")
+                "[lo, hi]: bootstrap 95% CI over items and seeds; S on a column: its scorer is a stand-in, "
+                "stand-in on a row: the method has parts that stand in for the paper's (hover either for what).")
 
 
 # ----------------------------------------------------------------------------- watch
