@@ -45,18 +45,30 @@ async function play() {
 function pause() {
   playing = false;
   playBtn.textContent = "▶ Play";
-  videos().forEach((v) => v.pause());
+  videos().forEach((v) => { v.pause(); v.playbackRate = 1; });
   const m = master();
   if (m) seekAll(frameOf(m.currentTime));  // land every player on the same frame
 }
 
+// While playing, a follower that drifts is nudged by its playback rate (a seek stalls a video and makes it drift
+// more); only a follower far off (after a stall) is moved by a seek.
+const HARD = 0.25;  // seconds
 function tick() {
   const m = master();
   if (!m) return;
   const t = m.currentTime;
   for (const v of videos()) {
     if (v === m) continue;
-    if (Math.abs(v.currentTime - t) > 0.5 / fps) v.currentTime = t;
+    const drift = v.currentTime - t;
+    if (!playing || m.paused) {
+      v.playbackRate = 1;
+      if (Math.abs(drift) > 0.5 / fps) v.currentTime = t;
+    } else if (Math.abs(drift) > HARD) {
+      v.currentTime = t + 0.05;  // it resumes a little later: land slightly ahead
+      v.playbackRate = 1;
+    } else {
+      v.playbackRate = Math.abs(drift) > 0.25 / fps ? Math.min(1.5, Math.max(0.5, 1 - drift * 4)) : 1;
+    }
     if (playing && v.paused && !m.paused) v.play().catch(() => undefined);
   }
   update(frameOf(t));
