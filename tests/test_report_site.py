@@ -321,9 +321,9 @@ def test_chart_hover_names_the_run_and_config_hash(site, browser):
     assert lmgs["config_hash"] in text and "astronaut__self__lmgs--test--seed0" in text
 
 
-PRESENTED = """(() => { window.shown = {}; for (const v of document.querySelectorAll('#players video')) {
+PRESENTED = """(() => { window.__presented = {}; for (const v of document.querySelectorAll('#players video')) {
   const id = v.closest('figure').dataset.id + (v.classList.contains('err') ? ':err' : '');
-  const cb = (now, meta) => { window.shown[id] = meta.mediaTime; v.requestVideoFrameCallback(cb); };
+  const cb = (now, meta) => { window.__presented[id] = meta.mediaTime; v.requestVideoFrameCallback(cb); };
   v.requestVideoFrameCallback(cb); } return true; })()"""
 
 
@@ -341,7 +341,7 @@ def test_players_start_together_and_stay_within_one_frame_after_a_seek(site, bro
         frames = _frames_now(browser)
         assert max(frames) - min(frames) <= 1 and abs(frames[0] - frame) <= 1, frames
         # the frame each player presents (requestVideoFrameCallback), not only its clock
-        browser.wait_for("Object.keys(window.shown).length === 5 && Object.values(window.shown)"
+        browser.wait_for("Object.keys(window.__presented).length === 5 && Object.values(window.__presented)"
                          f".every(t => Math.abs(t * 25 - {frame}) < 1.5)", timeout=10)
         assert browser.eval("document.getElementById('cursor').dataset.frame") == str(frame)
         assert browser.eval("document.getElementById('frame-no').textContent").startswith(f"frame {frame} ")
@@ -427,6 +427,9 @@ def test_frame_steps_error_map_and_worst_frames(site, browser, tmp_path):
     assert int(first) == worst
     browser.eval("document.querySelector('.worst[data-id^=\"astronaut__self__lmgs--\"] button.jump').click()")
     browser.wait_for(f"document.getElementById('cursor').dataset.frame === '{worst}'")
+    # the readout under the curves gives each method's value at that frame, as the record has it
+    readout = browser.eval("document.getElementById('readout').textContent")
+    assert readout.startswith(f"frame {worst}, LMD: ") and f"Ours (lmgs) {lmgs['metrics']['lmd']['per_item'][worst]:.2f}" in readout
     frames = _frames_now(browser)
     assert max(frames) - min(frames) <= 1 and abs(frames[0] - worst) <= 1
     _shot(browser, tmp_path, "watch-error-map")
