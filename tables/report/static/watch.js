@@ -79,6 +79,7 @@ function tick() {
 function update(frame) {
   seekBar.value = String(frame);
   frameNo.textContent = `frame ${frame} / ${nFrames - 1}`;
+  readout(frame);
   const cur = document.getElementById("cursor");
   if (cur) {
     const x = xOf(frame);
@@ -86,6 +87,23 @@ function update(frame) {
     cur.setAttribute("x2", x.toFixed(1));
     cur.dataset.frame = String(frame);
   }
+}
+
+// the chosen metric of every shown player at the cursor's frame, under the curves
+function readout(frame) {
+  const box = document.getElementById("readout");
+  const key = metricSel.value;
+  if (!box || !key) return;
+  const meta = data.metrics[key];
+  const parts = [];
+  shown().forEach((p) => {
+    const vs = p.curves[key];
+    if (!vs || !drawable(p, key)) return;
+    const i = frame - Math.floor((nFrames - vs.length) / 2);
+    const v = i >= 0 && i < vs.length ? vs[i] : null;
+    parts.push(`${p.label} ${v === null ? "–" : v.toFixed(meta.digits)}`);
+  });
+  box.textContent = parts.length ? `frame ${frame}, ${meta.label}: ${parts.join(" · ")}` : "";
 }
 
 // ------------------------------------------------------------------ curves
