@@ -28,6 +28,7 @@ _OPTIONAL: dict[str, str] = {
     "self": "lmgs_eval.commands.self_driven",
     "cross": "lmgs_eval.commands.cross",
     "table": "lmgs_eval.commands.table",
+    "report": "lmgs_eval.commands.report",
     "stress": "lmgs_eval.commands.stress",
     "capacity": "lmgs_eval.commands.capacity",
     "verify": "lmgs_eval.commands.verify",

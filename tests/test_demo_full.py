@@ -38,11 +38,17 @@ def test_bench_runs_each_stage_once_and_a_failing_stage_does_not_stop_the_rest(t
     monkeypatch.setattr(stress, "run_stress", stress_)
     monkeypatch.setattr(capacity, "run_capacity", capacity_)
     monkeypatch.setattr(table, "run", lambda a: calls.append(("table", a.out, a.records)))
+    monkeypatch.setattr(demo, "_report", lambda results, out, renders=None, preview_side=256: calls.append(
+        ("report", results, out, renders, preview_side)) or out / "index.html")
     args = argparse.Namespace(results=str(tmp_path / "results"), out=str(tmp_path / "tables"), data_root=None, no_progress=True)
     rc = demo.run_full(args)
     out = capsys.readouterr().out
     assert rc == 1  # two stages failed, and the benchmark says so
     assert "failed: hopper / wav2lip: no cross clips" in out and "RuntimeError: worker died" in out
+    # the report is made last, from the committed records with this store's renders, and its index printed
+    tables = tmp_path / "tables"
+    assert calls[-1] == ("report", tables / "records", tables / "report", tmp_path / "results", demo.REPORT_PREVIEW_SIDE)
+    assert f"report (open in a browser): {(tables / 'report' / 'index.html').resolve()}" in out
     for subject in demo.FULL_SUBJECTS:
         for m in demo.FULL_METHODS:
             seeds = demo.FULL_SEEDS.get(m, (0,))
@@ -59,5 +65,5 @@ def test_bench_runs_each_stage_once_and_a_failing_stage_does_not_stop_the_rest(t
             assert not any(c[0] == "cross" and c[2] == (v,) for c in calls)
     assert ("stress", demo.STRESS_SUBJECT, demo.FULL_STRESS, 2) in calls
     # the stages after the failed stress stage still ran: capacity on both subjects, then the tables
-    assert calls[-3:] == [("capacity", "astronaut", DEFAULT_BUDGETS), ("capacity", "hopper", (4000, 10000, 16000)),
-                          ("table", tmp_path / "tables", tmp_path / "tables" / "records")]
+    assert calls[-4:-1] == [("capacity", "astronaut", DEFAULT_BUDGETS), ("capacity", "hopper", (4000, 10000, 16000)),
+                            ("table", tmp_path / "tables", tmp_path / "tables" / "records")]

@@ -2,8 +2,8 @@
 
 Builds the bundled ``astronaut`` subject (cached), runs the self-driven protocol with the
 ``quick`` preset, the cross-driven protocol with the bundled clips A and B, and writes the
-tables and charts; prints where the tables, charts and videos are. Resumable: finished runs
-are found in the results store and not redone.
+tables, charts and the report site (``lmgs-eval report``); prints where they are, the
+report's index page last. Resumable: finished runs are found in the results store and not redone.
 """
 
 from __future__ import annotations
@@ -12,10 +12,12 @@ import argparse
 import time
 from pathlib import Path
 
-HELP = ("the main job: build astronaut, run self and cross with lmgs (quick preset), write tables and charts; "
+HELP = ("the main job: build astronaut, run self and cross with lmgs (quick preset), write tables, charts and the "
+        "report site; "
         "--full: every method on both bundled subjects, ablations, stress and capacity (make bench)")
 
 FULL_SUBJECTS = ("astronaut", "hopper")
+REPORT_PREVIEW_SIDE = 160
 FULL_METHODS = ("lmgs", "talkinggaussian", "degstalk", "gaussiantalker", "wav2lip", "ip_lap",
                 "ernerf", "radnerf", "adnerf", "geneface")
 # Five seeds for the comparison the paper is about (lmgs against its backbone): on astronaut the
@@ -121,7 +123,11 @@ def run_full(args: argparse.Namespace) -> int:
             log(f"[bench] {label} failed: {exc}")
     table.run(argparse.Namespace(results=results, format="all", out=out, ci=False, no_charts=False,
                                  records=archive))
+    # from the committed snapshot of records (its pages link those), with the renders of this store;
+    # 160 px previews keep the committed report small (24 players and 22 error maps)
+    index = _report(archive, out / "report", renders=results, preview_side=REPORT_PREVIEW_SIDE)
     print(f"\nbenchmark finished in {(time.perf_counter() - t0) / 60:.0f} min; tables and charts: {out.resolve()}")
+    print(f"  report (open in a browser): {index.resolve()}")
     for f in failures:
         print(f"  failed: {f}")
     return 1 if failures else 0
@@ -153,8 +159,19 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else results / "tables"
     targs = argparse.Namespace(results=results, format="all", out=out, ci=False, no_charts=False, records=None)
     table.run(targs)
+    index = _report(results, results / "report")
     print(f"\ndemo finished in {time.perf_counter() - t0:.0f} s")
     print(f"  tables and charts: {out.resolve()}")
     print(f"  videos (with sound): {(results / 'renders').resolve()}")
     print(f"  results records: {results.resolve()}")
+    print(f"  report (open in a browser): {index.resolve()}")
     return 0
+
+
+def _report(results: Path, out: Path, renders: Path | None = None, preview_side: int = 256) -> Path:
+    """The static site of the store (``lmgs-eval report``); returns its index page."""
+    from lmgs_eval.report.site import build_site
+    from lmgs_eval.runner import log
+
+    index, _ = build_site(results, out, renders=renders, preview_side=preview_side, log=log)
+    return index
