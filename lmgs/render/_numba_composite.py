@@ -144,23 +144,128 @@ def _span(m, ext, lo, n):  # pragma: no cover - compiled
 # run to ``nl``, an argument equal to TILE.
 PIX = TILE * TILE
 _U = np.uint64
-F_T, F_STOP, F_W, F_X, F_ACC = _U(0), _U(PIX), _U(2 * PIX), _U(3 * PIX), _U(4 * PIX)  # F_ACC: nf fields
-B_T, B_LST, B_X, B_G = _U(0), _U(PIX), _U(2 * PIX), _U(3 * PIX)  # B_G: NF + 1 fields
-B_S = _U((4 + NF) * PIX)  # NF fields
-B_GL = _U((4 + 2 * NF) * PIX)  # GROW fields: one Gaussian's gradient at each pixel of its rows
-B_SIZE = (4 + 2 * NF + GROW) * PIX
+F_T, F_STOP, F_X, F_Y, F_ACC = _U(0), _U(PIX), _U(2 * PIX), _U(3 * PIX), _U(4 * PIX)  # F_ACC: nf fields
+B_T, B_LST, B_X, B_Y, B_G = _U(0), _U(PIX), _U(2 * PIX), _U(3 * PIX), _U(4 * PIX)  # B_G: NF + 1 fields
+B_S = _U((5 + NF) * PIX)  # NF fields
+B_GL = _U((5 + 2 * NF) * PIX)  # GROW fields: one Gaussian's gradient terms at each pixel of its rows
+B_SIZE = (5 + 2 * NF + GROW) * PIX
+
+
+@njit(inline="always")
+def _bwd_rows(st, r0, r1, mxl, myl, ca, cb, cc, op, kf, cst, fv):  # pragma: no cover - compiled
+    """One Gaussian over the tile pixels ``r0 <= u < r1`` (whole rows), back to front: updates
+    ``T`` and ``S`` of those pixels and writes the Gaussian's 13 gradient terms at each of
+    them (fields ``B_GL``; :func:`_sum_terms` adds them up)."""
+    zero, one, half, amax, amin, smax = cst[0], cst[1], cst[2], cst[3], cst[4], cst[6]
+    ha, hc = half * ca, half * cc
+    g0 = g1 = g2 = g3 = g4 = g5 = g6 = g7 = g8 = g9 = g10 = g11 = g12 = zero
+    for u in range(r0, r1):
+        dx = mxl - st[B_X + u]
+        dy = myl - st[B_Y + u]
+        sig = (ha * dx) * dx + (cb * dx) * dy + (hc * dy) * dy
+        e = _exp_neg(min(max(sig, zero), smax))
+        raw = op * e
+        al = min(amax, raw)
+        ok = (sig >= zero) & (al >= amin) & (kf < st[B_LST + u])
+        okf = one if ok else zero
+        inv = one / (one - al)
+        t_old = st[B_T + u]
+        tl = t_old * inv
+        st[B_T + u] = tl if ok else t_old
+        wk = al * tl * okf
+        g_al = st[B_G + _U(NF * PIX) + u] * inv
+        gf = st[B_G + u]
+        s_f = st[B_S + u]
+        g6 += wk * gf
+        g_al += gf * (fv[0] * tl - s_f * inv)
+        st[B_S + u] = s_f + wk * fv[0]
+        gf = st[B_G + _U(PIX) + u]
+        s_f = st[B_S + _U(PIX) + u]
+        g7 += wk * gf
+        g_al += gf * (fv[1] * tl - s_f * inv)
+        st[B_S + _U(PIX) + u] = s_f + wk * fv[1]
+        gf = st[B_G + _U(2 * PIX) + u]
+        s_f = st[B_S + _U(2 * PIX) + u]
+        g8 += wk * gf
+        g_al += gf * (fv[2] * tl - s_f * inv)
+        st[B_S + _U(2 * PIX) + u] = s_f + wk * fv[2]
+        gf = st[B_G + _U(3 * PIX) + u]
+        s_f = st[B_S + _U(3 * PIX) + u]
+        g9 += wk * gf
+        g_al += gf * (fv[3] * tl - s_f * inv)
+        st[B_S + _U(3 * PIX) + u] = s_f + wk * fv[3]
+        gf = st[B_G + _U(4 * PIX) + u]
+        s_f = st[B_S + _U(4 * PIX) + u]
+        g10 += wk * gf
+        g_al += gf * (fv[4] * tl - s_f * inv)
+        st[B_S + _U(4 * PIX) + u] = s_f + wk * fv[4]
+        gf = st[B_G + _U(5 * PIX) + u]
+        s_f = st[B_S + _U(5 * PIX) + u]
+        g11 += wk * gf
+        g_al += gf * (fv[5] * tl - s_f * inv)
+        st[B_S + _U(5 * PIX) + u] = s_f + wk * fv[5]
+        gf = st[B_G + _U(6 * PIX) + u]
+        s_f = st[B_S + _U(6 * PIX) + u]
+        g12 += wk * gf
+        g_al += gf * (fv[6] * tl - s_f * inv)
+        st[B_S + _U(6 * PIX) + u] = s_f + wk * fv[6]
+        g_al = g_al * okf if raw <= amax else zero
+        g_sig = -g_al * al
+        g5 += g_al * e
+        g0 += g_sig * (ca * dx + cb * dy)
+        g1 += g_sig * (cb * dx + cc * dy)
+        g2 += g_sig * half * dx * dx
+        g3 += g_sig * dx * dy
+        g4 += g_sig * half * dy * dy
+    return g0, g1, g2, g3, g4, g5, g6, g7, g8, g9, g10, g11, g12
 
 
 @njit(fastmath={"reassoc"}, cache=True)
-def _sum(st, o, n, zero):  # pragma: no cover - compiled
-    """``sum(st[o:o+n])``, reassociated so that LLVM vectorises it (the same order on every call)."""
-    s = zero
-    for u in range(n):
-        s += st[o + _U(u)]
-    return s
+def _sum_terms(st, r0, r1, zero):  # pragma: no cover - compiled
+    """The 13 sums over pixels ``r0 <= u < r1`` of the fields ``B_GL``: compiled apart with
+    reassociation allowed so that LLVM vectorises them (partial sums per lane, added up at
+    the end; the order is fixed by the compiled code, the same on every call)."""
+    g0 = g1 = g2 = g3 = g4 = g5 = g6 = g7 = g8 = g9 = g10 = g11 = g12 = zero
+    for u in range(r0, r1):
+        g0 += st[B_GL + u]
+        g1 += st[B_GL + _U(PIX) + u]
+        g2 += st[B_GL + _U(2 * PIX) + u]
+        g3 += st[B_GL + _U(3 * PIX) + u]
+        g4 += st[B_GL + _U(4 * PIX) + u]
+        g5 += st[B_GL + _U(5 * PIX) + u]
+        g6 += st[B_GL + _U(6 * PIX) + u]
+        g7 += st[B_GL + _U(7 * PIX) + u]
+        g8 += st[B_GL + _U(8 * PIX) + u]
+        g9 += st[B_GL + _U(9 * PIX) + u]
+        g10 += st[B_GL + _U(10 * PIX) + u]
+        g11 += st[B_GL + _U(11 * PIX) + u]
+        g12 += st[B_GL + _U(12 * PIX) + u]
+    return g0, g1, g2, g3, g4, g5, g6, g7, g8, g9, g10, g11, g12
 
 
-@njit(parallel=True, cache=True)
+@njit(inline="always")
+def _fwd_rows(st, r0, r1, mxl, myl, ha, cb, hc, op, kf, cst, fv):  # pragma: no cover - compiled
+    """One Gaussian over the tile pixels ``r0 <= u < r1`` (whole rows): the lane body of
+    :func:`forward`, with the features ``fv`` (a tuple: its length is a compile-time constant,
+    so the feature loop unrolls inside the vectorised pixel loop)."""
+    zero, one, amax, amin, tmin, smax = cst[0], cst[1], cst[3], cst[4], cst[5], cst[6]
+    for u in range(r0, r1):
+        dx = mxl - st[F_X + u]
+        dy = myl - st[F_Y + u]
+        sig = (ha * dx) * dx + (cb * dx) * dy + (hc * dy) * dy
+        al = min(amax, op * _exp_neg(min(max(sig, zero), smax)))
+        tl = st[F_T + u]
+        tt = tl * (one - al)
+        ok = (sig >= zero) & (al >= amin) & (tl > zero)
+        use = ok & (tt >= tmin)
+        w = al * tl if use else zero
+        st[F_T + u] = tt if use else (-tl if ok else tl)
+        st[F_STOP + u] = kf if use else st[F_STOP + u]
+        for f in range(len(fv)):
+            st[F_ACC + _U(f * PIX) + u] += w * fv[f]
+
+
+@njit(parallel=True, cache=True, fastmath={"contract"}, error_model="numpy")
 def forward(rows, ids, offsets, tile_order, tiles_w, width, height, nf, cst, centres, nl):  # pragma: no cover
     """Front-to-back compositing of every tile.
 
@@ -187,8 +292,9 @@ def forward(rows, ids, offsets, tile_order, tiles_w, width, height, nf, cst, cen
     for chunk in prange(tile_order.shape[0]):
         st = np.empty(4 * PIX + nf * PIX, rows.dtype)
         kbuf = np.empty(1, rows.dtype)  # an int in the dtype (an int plus a float32 is float64)
-        for u in range(PIX):
-            st[F_X + _U(u)] = centres[u % TILE] - half  # the pixel's column in its tile
+        for u in range(PIX):  # the pixel's column and row in its tile
+            st[F_X + _U(u)] = centres[u % TILE] - half
+            st[F_Y + _U(u)] = centres[u // TILE] - half
         for t in tile_order[chunk]:
             if t < 0:
                 break
@@ -198,7 +304,7 @@ def forward(rows, ids, offsets, tile_order, tiles_w, width, height, nf, cst, cen
             ty = t // tiles_w
             x_lo, y_lo = (t - ty * tiles_w) * TILE, ty * TILE
             pw, ph = min(TILE, width - x_lo), min(TILE, height - y_lo)
-            x0 = centres[x_lo]
+            x0, y0 = centres[x_lo], centres[y_lo]
             kbuf[0] = start  # intersection indices are exact in float32 below 2**24
             fstart = kbuf[0]
             for j in range(TILE):
@@ -214,31 +320,16 @@ def forward(rows, ids, offsets, tile_order, tiles_w, width, height, nf, cst, cen
                 i0, i1 = _span(rows[g, 0], rows[g, 14], x_lo, pw)
                 if j0 == j1 or i0 == i1:
                     continue
-                mxl, my = rows[g, 0] - x0, rows[g, 1]
+                mxl, my = rows[g, 0] - x0, rows[g, 1] - y0
                 ha, cb, hc, op = half * rows[g, 2], rows[g, 3], half * rows[g, 4], rows[g, 5]
                 kbuf[0] = k + 1
-                kf = kbuf[0]
-                for py in range(j0, j1):
-                    rb = _U((py - y_lo) * TILE)
-                    dy = my - centres[py]
-                    cdy, bdy = (hc * dy) * dy, cb * dy
-                    for i in range(nl):
-                        u = rb + _U(i)
-                        dx = mxl - st[F_X + u]
-                        sig = (ha * dx) * dx + bdy * dx + cdy
-                        al = min(amax, op * _exp_neg(min(max(sig, zero), smax)))
-                        tl = st[F_T + u]
-                        tt = tl * (one - al)
-                        ok = (sig >= zero) & (al >= amin) & (tl > zero)
-                        use = ok & (tt >= tmin)
-                        st[F_W + u] = al * tl if use else zero
-                        st[F_T + u] = tt if use else (-tl if ok else tl)
-                        st[F_STOP + u] = kf if use else st[F_STOP + u]
-                    for f in range(nf):
-                        fv = rows[g, 7 + f]
-                        fo = F_ACC + _U(f * PIX) + rb
-                        for i in range(nl):
-                            st[fo + _U(i)] += st[F_W + rb + _U(i)] * fv
+                r0, r1 = _U((j0 - y_lo) * TILE), _U((j1 - y_lo) * TILE)
+                if nf == NF:
+                    fv7 = (rows[g, 7], rows[g, 8], rows[g, 9], rows[g, 10], rows[g, 11], rows[g, 12], rows[g, 13])
+                    _fwd_rows(st, r0, r1, mxl, my, ha, cb, hc, op, kbuf[0], cst, fv7)
+                else:
+                    fv = (rows[g, 7], rows[g, 8], rows[g, 9])
+                    _fwd_rows(st, r0, r1, mxl, my, ha, cb, hc, op, kbuf[0], cst, fv)
                 if (k - start) % 8 == 7:
                     n_live = 0
                     for u in range(PIX):
@@ -255,7 +346,7 @@ def forward(rows, ids, offsets, tile_order, tiles_w, width, height, nf, cst, cen
     return out, t_final, last
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath={"reassoc", "contract"}, error_model="numpy")
 def backward(rows, ids, offsets, tile_order, tiles_w, width, height, t_final, last, g_out, g_alpha, cst,
              centres, nl):  # pragma: no cover - compiled
     """Per-intersection gradients ``[n_isect, 13]``, back to front per pixel.
@@ -280,6 +371,7 @@ def backward(rows, ids, offsets, tile_order, tiles_w, width, height, t_final, la
         kbuf = np.empty(1, rows.dtype)
         for u in range(PIX):
             st[B_X + _U(u)] = centres[u % TILE] - half
+            st[B_Y + _U(u)] = centres[u // TILE] - half
         for t in tile_order[chunk]:
             if t < 0:
                 break
@@ -289,7 +381,7 @@ def backward(rows, ids, offsets, tile_order, tiles_w, width, height, t_final, la
             ty = t // tiles_w
             x_lo, y_lo = (t - ty * tiles_w) * TILE, ty * TILE
             pw, ph = min(TILE, width - x_lo), min(TILE, height - y_lo)
-            x0 = centres[x_lo]
+            x0, y0 = centres[x_lo], centres[y_lo]
             kmax = start
             for j in range(TILE):
                 for i in range(TILE):
@@ -310,49 +402,13 @@ def backward(rows, ids, offsets, tile_order, tiles_w, width, height, t_final, la
                 i0, i1 = _span(rows[g, 0], rows[g, 14], x_lo, pw)
                 if j0 == j1 or i0 == i1:
                     continue
-                mxl, my = rows[g, 0] - x0, rows[g, 1]
-                ca, cb, cc, op = rows[g, 2], rows[g, 3], rows[g, 4], rows[g, 5]
-                ha, hc = half * ca, half * cc
                 fv = (rows[g, 7], rows[g, 8], rows[g, 9], rows[g, 10], rows[g, 11], rows[g, 12], rows[g, 13])
                 kbuf[0] = k
-                kf = kbuf[0]
-                for py in range(j0, j1):
-                    rb = _U((py - y_lo) * TILE)
-                    dy = my - centres[py]
-                    cdy, bdy = (hc * dy) * dy, cb * dy
-                    hdy2, cbdy, ccdy = half * dy * dy, cb * dy, cc * dy
-                    for i in range(nl):
-                        u = rb + _U(i)
-                        dx = mxl - st[B_X + u]
-                        sig = (ha * dx) * dx + bdy * dx + cdy
-                        e = _exp_neg(min(max(sig, zero), smax))
-                        raw = op * e
-                        al = min(amax, raw)
-                        ok = (sig >= zero) & (al >= amin) & (kf < st[B_LST + u])
-                        okf = one if ok else zero
-                        inv = one / (one - al)
-                        t_old = st[B_T + u]
-                        tl = t_old * inv
-                        st[B_T + u] = tl if ok else t_old
-                        wk = al * tl * okf
-                        g_al = st[B_G + _U(NF * PIX) + u] * inv
-                        for f in range(NF):
-                            gf = st[B_G + _U(f * PIX) + u]
-                            st[B_GL + _U((6 + f) * PIX) + u] = wk * gf
-                            s_f = st[B_S + _U(f * PIX) + u]
-                            g_al += gf * (fv[f] * tl - s_f * inv)
-                            st[B_S + _U(f * PIX) + u] = s_f + wk * fv[f]
-                        g_al = g_al * okf if raw <= amax else zero
-                        g_sig = -g_al * al
-                        st[B_GL + _U(5 * PIX) + u] = g_al * e
-                        st[B_GL + u] = g_sig * (ca * dx + cbdy)
-                        st[B_GL + _U(PIX) + u] = g_sig * (cb * dx + ccdy)
-                        st[B_GL + _U(2 * PIX) + u] = g_sig * half * dx * dx
-                        st[B_GL + _U(3 * PIX) + u] = g_sig * dx * dy
-                        st[B_GL + _U(4 * PIX) + u] = g_sig * hdy2
-                r0, n_px = _U((j0 - y_lo) * TILE), (j1 - j0) * TILE
+                r0, r1 = _U((j0 - y_lo) * TILE), _U((j1 - y_lo) * TILE)
+                gk = _bwd_rows(st, r0, r1, rows[g, 0] - x0, rows[g, 1] - y0, rows[g, 2], rows[g, 3], rows[g, 4],
+                               rows[g, 5], kbuf[0], cst, fv)
                 for c in range(GROW):
-                    grad[k, c] = _sum(st, B_GL + _U(c * PIX) + r0, n_px, zero)
+                    grad[k, c] = gk[c]
     return grad
 
 
