@@ -42,7 +42,11 @@ def _tile_order(n_tiles: int) -> np.ndarray:
 def _composite_rows(rows: np.ndarray, rects: np.ndarray, vis: np.ndarray, depths: np.ndarray, width: int, height: int,
                     nf: int = K.NF):
     """Sort the visible Gaussians front to back, bin them into tiles and composite their rows
-    (the first ``nf`` features: 3 is colour alone) in the dtype of ``rows``."""
+    (the first ``nf`` features: 3 is colour alone) in the dtype of ``rows``.
+
+    Returns ``out, t_final, last, (offsets, ids, tile_order, tiles_w, rows)``: ``rows`` as
+    composited (float64 when a float32 stop index could not hold every intersection index).
+    """
     tiles_w, tiles_h = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
     n_tiles = tiles_w * tiles_h
     # stable sort by depth: ties keep index order, like the dense reference
@@ -50,9 +54,11 @@ def _composite_rows(rows: np.ndarray, rects: np.ndarray, vis: np.ndarray, depths
     order = vis_ids[np.argsort(depths[vis_ids], kind="stable")].astype(np.int64)
     offsets, ids = K.bin_tiles(rects, order, n_tiles, tiles_w)
     tile_order = _tile_order(n_tiles)
+    if rows.dtype == np.float32 and ids.shape[0] >= C.F32_MAX_ISECT:
+        rows = rows.astype(np.float64)
     out, t_final, last = C.forward(rows, ids, offsets, tile_order, tiles_w, width, height, nf,
-                                   C.consts(rows.dtype), C.pixel_centres(width, height, rows.dtype), C.TILE)
-    return out, t_final, last, (offsets, ids, tile_order, tiles_w)
+                                   C.consts(rows.dtype), C.pixel_centres(width, height, rows.dtype))
+    return out, t_final, last, (offsets, ids, tile_order, tiles_w, rows)
 
 
 class _Composite(torch.autograd.Function):
@@ -62,7 +68,7 @@ class _Composite(torch.autograd.Function):
         rects = tile_rects(means2d, radii, width, height).numpy()
         kd = _kernel_dtype(means2d)
         rows = K.gaussian_rows(_np(means2d, kd), _np(conics, kd), _np(opacities, kd), _np(features, kd))
-        out, t_final, last, (offsets, ids, tile_order, tiles_w) = _composite_rows(
+        out, t_final, last, (offsets, ids, tile_order, tiles_w, rows) = _composite_rows(
             rows, rects, (radii > 0).numpy(), depths.detach().cpu().numpy(), width, height)
         ctx.saved = (rows, offsets, ids, tile_order, tiles_w, width, height, t_final, last, n)
         dtype, dev = means2d.dtype, means2d.device
@@ -76,8 +82,7 @@ class _Composite(torch.autograd.Function):
         dtype, dev = g_feat.dtype, g_feat.device
         kd = torch.float32 if rows.dtype == np.float32 else torch.float64
         grad = C.backward(rows, ids, offsets, tile_order, tiles_w, width, height, t_final, last, _np(g_feat, kd),
-                          _np(g_alpha, kd)[..., 0], C.consts(rows.dtype), C.pixel_centres(width, height, rows.dtype),
-                          C.TILE)
+                          _np(g_alpha, kd)[..., 0], C.consts(rows.dtype), C.pixel_centres(width, height, rows.dtype))
         per_g = torch.from_numpy(C.reduce_grads(grad, ids, n)).to(device=dev, dtype=dtype)
         return per_g[:, 0:2], per_g[:, 2:5], per_g[:, 5], per_g[:, 6:13], None, None, None, None
 

@@ -1,12 +1,13 @@
-"""Numba compositing kernels, vectorised across the 16 pixels of a tile row.
+"""Numba compositing kernels, vectorised across the pixels of a tile.
 
 The loop order is Gaussian-major per tile (see ``design.md``): for each Gaussian of a
-tile's front-to-back list, every row of the tile its alpha >= 1/255 box touches is
-processed as one 16-lane vector: the lane body has no branches (the per-pixel tests are
-selects), a fixed trip count of 16 and its own exponential (:func:`_exp_neg`, a
-polynomial: the libm ``exp`` call is what keeps LLVM from vectorising a loop), so LLVM
-emits packed AVX2 / AVX-512 code. Each pixel still sees its Gaussians in the same order
-with the same tests as the per-pixel definition.
+tile's front-to-back list, the pixels of every tile row its alpha >= 1/255 box touches
+go through one loop that LLVM vectorises (16 float32 lanes with AVX-512): the body has
+no branches (the per-pixel tests are selects), no call (its own exponential,
+:func:`_exp_neg`, a polynomial: a libm ``exp`` call keeps a loop scalar), no
+zero-division check (``error_model="numpy"``), and lets LLVM fuse multiply-adds
+(``contract``). Each pixel still sees its Gaussians in the same order with the same
+tests as the per-pixel definition.
 
 The kernels run in the dtype of ``rows``: float32 for float32 inputs (16 lanes to an
 AVX-512 register, a Gaussian's row is one 64-byte cache line) and float64 for float64
@@ -42,9 +43,11 @@ def consts(dtype) -> np.ndarray:
 
 
 # exp(-s) for 0 <= s <= 6: s = n ln2 + r with n = round(s / ln2), |r| <= ln2 / 2, then
-# exp(-s) = 2^-n exp(-r), 2^-n built from the bits of n (0 <= n <= 9) by exact
-# multiplications, exp(-r) a Taylor polynomial (degree 7 in float32: truncation error
+# exp(-s) = 2^-n exp(-r), 2^-n built from the bits of n (0 <= n <= 9) by multiplications
+# that are exact, exp(-r) a Taylor polynomial (degree 7 in float32: truncation error
 # 0.35^8/8! = 5e-9; degree 12 in float64: 2e-16), ln2 split in two for an exact r.
+# Arithmetic, not selects, picks the powers of two (an inlined conditional expression
+# trips a numba IR check).
 _LN2_HI, _LN2_LO, _INV_LN2 = 0.693145751953125, 1.4286068203094173e-06, 1.4426950408889634
 
 
@@ -52,68 +55,43 @@ def _exp_neg(s):  # pragma: no cover - replaced by the overload in compiled code
     return math.exp(-s)
 
 
-def _exp_neg_impl(c, pow2):
-    """Build the compiled ``exp(-s)`` for coefficients ``c`` (``c[i] = (-1)^i / i!``) of one dtype."""
-    inv_ln2, ln2_hi, ln2_lo, half = pow2[0], pow2[1], pow2[2], pow2[3]
-    p1, p2, p4, p8 = pow2[4], pow2[5], pow2[6], pow2[7]
-    one = pow2[8]
-    deg = len(c) - 1
+def _exp_neg_impl(ftype, degree: int):
+    """The compiled ``exp(-s)`` in ``ftype`` (np.float32 or np.float64)."""
+    c = tuple(ftype((-1.0) ** i / math.factorial(i)) for i in range(degree, -1, -1))  # Horner order
+    inv_ln2, ln2_hi, ln2_lo, half, one = (ftype(v) for v in (_INV_LN2, _LN2_HI, _LN2_LO, 0.5, 1.0))
+    q1, q2, q4, q8 = (ftype(1.0 - 2.0 ** -k) for k in (1, 2, 4, 8))  # 1 - 2^-k, exact
 
-    if deg == 7:
+    @njit(inline="always")
+    def pow2(p, n):  # p 2^-n for 0 <= n <= 15
+        p = p * (one - ftype(n & 1) * q1)
+        p = p * (one - ftype((n >> 1) & 1) * q2)
+        p = p * (one - ftype((n >> 2) & 1) * q4)
+        return p * (one - ftype((n >> 3) & 1) * q8)
+
+    if degree == 7:
         def impl(s):
             n = np.int32(s * inv_ln2 + half)
-            nf = np.float32(n)
-            r = (s - nf * ln2_hi) - nf * ln2_lo
-            p = c[7]
-            p = p * r + c[6]
-            p = p * r + c[5]
-            p = p * r + c[4]
-            p = p * r + c[3]
-            p = p * r + c[2]
-            p = p * r + c[1]
-            p = p * r + c[0]
-            p = p * (p1 if n & 1 else one)
-            p = p * (p2 if n & 2 else one)
-            p = p * (p4 if n & 4 else one)
-            return p * (p8 if n & 8 else one)
+            r = (s - ftype(n) * ln2_hi) - ftype(n) * ln2_lo
+            p = ((((((c[0] * r + c[1]) * r + c[2]) * r + c[3]) * r + c[4]) * r + c[5]) * r + c[6]) * r + c[7]
+            return pow2(p, n)
         return impl
+    assert degree == 12
 
     def impl64(s):
         n = np.int32(s * inv_ln2 + half)
-        nf = np.float64(n)
-        r = (s - nf * ln2_hi) - nf * ln2_lo
-        p = c[12]
-        p = p * r + c[11]
-        p = p * r + c[10]
-        p = p * r + c[9]
-        p = p * r + c[8]
-        p = p * r + c[7]
-        p = p * r + c[6]
-        p = p * r + c[5]
-        p = p * r + c[4]
-        p = p * r + c[3]
-        p = p * r + c[2]
-        p = p * r + c[1]
-        p = p * r + c[0]
-        p = p * (p1 if n & 1 else one)
-        p = p * (p2 if n & 2 else one)
-        p = p * (p4 if n & 4 else one)
-        return p * (p8 if n & 8 else one)
+        r = (s - ftype(n) * ln2_hi) - ftype(n) * ln2_lo
+        p = ((((((c[0] * r + c[1]) * r + c[2]) * r + c[3]) * r + c[4]) * r + c[5]) * r + c[6]) * r + c[7]
+        p = ((((p * r + c[8]) * r + c[9]) * r + c[10]) * r + c[11]) * r + c[12]
+        return pow2(p, n)
     return impl64
-
-
-def _coeffs(dtype, deg):
-    c = tuple(dtype((-1.0) ** i / math.factorial(i)) for i in range(deg + 1))
-    pow2 = tuple(dtype(v) for v in (_INV_LN2, _LN2_HI, _LN2_LO, 0.5, 0.5, 0.25, 1.0 / 16, 1.0 / 256, 1.0))
-    return c, pow2
 
 
 @overload(_exp_neg, inline="always")
 def _exp_neg_overload(s):  # pragma: no cover - compiled
     if s == types.float32:
-        return _exp_neg_impl(*_coeffs(np.float32, 7))
+        return _exp_neg_impl(np.float32, 7)
     if s == types.float64:
-        return _exp_neg_impl(*_coeffs(np.float64, 12))
+        return _exp_neg_impl(np.float64, 12)
     return None
 
 
@@ -134,28 +112,28 @@ def _span(m, ext, lo, n):  # pragma: no cover - compiled
     return i0, max(i0, i1)
 
 
-
 # Per-chunk scratch: ONE flat array holding every per-pixel field of a tile, PIX apart,
-# indexed with unsigned integers (``_U``). Every access in a lane loop is then
-# base + field + row + lane with constant field distances, which LLVM proves disjoint;
-# separate arrays or lane-only indices would need runtime alias checks, and signed
-# indices add numba's wraparound select. numba leaves LLVM's SLP vectoriser off, so
-# only loops whose trip count is not a compile-time constant vectorise: the lane loops
-# run to ``nl``, an argument equal to TILE.
+# indexed with unsigned integers (``_U``). Every access in a pixel loop is then
+# base + field + pixel with constant field distances, which LLVM proves disjoint
+# (separate arrays would need runtime alias checks; signed indices add numba's
+# wraparound select). The pixel loops run over a Gaussian's whole rows, ``u`` from
+# ``r0`` to ``r1``: a trip count LLVM cannot fold (numba leaves LLVM's SLP vectoriser
+# off, so a constant 16-trip loop would be unrolled and stay scalar).
 PIX = TILE * TILE
+F32_MAX_ISECT = 2**24  # the stop index is kept in the rows' dtype: float32 holds integers below 2**24 exactly
 _U = np.uint64
 F_T, F_STOP, F_X, F_Y, F_ACC = _U(0), _U(PIX), _U(2 * PIX), _U(3 * PIX), _U(4 * PIX)  # F_ACC: nf fields
 B_T, B_LST, B_X, B_Y, B_G = _U(0), _U(PIX), _U(2 * PIX), _U(3 * PIX), _U(4 * PIX)  # B_G: NF + 1 fields
 B_S = _U((5 + NF) * PIX)  # NF fields
-B_GL = _U((5 + 2 * NF) * PIX)  # GROW fields: one Gaussian's gradient terms at each pixel of its rows
-B_SIZE = (5 + 2 * NF + GROW) * PIX
+B_SIZE = (5 + 2 * NF) * PIX
 
 
 @njit(inline="always")
 def _bwd_rows(st, r0, r1, mxl, myl, ca, cb, cc, op, kf, cst, fv):  # pragma: no cover - compiled
     """One Gaussian over the tile pixels ``r0 <= u < r1`` (whole rows), back to front: updates
-    ``T`` and ``S`` of those pixels and writes the Gaussian's 13 gradient terms at each of
-    them (fields ``B_GL``; :func:`_sum_terms` adds them up)."""
+    ``T`` and ``S`` of those pixels and returns the Gaussian's 13 gradient sums over them
+    (the caller allows reassociation, so LLVM vectorises the sums: partial sums per lane,
+    added up at the end, in an order fixed by the compiled code)."""
     zero, one, half, amax, amin, smax = cst[0], cst[1], cst[2], cst[3], cst[4], cst[6]
     ha, hc = half * ca, half * cc
     g0 = g1 = g2 = g3 = g4 = g5 = g6 = g7 = g8 = g9 = g10 = g11 = g12 = zero
@@ -220,29 +198,6 @@ def _bwd_rows(st, r0, r1, mxl, myl, ca, cb, cc, op, kf, cst, fv):  # pragma: no 
     return g0, g1, g2, g3, g4, g5, g6, g7, g8, g9, g10, g11, g12
 
 
-@njit(fastmath={"reassoc"}, cache=True)
-def _sum_terms(st, r0, r1, zero):  # pragma: no cover - compiled
-    """The 13 sums over pixels ``r0 <= u < r1`` of the fields ``B_GL``: compiled apart with
-    reassociation allowed so that LLVM vectorises them (partial sums per lane, added up at
-    the end; the order is fixed by the compiled code, the same on every call)."""
-    g0 = g1 = g2 = g3 = g4 = g5 = g6 = g7 = g8 = g9 = g10 = g11 = g12 = zero
-    for u in range(r0, r1):
-        g0 += st[B_GL + u]
-        g1 += st[B_GL + _U(PIX) + u]
-        g2 += st[B_GL + _U(2 * PIX) + u]
-        g3 += st[B_GL + _U(3 * PIX) + u]
-        g4 += st[B_GL + _U(4 * PIX) + u]
-        g5 += st[B_GL + _U(5 * PIX) + u]
-        g6 += st[B_GL + _U(6 * PIX) + u]
-        g7 += st[B_GL + _U(7 * PIX) + u]
-        g8 += st[B_GL + _U(8 * PIX) + u]
-        g9 += st[B_GL + _U(9 * PIX) + u]
-        g10 += st[B_GL + _U(10 * PIX) + u]
-        g11 += st[B_GL + _U(11 * PIX) + u]
-        g12 += st[B_GL + _U(12 * PIX) + u]
-    return g0, g1, g2, g3, g4, g5, g6, g7, g8, g9, g10, g11, g12
-
-
 @njit(inline="always")
 def _fwd_rows(st, r0, r1, mxl, myl, ha, cb, hc, op, kf, cst, fv):  # pragma: no cover - compiled
     """One Gaussian over the tile pixels ``r0 <= u < r1`` (whole rows): the lane body of
@@ -266,7 +221,7 @@ def _fwd_rows(st, r0, r1, mxl, myl, ha, cb, hc, op, kf, cst, fv):  # pragma: no 
 
 
 @njit(parallel=True, cache=True, fastmath={"contract"}, error_model="numpy")
-def forward(rows, ids, offsets, tile_order, tiles_w, width, height, nf, cst, centres, nl):  # pragma: no cover
+def forward(rows, ids, offsets, tile_order, tiles_w, width, height, nf, cst, centres):  # pragma: no cover
     """Front-to-back compositing of every tile.
 
     For pixel :math:`p` and its tile list :math:`i = 1..n` (front to back):
@@ -280,7 +235,7 @@ def forward(rows, ids, offsets, tile_order, tiles_w, width, height, nf, cst, cen
     ``t_final`` and ``last``, do not depend on it). A stopped pixel keeps its transmittance
     negated; a tile leaves its list once every pixel has stopped (checked every 8 Gaussians).
     ``centres[i] = i + 0.5`` and ``cst`` (:func:`consts`) are in the dtype of ``rows``;
-    ``nl`` must be TILE.
+    ``nf`` is 7 or 3.
 
     Returns ``out [H, W, nf]``, ``t_final [H, W]`` and ``last [H, W]`` (one past the
     intersection index of the last composited Gaussian, the backward's start).
@@ -348,7 +303,7 @@ def forward(rows, ids, offsets, tile_order, tiles_w, width, height, nf, cst, cen
 
 @njit(parallel=True, cache=True, fastmath={"reassoc", "contract"}, error_model="numpy")
 def backward(rows, ids, offsets, tile_order, tiles_w, width, height, t_final, last, g_out, g_alpha, cst,
-             centres, nl):  # pragma: no cover - compiled
+             centres):  # pragma: no cover - compiled
     """Per-intersection gradients ``[n_isect, 13]``, back to front per pixel.
 
     With :math:`T_{i-1} = T_i / (1-\\alpha_i)` recovered from the final transmittance and
