@@ -316,8 +316,8 @@ def backward(rows, ids, offsets, tile_order, tiles_w, width, height, t_final, la
 
     (the alpha image is :math:`A = 1 - T_n`); through :math:`\\alpha_i = o_i e^{-\\sigma_i}`
     unless capped at 0.99, where the gradient is zero. Gaussian by Gaussian, back to front,
-    over the same 16-lane rows as the forward; a Gaussian's terms are kept per pixel and
-    summed (:func:`_sum`) once it is done, into its own intersection row.
+    over the same pixel rows as the forward (:func:`_bwd_rows`); a Gaussian's sums over one
+    tile go to its own intersection row.
     """
     zero, one, half, amax, amin, smax = cst[0], cst[1], cst[2], cst[3], cst[4], cst[6]
     grad = np.zeros((ids.shape[0], GROW), rows.dtype)
