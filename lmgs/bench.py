@@ -6,11 +6,16 @@ features, Spatial Enhancement, region attention, offset MLP, Landmark Compensati
 canonical points' tri-plane features cached, as they are constant at inference. Also the
 tri-plane encoder's forward+backward on N points (a training step's share). Medians of
 repeated runs, measured in this run, never compared with stored figures.
+
+``frames`` rows follow one whole frame as ``LMGSModel.render`` makes it, at each image size:
+audio (audio net), network (both branches' deformation), raster (both branches rasterized,
+colour only) and compositing (face over mouth over the background, then to uint8).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import statistics
 import time
 
@@ -24,6 +29,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--repeats", type=int, default=30, help="timed runs per row (median reported)")
     p.add_argument("--preset", choices=["quick", "paper"], default="quick", help="config preset")
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: leave as is)")
+    p.add_argument("--sizes", type=int, nargs="+", default=[256, 512], help="image sizes of the per-frame breakdown")
 
 
 def _median_ms(fn, repeats: int) -> float:
@@ -90,10 +96,66 @@ def run(args: argparse.Namespace) -> dict:
                 "frames_per_s": None,
             }
         )
+    frames = [frame_breakdown(n, res, audio, feats, idx, dcfg, tcfg, gcfg, args.repeats)
+              for res in args.sizes for n in args.points]
     return {
+        "frames": frames,
+        "frames_note": "one frame as LMGSModel.render makes it: audio, network (face + mouth deformation), raster "
+                       "(both branches, colour only), compositing (over the background, to uint8); the mouth branch "
+                       "has a fifth of the face's Gaussians; untrained weights, a head-sized Gaussian blob",
         "preset": preset,
         "threads": torch.get_num_threads(),
         "triplane": f"{tcfg.n_levels} levels x {tcfg.n_features} features, table 2^{tcfg.log2_table_size}, res {tcfg.base_resolution}-{tcfg.finest_resolution}",
-        "note": "inference per frame, canonical tri-plane features cached; no rasterization",
+        "note": "rows: inference per frame, canonical tri-plane features cached; no rasterization (see frames)",
         "rows": rows,
     }
+
+
+def frame_breakdown(n: int, res: int, audio, feats, idx, dcfg, tcfg, gcfg, repeats: int) -> dict:
+    """Median ms of each stage of one frame with ``n`` face Gaussians at ``res x res``."""
+    from lmgs.config import GuidanceConfig
+    from lmgs.deform import DeformNet
+    from lmgs.model import composite
+    from lmgs.render import rasterize
+    from lmgs.render.bench import head_scene
+
+    face_p, cam = head_scene(n, res, seed=0, requires_grad=False)
+    mouth_p, _ = head_scene(max(1, n // 5), res, seed=1, requires_grad=False)
+    lo, hi = face_p[0].min(0).values - 0.01, face_p[0].max(0).values + 0.01
+    face_net = DeformNet(audio.out_dim, dcfg, tcfg, gcfg, lo, hi).eval()
+    mouth_cfg = dataclasses.replace(dcfg, blink=False, exp_dim=0, position_only=True)  # the presets' mouth branch
+    mouth_net = DeformNet(audio.out_dim, mouth_cfg, tcfg, GuidanceConfig(se=False, lc=False), lo, hi).eval()
+    lms = torch.rand(gcfg.n_landmarks, 3) * (hi - lo) + lo
+    bg = torch.rand(res, res, 3)
+    with torch.no_grad():
+        face_f, mouth_f = face_net.encode_points(face_p[0]), mouth_net.encode_points(mouth_p[0])
+        fa = audio(feats, idx)[0]
+
+        def deformed(p, net, f, landmarks, blink):
+            o = net(p[0], fa, landmarks, blink, point_features=f)
+            return p[0] + o.d_xyz, p[1] + o.d_rot, p[2] + o.d_scale, p[3], p[4]
+
+        def network():
+            return (deformed(face_p, face_net, face_f, lms if (gcfg.se or gcfg.lc) else None, 0.3),
+                    deformed(mouth_p, mouth_net, mouth_f, None, None))
+
+        fp, mp = network()
+
+        def raster():
+            return (rasterize(*fp, cam, None, render_mode="RGB"), rasterize(*mp, cam, None, render_mode="RGB"))
+
+        face, mouth = raster()
+
+        def compositing():
+            rgb = composite(face, mouth, bg)[0]
+            return (rgb.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()
+
+        ms = {
+            "audio_ms": _median_ms(lambda: audio(feats, idx), repeats),
+            "network_ms": _median_ms(network, repeats),
+            "raster_ms": _median_ms(raster, repeats),
+            "compositing_ms": _median_ms(compositing, repeats),
+        }
+    total = sum(ms.values())
+    return {"res": f"{res}x{res}", "points": n, **{k: round(v, 3) for k, v in ms.items()},
+            "total_ms": round(total, 3), "frames_per_s": round(1e3 / total, 1)}

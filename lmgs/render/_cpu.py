@@ -11,12 +11,18 @@ import numba
 import numpy as np
 import torch
 
+from lmgs.render import _numba_composite as C
 from lmgs.render import _numba_kernels as K
 from lmgs.render._projection import TILE, tile_rects
 
 
-def _np(t: torch.Tensor) -> np.ndarray:
-    return t.detach().to(device="cpu", dtype=torch.float64).contiguous().numpy()
+def _kernel_dtype(t: torch.Tensor) -> torch.dtype:
+    """float32 inputs composite in float32 (twice the SIMD lanes), anything else in float64."""
+    return torch.float32 if t.dtype == torch.float32 else torch.float64
+
+
+def _np(t: torch.Tensor, dtype: torch.dtype = torch.float64) -> np.ndarray:
+    return t.detach().to(device="cpu", dtype=dtype).contiguous().numpy()
 
 
 def _tile_order(n_tiles: int) -> np.ndarray:
@@ -36,7 +42,11 @@ def _tile_order(n_tiles: int) -> np.ndarray:
 def _composite_rows(rows: np.ndarray, rects: np.ndarray, vis: np.ndarray, depths: np.ndarray, width: int, height: int,
                     nf: int = K.NF):
     """Sort the visible Gaussians front to back, bin them into tiles and composite their rows
-    (the first ``nf`` features: 3 is colour alone)."""
+    (the first ``nf`` features: 3 is colour alone) in the dtype of ``rows``.
+
+    Returns ``out, t_final, last, (offsets, ids, tile_order, tiles_w, rows)``: ``rows`` as
+    composited (float64 when a float32 stop index could not hold every intersection index).
+    """
     tiles_w, tiles_h = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
     n_tiles = tiles_w * tiles_h
     # stable sort by depth: ties keep index order, like the dense reference
@@ -44,8 +54,11 @@ def _composite_rows(rows: np.ndarray, rects: np.ndarray, vis: np.ndarray, depths
     order = vis_ids[np.argsort(depths[vis_ids], kind="stable")].astype(np.int64)
     offsets, ids = K.bin_tiles(rects, order, n_tiles, tiles_w)
     tile_order = _tile_order(n_tiles)
-    out, t_final, last = K.forward(rows, ids, offsets, tile_order, tiles_w, width, height, nf)
-    return out, t_final, last, (offsets, ids, tile_order, tiles_w)
+    if rows.dtype == np.float32 and ids.shape[0] >= C.F32_MAX_ISECT:
+        rows = rows.astype(np.float64)
+    out, t_final, last = C.forward(rows, ids, offsets, tile_order, tiles_w, width, height, nf,
+                                   C.consts(rows.dtype), C.pixel_centres(width, height, rows.dtype))
+    return out, t_final, last, (offsets, ids, tile_order, tiles_w, rows)
 
 
 class _Composite(torch.autograd.Function):
@@ -53,8 +66,9 @@ class _Composite(torch.autograd.Function):
     def forward(ctx, means2d, conics, opacities, features, radii, depths, width, height):
         n = means2d.shape[0]
         rects = tile_rects(means2d, radii, width, height).numpy()
-        rows = K.gaussian_rows(_np(means2d), _np(conics), _np(opacities), _np(features))
-        out, t_final, last, (offsets, ids, tile_order, tiles_w) = _composite_rows(
+        kd = _kernel_dtype(means2d)
+        rows = K.gaussian_rows(_np(means2d, kd), _np(conics, kd), _np(opacities, kd), _np(features, kd))
+        out, t_final, last, (offsets, ids, tile_order, tiles_w, rows) = _composite_rows(
             rows, rects, (radii > 0).numpy(), depths.detach().cpu().numpy(), width, height)
         ctx.saved = (rows, offsets, ids, tile_order, tiles_w, width, height, t_final, last, n)
         dtype, dev = means2d.dtype, means2d.device
@@ -66,10 +80,10 @@ class _Composite(torch.autograd.Function):
     def backward(ctx, g_feat, g_alpha):
         rows, offsets, ids, tile_order, tiles_w, width, height, t_final, last, n = ctx.saved
         dtype, dev = g_feat.dtype, g_feat.device
-        grad = K.backward(
-            rows, ids, offsets, tile_order, tiles_w, width, height, t_final, last, _np(g_feat), _np(g_alpha)[..., 0]
-        )
-        per_g = torch.from_numpy(K.reduce_grads(grad, ids, n)).to(device=dev, dtype=dtype)
+        kd = torch.float32 if rows.dtype == np.float32 else torch.float64
+        grad = C.backward(rows, ids, offsets, tile_order, tiles_w, width, height, t_final, last, _np(g_feat, kd),
+                          _np(g_alpha, kd)[..., 0], C.consts(rows.dtype), C.pixel_centres(width, height, rows.dtype))
+        per_g = torch.from_numpy(C.reduce_grads(grad, ids, n)).to(device=dev, dtype=dtype)
         return per_g[:, 0:2], per_g[:, 2:5], per_g[:, 5], per_g[:, 6:13], None, None, None, None
 
 
@@ -83,7 +97,7 @@ def composite(
     width: int,
     height: int,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Composite to ``features [H, W, 7]`` and ``alpha [H, W, 1]`` (see :func:`K.forward`)."""
+    """Composite to ``features [H, W, 7]`` and ``alpha [H, W, 1]`` (see :func:`C.forward`)."""
     return _Composite.apply(means2d, conics, opacities, features, radii.cpu(), depths.cpu(), width, height)
 
 
@@ -93,7 +107,7 @@ def rasterize_nograd(means, quats, log_scales, opacity_logits, colors, camera, n
     The twin of ``project`` + :func:`composite` for rendering a trained model (nothing
     needs a gradient): the ~60 small torch operations of the projection, the float64
     copies and the tile ranges become one parallel pass over the Gaussians
-    (:func:`K.project_rows`, float64 throughout, like the kernels). Plain colours only.
+    (:func:`K.project_rows`, float64; the rows are then composited in the inputs' dtype). Plain colours only.
     """
     from lmgs.render import _projection as P
 
@@ -103,6 +117,8 @@ def rasterize_nograd(means, quats, log_scales, opacity_logits, colors, camera, n
         _np(means), _np(quats), _np(log_scales), _np(opacity_logits), _np(colors), _np(camera.world_to_camera),
         float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), width, height,
         P.NEAR_PLANE, P.EPS2D, P.LOG_SCALE_MIN, P.LOG_SCALE_MAX)
+    if _kernel_dtype(means) == torch.float32:
+        rows = rows.astype(np.float32)
     out, t_final, _, _ = _composite_rows(rows, rects, radii > 0, depths, width, height, nf)
     feat = torch.from_numpy(out).to(device=dev, dtype=dtype)
     alpha = torch.from_numpy(1.0 - t_final).to(device=dev, dtype=dtype)[..., None]

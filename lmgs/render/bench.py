@@ -109,7 +109,7 @@ def _measure(backend: str, res: int, n: int, repeats: int) -> dict:
         fwd_ng_ms, _ = timed(lambda: fwd(params, cam))
         rasterize(*params, cam, bg, backend=backend, render_mode="RGB")
         fwd_rgb_ms, _ = timed(lambda: rasterize(*params, cam, bg, backend=backend, render_mode="RGB"))
-    return {
+    row = {
         "backend": backend,
         "res": f"{res}x{res}",
         "n_gaussians": n,
@@ -124,6 +124,68 @@ def _measure(backend: str, res: int, n: int, repeats: int) -> dict:
         "fwd_bwd_min_ms": fwd_bwd_min,
         "peak_mb": peak_kb / 1024.0,
         "repeats": repeats,
+    }
+    if backend == FAST:
+        row.update(kernel_profile(params, cam, repeats))
+    return row
+
+
+def kernel_profile(params, cam, repeats: int) -> dict:
+    """The compositing kernels alone on the scene's training inputs (float32), and the
+    fraction of the cores' fp32 peak they reach (:mod:`lmgs.render.flops`).
+
+    ``kfwd_ms`` / ``kbwd_ms`` are medians of the forward and backward kernels (no projection,
+    sorting, binning or autograd); ``lanes`` the pixel lanes they run; ``fwd_peak`` and
+    ``bwd_peak`` the achieved GFLOP/s over the peak of the cores numba runs on.
+    """
+    import numba
+    import numpy as np
+    import torch
+
+    from lmgs.render import _cpu
+    from lmgs.render import _numba_composite as C
+    from lmgs.render import _numba_kernels as K
+    from lmgs.render import flops
+    from lmgs.render._projection import project, tile_rects
+
+    with torch.no_grad():
+        p = project(*params, None, cam)
+    w, h = int(cam.width), int(cam.height)
+    kd = _cpu._kernel_dtype(p.means2d)
+    rows = K.gaussian_rows(_cpu._np(p.means2d, kd), _cpu._np(p.conics, kd), _cpu._np(p.opacities, kd),
+                           _cpu._np(p.features, kd))
+    rects = tile_rects(p.means2d, p.radii, w, h).numpy()
+    _, t_final, last, (offsets, ids, tile_order, tiles_w, rows) = _cpu._composite_rows(
+        rows, rects, (p.radii > 0).numpy(), p.depths.numpy(), w, h)
+    cst, centres = C.consts(rows.dtype), C.pixel_centres(w, h, rows.dtype)
+    rng = np.random.default_rng(0)
+    g_out = rng.random((h, w, K.NF)).astype(rows.dtype)
+    g_alpha = rng.random((h, w)).astype(rows.dtype)
+
+    def timed(fn) -> float:
+        fn()
+        ts = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            fn()
+            ts.append(time.perf_counter() - t0)
+        return sorted(ts)[len(ts) // 2]
+
+    t_fwd = timed(lambda: C.forward(rows, ids, offsets, tile_order, tiles_w, w, h, K.NF, cst, centres))
+    t_bwd = timed(lambda: C.backward(rows, ids, offsets, tile_order, tiles_w, w, h, t_final, last, g_out, g_alpha,
+                                     cst, centres))
+    n_lanes = flops.lanes(rows, ids, offsets, tiles_w, w, h)
+    peak = flops.cpu_peak_gflops(min(numba.get_num_threads(), flops.usable_cores()))
+    fwd_gflops = n_lanes * flops.fwd_flops_per_lane(K.NF) / t_fwd / 1e9
+    bwd_gflops = n_lanes * flops.BWD_FLOPS / t_bwd / 1e9
+    return {
+        "kfwd_ms": 1e3 * t_fwd,
+        "kbwd_ms": 1e3 * t_bwd,
+        "lanes": n_lanes,
+        "fwd_gflops": fwd_gflops,
+        "bwd_gflops": bwd_gflops,
+        "fwd_peak": fwd_gflops / peak["gflops"],
+        "bwd_peak": bwd_gflops / peak["gflops"],
     }
 
 
@@ -146,9 +208,19 @@ def first_call_seconds() -> dict:
     return {"first_render_s": float(proc.stdout.strip() or "nan")}
 
 
+def _load_average() -> str:
+    """The host's 1/5/15-minute load averages when the run ended (the cores are shared)."""
+    try:
+        return " / ".join(f"{v:.1f}" for v in os.getloadavg())
+    except OSError:  # pragma: no cover - not Unix
+        return "unknown"
+
+
 def run(args: argparse.Namespace) -> dict:
     import numba
     import torch
+
+    from lmgs.render import flops
 
     sizes = [256] if args.quick else list(args.sizes)
     counts = [10_000] if args.quick else list(args.counts)
@@ -175,6 +247,10 @@ def run(args: argparse.Namespace) -> dict:
                "rgb_speedup = fwd_nograd_ms / fwd_rgb_ms, same worker, same scene",
         "scene": "head-sized blob 0.6 m away, fx = 1.5 x res, ~1.5 px sigma at 256 px",
         "threads": {"torch": torch.get_num_threads(), "numba": numba.get_num_threads(), "cpus": os.cpu_count()},
+        "fp32_peak": flops.cpu_peak_gflops(min(numba.get_num_threads(), flops.usable_cores())),
+        "peak": "kfwd_ms/kbwd_ms: the compositing kernels alone (median); *_gflops: lanes x flops per lane "
+                "(lmgs.render.flops) / kernel time; *_peak: that over fp32_peak = cores x SIMD lanes x 2 (FMA) x clock",
+        "load": _load_average(),
         "machine": f"{platform.machine()} {platform.processor() or ''}".strip(),
         "first_call": first_call_seconds(),
     }

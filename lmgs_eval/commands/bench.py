@@ -44,12 +44,24 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     sp.set_defaults(_bench=None)
 
 
+def _is_table(v) -> bool:
+    return isinstance(v, list) and bool(v) and all(isinstance(r, dict) for r in v)
+
+
 def _print_table(name: str, result: dict) -> None:
-    rows = result.get("rows", [])
     print(f"== bench {name} ==")
     for k, v in result.items():
-        if k != "rows":
+        if k != "rows" and not _is_table(v):
             print(f"{k}: {v}")
+    for k, v in result.items():
+        if k != "rows" and _is_table(v):
+            print(f"-- {k} --")
+            _print_rows(v)
+    if _is_table(result.get("rows")):
+        _print_rows(result["rows"])
+
+
+def _print_rows(rows: list[dict]) -> None:
     if rows:
         cols = list(rows[0])
         widths = [max(len(str(c)), *(len(_fmt(r.get(c))) for r in rows)) for c in cols]
