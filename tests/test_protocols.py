@@ -204,13 +204,22 @@ def test_cross_clips_are_their_audio_not_their_name(tmp_path, monkeypatch):
     assert rc == 0, out + err
 
 
-def test_cross_bundled_clips_have_lmd(tmp_path):
+def test_cross_bundled_clips_score_lmd_against_their_ground_truth_or_say_why(tmp_path):
     rc, _, err = run_cli("cross", "--subject", SUBJECT, "--results", str(tmp_path), "--no-progress", *FAST)
     assert rc == 0, err
     records, _ = load_records(tmp_path)
     assert sorted(r["protocol"]["clip"] for r in records) == ["A", "B"]
+    from lmgs_eval.data.registry import find_subject
+
+    subject = find_subject(SUBJECT, progress=False)
     for r in records:
-        assert "lmd" in r["metrics"] and "lse_d" in r["metrics"]
+        n_gt = len(list((subject.root / "cross" / r["protocol"]["clip"] / "gt_imgs").glob("*.jpg")))
+        m = r["metrics"]["lmd"]
+        # every frame of the clip is paired with its own ground truth ...
+        assert m["n_original"] == r["protocol"]["n_frames"] == n_gt == len(m["per_item"])
+        # ... and at 64x64 no detector finds a face: no number, and the record says why
+        assert m["value"] is None and m["n_effective"] == 0
+        assert any(f.startswith("unavailable: no face found") for f in m["flags"])
 
 
 def test_unknown_method_and_subject(tmp_path):
