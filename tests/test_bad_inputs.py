@@ -25,7 +25,8 @@ def tree(*roots: Path) -> dict[str, tuple[int, int]]:
             continue
         for p in sorted(root.rglob("*")):
             st = p.stat()
-            out[str(p)] = (st.st_size if p.is_file() else -1, st.st_mtime_ns)
+            # a lock file is touched by whoever takes the lock: its presence counts, not its time
+            out[str(p)] = (st.st_size if p.is_file() else -1, 0 if p.name.endswith(".lock") else st.st_mtime_ns)
     return out
 
 
@@ -40,9 +41,10 @@ def world(tmp_path):
 
 
 def one_line_error(rc: int, out: str, err: str, *words: str) -> str:
+    """Exit 2, no traceback, and one error line (progress lines before it, e.g. the subject read, are not errors)."""
     assert rc == 2, (rc, out, err)
     assert "Traceback" not in err
-    lines = [ln for ln in err.splitlines() if ln.strip()]
+    lines = [ln for ln in err.splitlines() if "error:" in ln]
     assert len(lines) == 1, err
     for w in words:
         assert w in lines[0], (w, lines[0])
@@ -188,3 +190,22 @@ def test_load_torch_state_on_text_and_audio(tmp_path):
         (tmp_path / name).write_bytes(data)
         with pytest.raises(UserError, match="not a readable syncnet"):
             load_torch_state(tmp_path / name, "syncnet checkpoint")
+
+
+@pytest.mark.parametrize("extra, words", [
+    (["--set", "train.dynamic_steps=abc"], ["train.dynamic_steps"]),
+    (["--set", "nosuch.key=1"], ["nosuch.key"]),
+    (["--device", "banana"], ["banana"]),
+    (["--device", "cuda"], ["cuda"]),
+    (["--method", "adnerf", "--preset", "paper"], ["adnerf", "paper"]),
+    (["--method", "nope"], ["unknown method 'nope'"]),
+    (["--subject", "nobody"], ["unknown subject"]),
+])
+def test_bad_run_options_stop_before_any_work(world, extra, words):
+    tmp, res, snap = world
+    assert run_cli("prepare", "--subject", "astronaut-64px-2s")[0] == 0  # the subject is data, built once
+    before = snap()
+    for cmd in ("self", "cross"):
+        rc, out, err = run_cli(cmd, "--subject", "astronaut-64px-2s", "--results", str(res), "--no-progress", *extra)
+        one_line_error(rc, out, err, *words)
+    assert snap() == before
