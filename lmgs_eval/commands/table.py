@@ -82,17 +82,22 @@ def _check_records_dir(records_dir: Path, results: Path) -> None:
 
 
 def _check_out_dir(out: Path, flag: str) -> None:
-    """An output folder must be a folder this user can write (made if missing), checked before any file is written."""
+    """An output folder must be a folder this user can write, or one that can be made; checked before any
+    file is written (and nothing is made here: a run without records leaves no empty folder)."""
     import os
 
     from lmgs_eval.errors import UserError
 
-    if out.exists() and not out.is_dir():
-        raise UserError(f"{flag} {out}: exists and is not a folder")
-    if not out.exists():
-        try:
-            out.mkdir(parents=True)
-        except OSError as exc:
-            raise UserError(f"{flag} {out}: cannot create the folder ({exc.strerror})") from None
-    if not os.access(out, os.W_OK | os.X_OK):
-        raise UserError(f"{flag} {out}: folder is not writable")
+    if out.exists():
+        if not out.is_dir():
+            raise UserError(f"{flag} {out}: exists and is not a folder")
+        if not os.access(out, os.W_OK | os.X_OK):
+            raise UserError(f"{flag} {out}: folder is not writable")
+        return
+    up = out.parent
+    while not up.exists() and up != up.parent:
+        up = up.parent
+    if not up.is_dir():
+        raise UserError(f"{flag} {out}: cannot create the folder ({up} is not a folder)")
+    if not os.access(up, os.W_OK | os.X_OK):
+        raise UserError(f"{flag} {out}: cannot create the folder ({up} is not writable)")
