@@ -209,3 +209,16 @@ def test_bad_run_options_stop_before_any_work(world, extra, words):
         rc, out, err = run_cli(cmd, "--subject", "astronaut-64px-2s", "--results", str(res), "--no-progress", *extra)
         one_line_error(rc, out, err, *words)
     assert snap() == before
+
+
+def test_table_out_not_writable_as_the_os_reports_it(world, monkeypatch):
+    # root may write anywhere, so the refusal is driven through os.access, as a user without the right sees it
+    tmp, res, snap = world
+    ro = tmp / "ro"
+    ro.mkdir()
+    real = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode: False if Path(p) == ro else real(p, mode))
+    for out_dir, words in ((ro, "folder is not writable"), (ro / "sub", f"cannot create the folder ({ro} is not writable)")):
+        rc, out, err = run_cli("table", "--results", str(res), "--out", str(out_dir))
+        one_line_error(rc, out, err, f"--out {out_dir}", words)
+    assert list(ro.iterdir()) == []
