@@ -18,6 +18,7 @@ class FakeMethod:
     """Trains (sleeps, then writes model.pt) unless the folder already has a model; counts trainings."""
 
     trainings = 0
+    started = threading.Event()  # set once a training is under way (the claim is held)
 
     def __init__(self, fail: Exception | None = None, save_first: bool = False):
         self.fail, self.save_first = fail, save_first
@@ -32,6 +33,7 @@ class FakeMethod:
             (workdir / "checkpoint.pt").write_bytes(b"half a training")
         if self.fail is not None:
             raise self.fail
+        type(self).started.set()
         time.sleep(0.4)
         type(self).trainings += 1
         (workdir / "model.pt").write_bytes(b"weights")
@@ -43,6 +45,7 @@ def subject(tmp_path: Path):
 
 def test_a_second_run_of_the_same_model_waits_and_reuses(tmp_path, capsys):
     FakeMethod.trainings = 0
+    FakeMethod.started.clear()
     subj = subject(tmp_path)
     out: dict[int, dict] = {}
 
@@ -51,7 +54,7 @@ def test_a_second_run_of_the_same_model_waits_and_reuses(tmp_path, capsys):
 
     first = threading.Thread(target=run, args=(0,))
     first.start()
-    time.sleep(0.1)  # the first holds the claim and trains
+    assert FakeMethod.started.wait(30)  # the first holds the claim and trains
     run(1)
     first.join()
     assert FakeMethod.trainings == 1
