@@ -152,10 +152,11 @@ def test_a_frame_folder_with_a_numbering_gap(world):
     # numbered the other way ER-NeRF writes them, with no gap: scored in numeric order
     write_frames(tmp / "ok", range(12))
     from lmgs_eval.data.io import list_frames
+    from lmgs_eval.errors import UserError
 
     assert [p.stem for p in list_frames(tmp / "ok")] == [str(i) for i in range(12)]
     (tmp / "ok" / "07.png").write_bytes((tmp / "ok" / "7.png").read_bytes())
-    with pytest.raises(Exception, match="frame 7 twice"):
+    with pytest.raises(UserError, match="frame 7 twice"):
         list_frames(tmp / "ok")
 
 
