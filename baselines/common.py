@@ -9,8 +9,6 @@ and the device from :func:`lmgs.device.choose_device`.
 from __future__ import annotations
 
 import dataclasses
-import os
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -24,6 +22,7 @@ from lmgs.audio import compute_features
 from lmgs.config import AudioConfig, config_hash, override
 from lmgs.device import choose_device
 from lmgs.errors import InputError
+from lmgs.fileio import atomic_path
 from lmgs.landmarks import lift_2d_landmarks
 from lmgs.types import DrivingAudio, TrainingClip
 
@@ -68,6 +67,8 @@ def audio_windows(audio: np.ndarray, n_frames: int) -> torch.Tensor:
 
 
 def seed_all(seed: int) -> np.random.Generator:
+    if not 0 <= int(seed) < 2 ** 32:
+        raise InputError(f"seed {seed}: a seed is an integer from 0 to {2 ** 32 - 1}")
     torch.manual_seed(seed)
     return np.random.default_rng(seed)
 
@@ -79,16 +80,9 @@ def to_u8(img: torch.Tensor) -> np.ndarray:
 
 
 def atomic_save(obj: Any, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.tmp-", dir=path.parent)
-    os.close(fd)
-    try:
+    """``torch.save`` through a temporary sibling and a rename, with the usual umask mode (not mkstemp's 0600)."""
+    with atomic_path(path) as tmp:
         torch.save(obj, tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def load_checkpoint(path: Path, name: str, chash: str, device) -> dict:

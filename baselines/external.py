@@ -1,7 +1,8 @@
 """``external:NAME``: score frames rendered by any other code in the same protocol.
 
 ``--method external:ernerf --renders PATH`` points at a video (``.mp4``...) or a folder of
-images (sorted by the number in their names: ``0.jpg, 1.jpg, ...`` or ``frame_0001.png``).
+images (in the order of the number in their names: ``0.jpg, 1.jpg, ...`` or ``frame_0001.png``,
+without a gap).
 An optional sidecar JSON beside it (``PATH.json`` for a video, ``PATH/cost.json`` for a
 folder) gives cost figures: ``fps``, ``train_hours``, ``device``, ``n_gaussians``,
 ``model_mb``. Missing figures stay empty; they are never guessed.
@@ -10,7 +11,6 @@ folder) gives cost figures: ``fps``, ``train_hours``, ``device``, ``n_gaussians`
 from __future__ import annotations
 
 import json
-import re
 from pathlib import Path
 
 import numpy as np
@@ -19,20 +19,13 @@ from baselines.protocol import MethodInfo
 from lmgs.errors import InputError
 from lmgs_eval.data import io
 
-IMAGE_EXT = {".jpg", ".jpeg", ".png", ".bmp", ".webp"}
+IMAGE_EXT = io.IMAGE_EXT
 SIDECAR_KEYS = ("fps", "train_hours", "device", "n_gaussians", "model_mb", "notes")
 
 
-def _number_key(p: Path):
-    nums = re.findall(r"\d+", p.stem)
-    return (int(nums[-1]) if nums else -1, p.name)
-
-
 def list_frames(folder: Path) -> list[Path]:
-    files = [p for p in Path(folder).iterdir() if p.suffix.lower() in IMAGE_EXT]
-    if not files:
-        raise InputError(f"{folder}: no image files (.jpg/.png) found")
-    return sorted(files, key=_number_key)
+    """The folder's images in frame order; a gap in the numbering is an error (:func:`lmgs_eval.data.io.list_frames`)."""
+    return io.list_frames(Path(folder))
 
 
 def read_frames(path: Path) -> np.ndarray:

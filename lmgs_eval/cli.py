@@ -14,13 +14,11 @@ import importlib
 import sys
 from collections.abc import Sequence
 
-# name -> module; order is the order of `lmgs-eval --help`.
+# name -> module; order is the order of `lmgs-eval --help`. Every module must import: a missing
+# or broken command module is an error of the installation, never a command silently dropped.
 COMMANDS: dict[str, str] = {
     "subjects": "lmgs_eval.commands.subjects",
     "prepare": "lmgs_eval.commands.prepare",
-}
-# Optional commands: registered only when their module exists (added by later work).
-_OPTIONAL: dict[str, str] = {
     "metrics": "lmgs_eval.commands.metrics",
     "score": "lmgs_eval.commands.score",
     "methods": "lmgs_eval.commands.methods",
@@ -32,21 +30,13 @@ _OPTIONAL: dict[str, str] = {
     "stress": "lmgs_eval.commands.stress",
     "capacity": "lmgs_eval.commands.capacity",
     "verify": "lmgs_eval.commands.verify",
-    "train": "lmgs_eval.commands.train",
     "bench": "lmgs_eval.commands.bench",
     "demo": "lmgs_eval.commands.demo",
 }
 
 
 def _available_commands() -> dict[str, object]:
-    mods: dict[str, object] = {}
-    for name, path in {**COMMANDS, **_OPTIONAL}.items():
-        try:
-            mods[name] = importlib.import_module(path)
-        except ModuleNotFoundError as exc:
-            if name in COMMANDS or exc.name != path:
-                raise
-    return mods
+    return {name: importlib.import_module(path) for name, path in COMMANDS.items()}
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,4 +1,4 @@
-"""Where things live on disk: the data root, the cache, atomic writes."""
+"""Where things live on disk: the data root, the cache, atomic writes, the claim on a piece of work."""
 
 from __future__ import annotations
 
@@ -11,7 +11,8 @@ from pathlib import Path
 
 from lmgs.fileio import atomic_path, atomic_write_bytes, public_mode
 
-__all__ = ["atomic_dir", "atomic_path", "atomic_write_bytes", "atomic_write_text", "cache_root", "data_root", "public_mode"]
+__all__ = ["atomic_dir", "atomic_path", "atomic_write_bytes", "atomic_write_text", "cache_root", "claim", "data_root",
+           "public_mode"]
 
 
 def cache_root() -> Path:
@@ -53,3 +54,48 @@ def atomic_dir(final: Path) -> Iterator[Path]:
 
 def atomic_write_text(path: Path, text: str) -> None:
     atomic_write_bytes(path, text.encode("utf-8"))
+
+
+@contextlib.contextmanager
+def claim(lock: Path, what: str, say=None) -> Iterator[None]:
+    """Hold an exclusive claim on a piece of work (one model's training) for the ``with`` block.
+
+    The claim is an advisory ``flock`` on the file ``lock``, which records who holds it (pid,
+    host, start time). A second process asking for the same claim says who holds it (through
+    ``say``, one line) and waits; when the holder finishes (or dies: the kernel drops the lock
+    with the process) the waiter goes on and finds the work done. The file is left in place:
+    removing it while another process waits on it would let a third take a second lock.
+
+    Args:
+        lock: the lock file (its folder is made).
+        what: what is claimed, for the waiting message.
+        say: callable taking one line (default: print to stderr).
+    """
+    import datetime
+    import fcntl
+    import socket
+    import sys
+
+    lock = Path(lock)
+    lock.parent.mkdir(parents=True, exist_ok=True)
+    with open(lock, "a+", encoding="utf-8") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            f.seek(0)
+            holder = f.read().strip() or "another process"
+            (say or (lambda m: print(m, file=sys.stderr, flush=True)))(
+                f"{what}: {holder} holds {lock}; waiting for it to finish (Ctrl-C to stop)")
+            fcntl.flock(f, fcntl.LOCK_EX)
+        f.seek(0)
+        f.truncate()
+        now = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+        f.write(f"pid {os.getpid()} on {socket.gethostname()} since {now}\n")
+        f.flush()
+        try:
+            yield
+        finally:
+            f.seek(0)
+            f.truncate()
+            f.flush()
+            fcntl.flock(f, fcntl.LOCK_UN)

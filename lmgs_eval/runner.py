@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import inspect
 import json
+import shutil
 import sys
 import time
 from dataclasses import dataclass, field
@@ -25,7 +26,7 @@ from lmgs_eval.data.io import write_video
 from lmgs_eval.errors import UserError
 from lmgs_eval.hosttime import HostSpeed, OthersCPU, peak_rss_mb
 from lmgs_eval.metrics.metric_suite import MetricSuite
-from lmgs_eval.paths import atomic_write_text, cache_root
+from lmgs_eval.paths import atomic_write_text, cache_root, claim
 from lmgs_eval.results.notes import se_note
 from lmgs_eval.results.records import build_record, metrics_block, subject_sha
 
@@ -154,10 +155,30 @@ def timed_render(method, driving: DrivingAudio, timings: dict | None = None,
                     "others_cpu_share": busy.share, **host.cost()}
 
 
+LOCK = ".lock"
+
+
 def fit_method(method, clip, subject, seed: int, progress: bool) -> dict:
-    """Fit (or reload) a method; returns the cost of training."""
+    """Fit (or reload) a method; returns the cost of training.
+
+    The model's cache folder is claimed for the fit (:func:`lmgs_eval.paths.claim`): a second
+    run of the same method, config and seed on this machine waits, then reloads the model the
+    first one trained instead of training it again. A fit that fails in a folder it made,
+    before anything was saved there, removes the folder (no empty model folders are left).
+    """
     info = method.describe()
     workdir = model_dir(subject, info.name, info.config_hash, seed)
+    made = not workdir.exists()
+    try:
+        with claim(workdir / LOCK, f"{info.name} seed {seed} on {subject.name}", log):
+            return _fit_claimed(method, clip, subject, seed, progress, workdir)
+    except BaseException:
+        if made:
+            _drop_if_empty(workdir)
+        raise
+
+
+def _fit_claimed(method, clip, subject, seed: int, progress: bool, workdir: Path) -> dict:
     claim_model_dir(workdir, subject)
     reused = (workdir / "model.pt").exists()
     t0 = time.perf_counter()
@@ -177,6 +198,21 @@ def fit_method(method, clip, subject, seed: int, progress: bool) -> dict:
         atomic_write_text(workdir / "fit.json", json.dumps({"train_seconds": secs, "peak_mb": peak_rss_mb(),
                                                             "train_others_cpu_share": busy.share}))
     return rec
+
+
+def _drop_if_empty(workdir: Path) -> None:
+    """Remove a model folder holding nothing but its data marker and lock, and the empty folders above it."""
+    if not workdir.is_dir() or any(p.name not in (DATA_MARKER, LOCK) for p in workdir.iterdir()):
+        return
+    shutil.rmtree(workdir, ignore_errors=True)
+    top = cache_root() / "models"
+    for d in workdir.parents:
+        if d == top or top not in d.parents:
+            break
+        try:
+            d.rmdir()
+        except OSError:
+            break
 
 
 def _recorded_fit(workdir: Path) -> dict:

@@ -14,12 +14,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-# Keep tests off the user's cache: every test run gets its own data root and cache.
-@pytest.fixture(autouse=True)
-def _isolated_cache(tmp_path_factory, monkeypatch):
+# Keep tests off the user's cache: every test run gets its own data root and cache. Session-scoped,
+# so that module-scoped fixtures (set up before any function-scoped one) are isolated too.
+@pytest.fixture(autouse=True, scope="session")
+def _isolated_cache(tmp_path_factory):
     base = tmp_path_factory.getbasetemp() / "cache"
-    monkeypatch.setenv("XDG_CACHE_HOME", str(base))
-    monkeypatch.setenv("LMGS_DATA", str(base / "data"))
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("XDG_CACHE_HOME", str(base))
+        mp.setenv("LMGS_DATA", str(base / "data"))
+        yield
 
 
 def write_pcm_wav(path: Path, x: np.ndarray, sr: int) -> None:

@@ -17,9 +17,9 @@ import pytest
 import torch
 
 from lmgs.types import Camera
+from lmgs_eval.data import bundled
 from lmgs_eval.errors import UserError
 
-bundled = pytest.importorskip("lmgs_eval.data.bundled")
 SIZE, SECONDS = 64, 2.0
 
 

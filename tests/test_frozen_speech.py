@@ -13,10 +13,9 @@ import wave
 import numpy as np
 import pytest
 
+import lmgs_eval.data.bundled.generator as g
+import lmgs_eval.data.bundled.speech as sp
 from lmgs_eval.errors import UserError
-
-sp = pytest.importorskip("lmgs_eval.data.bundled.speech")
-g = pytest.importorskip("lmgs_eval.data.bundled.generator")
 
 
 def test_round_trip_and_damage(tmp_path):

@@ -116,7 +116,6 @@ def test_lse_from_embeddings_hand_case():
     v = rng.normal(size=(12, 4))
     a = np.concatenate([np.zeros((2, 4)), v[:-2]])  # a_{i} = v_{i-2}
     r = S.lse_from_embeddings(v, a, vshift=3)
-    assert r["offset"] == -2 or r["offset"] == 3 - int(np.argmin(r["mdist"]))
     k = int(np.argmin(r["mdist"]))
     assert k == 5 and r["offset"] == -2
     assert r["lse_c"] == pytest.approx(np.median(r["mdist"]) - r["mdist"].min())

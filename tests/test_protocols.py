@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 from pathlib import Path
 
@@ -164,18 +165,61 @@ def test_cross_with_user_audio_and_a_bad_file(tmp_path):
     records, _ = load_records(res)
     assert len(records) == 1
     r = records[0]
-    assert r["protocol"]["name"] == "cross" and r["protocol"]["clip"] == "good" and r["protocol"]["n_frames"] == 30
+    sha = hashlib.sha256(good.read_bytes()).hexdigest()
+    assert r["protocol"]["name"] == "cross" and r["protocol"]["clip"] == f"good-{sha[:12]}"
+    assert r["protocol"]["n_frames"] == 30
+    assert r["protocol"]["split"] == str(good.resolve()) and Path(r["protocol"]["split"]).is_absolute()
+    assert r["artefacts"]["driving_audio"] == {"path": str(good.resolve()), "sha256": sha}
     assert any("mixed to mono" in n for n in r["notes"]) and any("44100" in n for n in r["notes"])
     assert validate(r) == []
 
 
-def test_cross_bundled_clips_have_lmd(tmp_path):
+def test_cross_clips_are_their_audio_not_their_name(tmp_path, monkeypatch):
+    # x/a.wav and y/a.wav differ: two clips; a user's A.wav is not the bundled clip A; the same
+    # audio under two names is one clip. A deleted render is made again on the next run.
+    t = np.arange(16000) / 16000
+    (tmp_path / "x").mkdir()
+    (tmp_path / "y").mkdir()
+    write_pcm_wav(tmp_path / "x" / "a.wav", 0.3 * np.sin(2 * np.pi * 220 * t), 16000)
+    write_pcm_wav(tmp_path / "y" / "a.wav", 0.3 * np.sin(2 * np.pi * 330 * t), 16000)
+    write_pcm_wav(tmp_path / "A.wav", 0.3 * np.sin(2 * np.pi * 440 * t), 16000)
+    (tmp_path / "same.wav").write_bytes((tmp_path / "x" / "a.wav").read_bytes())
+    res = tmp_path / "res"
+    monkeypatch.chdir(tmp_path)
+    args = ["cross", "--audio", "x/a.wav", "y/a.wav", "A.wav", "same.wav", "--subject", SUBJECT, "--results", str(res),
+            "--no-progress", *FAST]
+    rc, out, err = run_cli(*args)
+    assert rc == 0, err
+    clips = sorted(r["protocol"]["clip"] for r in load_records(res)[0])
+    assert len(clips) == 3 and "A" not in clips and sum(c.startswith("a-") for c in clips) == 2
+    assert all(Path(r["protocol"]["split"]).is_absolute() for r in load_records(res)[0])
+    rc, out, err = run_cli(*args)
+    assert rc == 0 and "already in" in err
+    victim = next(r for r in load_records(res)[0] if r["protocol"]["clip"].startswith("A-"))
+    (res / victim["artefacts"]["render"]["path"]).unlink()
+    rc, out, err = run_cli(*args)
+    assert rc == 0 and "is missing" in err, err
+    assert (res / victim["artefacts"]["render"]["path"]).is_file()
+    rc, out, err = run_cli("verify", str(res))
+    assert rc == 0, out + err
+
+
+def test_cross_bundled_clips_score_lmd_against_their_ground_truth_or_say_why(tmp_path):
     rc, _, err = run_cli("cross", "--subject", SUBJECT, "--results", str(tmp_path), "--no-progress", *FAST)
     assert rc == 0, err
     records, _ = load_records(tmp_path)
     assert sorted(r["protocol"]["clip"] for r in records) == ["A", "B"]
+    from lmgs_eval.data.registry import find_subject
+
+    subject = find_subject(SUBJECT, progress=False)
     for r in records:
-        assert "lmd" in r["metrics"] and "lse_d" in r["metrics"]
+        n_gt = len(list((subject.root / "cross" / r["protocol"]["clip"] / "gt_imgs").glob("*.jpg")))
+        m = r["metrics"]["lmd"]
+        # every frame of the clip is paired with its own ground truth ...
+        assert m["n_original"] == r["protocol"]["n_frames"] == n_gt == len(m["per_item"])
+        # ... and at 64x64 no detector finds a face: no number, and the record says why
+        assert m["value"] is None and m["n_effective"] == 0
+        assert any(f.startswith("unavailable: no face found") for f in m["flags"])
 
 
 def test_unknown_method_and_subject(tmp_path):

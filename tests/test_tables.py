@@ -54,7 +54,8 @@ def test_non_significant_difference_is_not_bolded():
     # LSE-D / LSE-C: Ours is better on the mean, but by far less than the item noise.
     for cell in (ours[4], ours[5], tg[4], tg[5]):
         assert cell.endswith("†") and "**" not in cell and "<u>" not in cell
-    assert "† LSE-D: Ours (lmgs), TalkingGaussian (p=" in md and "no winner is bolded" in md
+    assert "† LSE-D: Ours (lmgs), TalkingGaussian (Welch t on seed means, 2 vs 2 seeds, p = " in md
+    assert "no winner is bolded" in md
     tex = T.table_self(fixture_records()).latex()
     assert "$^\\dagger$" in tex
 
@@ -128,13 +129,25 @@ def test_training_time_measured_on_a_busy_host_is_marked():
 
 
 def test_ranking_without_per_item_values_says_it_is_untested():
-    recs = fixture_records()
+    # One seed each and no per-frame values: neither a seed-level nor a frame-level test is possible.
+    recs = [r for r in fixture_records() if r["seed"] == min(x["seed"] for x in fixture_records())]
     for r in recs:
         for m in r["metrics"].values():
             m["per_item"] = None
     md = T.table_self(recs).markdown()
     assert _row(md, "Ours (lmgs)")[4].startswith("**")
     assert "LSE-D: best / second not tested for significance" in md
+
+
+def test_marks_name_their_test_seeds_when_both_rows_have_seeds_else_frames():
+    recs = fixture_records()
+    md = T.table_self(recs).markdown()
+    # both rows have two seeds: the seed-level test made the bold PSNR
+    assert "PSNR Ours (lmgs) vs TalkingGaussian: Welch t on seed means, 2 vs 2 seeds" in md
+    one = [r for r in recs if not (r["method"]["name"] == "talkinggaussian" and r["seed"] != min(
+        x["seed"] for x in recs))]
+    md1 = T.table_self(one).markdown()
+    assert "PSNR Ours (lmgs) vs TalkingGaussian: circular block bootstrap over" in md1
 
 
 def test_footnotes_name_standins_backends_and_descriptions():

@@ -37,6 +37,7 @@ def run_config(args: argparse.Namespace):
             from lmgs_eval.errors import UserError
 
             raise UserError(f"unknown method '{m}'; known: {', '.join(known)}")
+    check_seeds(args.seeds or ())
     if args.device is not None or os.environ.get("LMGS_DEVICE"):
         choose_device(args.device)  # a device this machine lacks stops the run before any work
     return RunConfig(
@@ -52,6 +53,15 @@ def run_config(args: argparse.Namespace):
         renders=args.renders,
         force=args.force,
     )
+
+
+def check_seeds(seeds) -> None:
+    """Seeds numpy and torch both accept: integers in [0, 2**32 - 1]."""
+    from lmgs_eval.errors import UserError
+
+    for s in seeds:
+        if not 0 <= s < 2 ** 32:
+            raise UserError(f"--seed {s}: a seed is an integer from 0 to {2 ** 32 - 1}")
 
 
 def print_rows(records: list[dict]) -> None:

@@ -56,6 +56,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default=None, help="tables and charts folder (default RESULTS/tables)")
     p.add_argument("--data-root", help="folder of subjects (default: $LMGS_DATA or ~/.cache/lmgs/data)")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--set", dest="overrides", action="append", metavar="KEY=VALUE", default=[],
+                   help="override a config value of the methods, dotted (e.g. train.dynamic_steps=400: a shorter demo)")
     p.add_argument("--full", action="store_true",
                    help="the whole benchmark (resumable, hours on 2 cores): every method on astronaut and hopper "
                         "(5 seeds for lmgs and talkinggaussian), Tables III-IV variants and the stress suite (3DGS family) "
@@ -136,7 +138,7 @@ def run_full(args: argparse.Namespace) -> int:
 def run(args: argparse.Namespace) -> int:
     if args.full:
         return run_full(args)
-    from lmgs_eval.commands._common import print_rows
+    from lmgs_eval.commands._common import parse_overrides, print_rows
     from lmgs_eval.protocols.cross import run_cross
     from lmgs_eval.protocols.self_driven import run_self
     from lmgs_eval.runner import RunConfig, log
@@ -144,7 +146,8 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     results = Path(args.results)
     cfg = RunConfig(subject=args.subject, methods=tuple(args.methods or ("lmgs",)), results=results,
-                    data_root=args.data_root, progress=not args.no_progress)
+                    data_root=args.data_root, progress=not args.no_progress,
+                    method_options=parse_overrides(args.overrides))
     log(f"[demo] 1/3 self-driven protocol on {cfg.subject}")
     recs = run_self(cfg)
     log(f"[demo] 2/3 cross-driven protocol (bundled clips A and B) [{time.perf_counter() - t0:.0f} s]")

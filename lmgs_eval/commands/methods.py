@@ -15,6 +15,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from baselines.protocol import create_method, list_methods
+    from lmgs.errors import InputError
 
     rows = []
     for name in list_methods():
@@ -22,7 +23,13 @@ def run(args: argparse.Namespace) -> int:
             rows.append({"name": name, "family": "external", "config_hash": "-", "variant": "",
                          "description": "scores a folder or video rendered by any other code (--renders PATH)"})
             continue
-        info = create_method(name, preset=args.preset).describe()
+        try:
+            info = create_method(name, preset=args.preset).describe()
+        except InputError:  # a method without this preset: listed, with no config under it
+            info = create_method(name).describe()
+            rows.append({"name": name, "family": info.family, "config_hash": "-", "variant": info.variant or "",
+                         "description": f"(no '{args.preset}' preset) {info.description}"})
+            continue
         rows.append({"name": name, "family": info.family, "config_hash": info.config_hash,
                      "variant": info.variant or "", "description": info.description})
     if args.json:

@@ -19,9 +19,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from lmgs_eval.data.layout import read_subject
+    from lmgs_eval.commands._common import check_seeds
+    from lmgs_eval.data.layout import check_jpegs, read_subject
     from lmgs_eval.data.registry import BundledSpec, ensure_bundled, resolve_subject_dir
 
+    check_seeds([args.seed])
     t0 = time.perf_counter()
     spec = BundledSpec.parse(args.subject)
     if spec is not None:
@@ -39,6 +41,7 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(f"--size/--seconds apply to bundled subjects only, not '{args.subject}'")
         folder = resolve_subject_dir(args.subject, args.data_root)
     subject = read_subject(folder)
+    check_jpegs(folder)  # every frame, not only the first that read_subject decodes
     d = subject.describe()
     print(f"{subject.name}: {d['frames']} frames {d['width']}x{d['height']} at {d['fps']} fps "
           f"({d['seconds']:.1f} s), split {d['train_frames']} train / {d['test_frames']} test, at {folder} "

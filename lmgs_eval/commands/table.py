@@ -28,7 +28,9 @@ def run(args: argparse.Namespace) -> int:
     from lmgs_eval.report.tables import all_tables
 
     records_dir = args.records
+    _check_out_dir(Path(args.out), "--out")
     if records_dir is not None:
+        _check_out_dir(Path(records_dir).parent, "--records")
         _check_records_dir(Path(records_dir), Path(args.results))
     records, warnings = load_records(args.results)
     for w in warnings:
@@ -77,3 +79,25 @@ def _check_records_dir(records_dir: Path, results: Path) -> None:
     if a == b or b in a.parents or a in b.parents:
         raise UserError(f"--records {records_dir}: overlaps the results store {results} "
                         "(its records would be read twice); choose a folder outside it, e.g. tables/records")
+
+
+def _check_out_dir(out: Path, flag: str) -> None:
+    """An output folder must be a folder this user can write, or one that can be made; checked before any
+    file is written (and nothing is made here: a run without records leaves no empty folder)."""
+    import os
+
+    from lmgs_eval.errors import UserError
+
+    if out.exists():
+        if not out.is_dir():
+            raise UserError(f"{flag} {out}: exists and is not a folder")
+        if not os.access(out, os.W_OK | os.X_OK):
+            raise UserError(f"{flag} {out}: folder is not writable")
+        return
+    up = out.parent
+    while not up.exists() and up != up.parent:
+        up = up.parent
+    if not up.is_dir():
+        raise UserError(f"{flag} {out}: cannot create the folder ({up} is not a folder)")
+    if not os.access(up, os.W_OK | os.X_OK):
+        raise UserError(f"{flag} {out}: cannot create the folder ({up} is not writable)")

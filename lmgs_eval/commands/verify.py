@@ -19,8 +19,9 @@ def run(args: argparse.Namespace) -> int:
 
     Returns:
         0 when every artefact of every valid record hashes as recorded, 1 otherwise.
-        Files that are not valid records are reported as warnings (stderr) and do not
-        change the exit code (``lmgs-eval table`` skips them the same way).
+        A record file that cannot be read (not JSON, truncated, of an unknown schema version,
+        invalid) is named on stderr and makes the exit code 1: its inputs cannot be checked.
+        A JSON file that is not a record at all (no ``schema_version``) is only a warning.
     """
     from lmgs_eval.errors import UserError
     from lmgs_eval.results import check_artefacts, imported_records, iter_store
@@ -29,8 +30,9 @@ def run(args: argparse.Namespace) -> int:
     if not root.is_dir():
         raise UserError(f"{root}: no results store there")
     items, warnings = iter_store(root)
+    unreadable = [w for w in warnings if "not a result record" not in w]
     for w in warnings:
-        print(f"warning: {w}", file=sys.stderr)
+        print(f"{'error' if w in unreadable else 'warning'}: {w}", file=sys.stderr)
     bad = 0
     n_art = 0
     imported = imported_records(root)
@@ -51,6 +53,9 @@ def run(args: argparse.Namespace) -> int:
               "their renders and checkpoints stay there and are checked only where present")
     if bad:
         print(f"{bad} of {len(items)} records have inputs that changed or went missing")
+    if unreadable:
+        print(f"{len(unreadable)} record files could not be read, so their inputs were not checked")
+    if bad or unreadable:
         return 1
     print(f"{len(items)} records, {n_art} artefacts checked: all inputs unchanged")
     return 0

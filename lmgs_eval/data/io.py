@@ -20,6 +20,46 @@ from lmgs_eval.errors import UserError
 from lmgs_eval.paths import atomic_write_bytes
 
 JPEG_QUALITY = 95
+IMAGE_EXT = frozenset({".jpg", ".jpeg", ".png", ".bmp", ".webp"})
+
+
+def list_frames(folder: Path) -> list[Path]:
+    """The images of a frame folder in frame order: by the last number in each name (``7.jpg``, ``frame_0007.png``).
+
+    The numbers must run without a gap from the first: a missing frame would shift every later
+    frame against its ground truth. Names without a number are allowed only when no name has one
+    (then the order is by name).
+
+    Raises:
+        UserError: no images, names mixing numbered and unnumbered files, a number used twice
+            (``7.png`` and ``007.png``), or a gap (naming the first missing number).
+    """
+    import re
+
+    folder = Path(folder)
+    files = [p for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXT and not p.name.startswith(".")]
+    if not files:
+        raise UserError(f"{folder}: folder has no images ({', '.join(sorted(IMAGE_EXT))})")
+    nums = {p: re.findall(r"\d+", p.stem) for p in files}
+    bare = sorted(p.name for p, n in nums.items() if not n)
+    if len(bare) == len(files):
+        return sorted(files, key=lambda p: p.name)
+    if bare:
+        raise UserError(f"{folder}: {len(bare)} image names carry no frame number (first: {bare[0]}) beside numbered "
+                        "ones; the frame order is unknown")
+    by_num: dict[int, Path] = {}
+    for p, n in nums.items():
+        k = int(n[-1])
+        if k in by_num:
+            raise UserError(f"{folder}: frame {k} twice ({by_num[k].name} and {p.name})")
+        by_num[k] = p
+    order = sorted(by_num)
+    for a, b in zip(order, order[1:]):
+        if b != a + 1:
+            miss = f"{a + 1}" if b == a + 2 else f"{a + 1}-{b - 1}"
+            raise UserError(f"{folder}: frame numbers jump from {a} to {b} (frame {miss} missing); every later frame "
+                            "would be compared with the wrong one")
+    return [by_num[k] for k in order]
 
 
 def _cv2():

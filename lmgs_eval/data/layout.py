@@ -176,6 +176,33 @@ def _load_feature(p: Path, kind: str, n: int, notes: list[str]) -> np.ndarray:
     return a
 
 
+def check_jpegs(root: str | Path) -> int:
+    """Check that every ``gt_imgs/<i>.jpg`` of a subject folder is a whole JPEG file, without decoding.
+
+    A JPEG starts with the SOI marker and a marker segment (``FF D8 FF``) and ends with EOI
+    (``FF D9``, possibly followed by padding zeros). A PNG renamed ``.jpg`` or a file cut short in a
+    copy fails here, where :func:`read_subject` (which decodes only the first frame) would pass it.
+
+    Returns:
+        The number of files checked.
+
+    Raises:
+        UserError: naming the first file that is not a whole JPEG.
+    """
+    gt_dir = Path(root) / "gt_imgs"
+    files = sorted((p for p in gt_dir.glob("*.jpg") if p.stem.isdigit()), key=lambda p: int(p.stem))
+    for p in files:
+        with open(p, "rb") as f:
+            head = f.read(3)
+            f.seek(max(0, p.stat().st_size - 64))
+            tail = f.read().rstrip(b"\0")
+        if head != b"\xff\xd8\xff":
+            raise UserError(f"{p}: not a JPEG file (it starts with {head.hex(' ') or 'nothing'}, not ff d8 ff)")
+        if not tail.endswith(b"\xff\xd9"):
+            raise UserError(f"{p}: JPEG file is cut short (no end-of-image marker); re-copy it")
+    return len(files)
+
+
 def read_subject(root: str | Path, name: str | None = None, *, check_images: bool = True) -> Subject:
     """Read a processed subject folder.
 

@@ -92,7 +92,9 @@ def load_torch_state(path: Path, what: str) -> dict:
         raise UserError(f"{path}: {what} not found")
     try:
         sd = torch.load(str(path), map_location="cpu", weights_only=True)
-    except (RuntimeError, pickle.UnpicklingError, EOFError, zipfile.BadZipFile, ValueError, OSError) as exc:
+    # torch's unpickler meets a file of another kind (audio, text) with any of these
+    except (RuntimeError, pickle.UnpicklingError, EOFError, zipfile.BadZipFile, ValueError, OSError, IndexError,
+            KeyError, AttributeError, TypeError, UnicodeDecodeError) as exc:
         raise UserError(f"{path}: not a readable {what} ({exc.__class__.__name__}); re-download or re-copy it") from None
     if isinstance(sd, dict) and "state_dict" in sd and isinstance(sd["state_dict"], dict):
         sd = sd["state_dict"]

@@ -3,37 +3,33 @@
 from __future__ import annotations
 
 import datetime
-import re
 import subprocess
 from pathlib import Path
 
 import numpy as np
 
-from lmgs_eval.data.io import load_audio, read_rgb, read_video, to_mono_16k
+from lmgs_eval.data.io import list_frames, load_audio, read_rgb, read_video, to_mono_16k
 from lmgs_eval.errors import UserError
 from lmgs_eval.metrics.base import align_lengths, check_frames
 from lmgs_eval.metrics.lpips import find_alexnet
 from lmgs_eval.metrics.registry import create_metric
 from lmgs_eval.metrics.sync import lse
 
-IMAGE_EXT = {".jpg", ".jpeg", ".png", ".bmp", ".webp"}
 RECORD_SCHEMA = "lmgs-eval/score/1"
 
-
-def _natural_key(p: Path):
-    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)]
+METRIC_NAMES = ("psnr", "ssim", "lpips", "lmd", "lse")
+REFERENCE_METRICS = ("psnr", "ssim", "lpips", "lmd")
+"""The names ``score --metrics`` takes; the first four compare with the ground truth."""
 
 
 def load_frames(path: str | Path) -> tuple[np.ndarray, float | None, np.ndarray | None, int | None, list[str]]:
-    """Frames of a video file or a folder of images (sorted numerically: 0.jpg, 1.jpg, 10.jpg...).
+    """Frames of a video file or a folder of images (in frame order, no gap: :func:`lmgs_eval.data.io.list_frames`).
 
     Returns frames ``[T, H, W, 3]`` float32 [0, 1], fps (None for a folder), audio, sample rate, notes.
     """
     path = Path(path)
     if path.is_dir():
-        files = sorted((p for p in path.iterdir() if p.suffix.lower() in IMAGE_EXT), key=_natural_key)
-        if not files:
-            raise UserError(f"{path}: folder has no images ({', '.join(sorted(IMAGE_EXT))})")
+        files = list_frames(path)
         frames = [read_rgb(f) for f in files]
         shapes = {f.shape for f in frames}
         if len(shapes) != 1:
@@ -67,7 +63,13 @@ def score(pred: str | Path, gt: str | Path | None = None, audio: str | Path | No
         landmarks: LMD backend name.
         metrics: subset of names to run (default all).
     """
-    want = set(metrics or ["psnr", "ssim", "lpips", "lmd", "lse"])
+    want = set(metrics or METRIC_NAMES)
+    unknown = sorted(want - set(METRIC_NAMES))
+    if unknown:
+        raise UserError(f"--metrics: unknown metric {', '.join(unknown)}; known: {', '.join(METRIC_NAMES)}")
+    needs_gt = sorted(want & set(REFERENCE_METRICS), key=METRIC_NAMES.index)
+    if gt is None and metrics and needs_gt:
+        raise UserError(f"--metrics {','.join(needs_gt)}: compares with a reference; pass --gt VIDEO_OR_FOLDER")
     p_frames, fps, p_audio, p_sr, notes = load_frames(pred)
     check_frames(p_frames, str(pred))
     flags: list[str] = []

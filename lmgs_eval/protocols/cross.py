@@ -2,6 +2,13 @@
 
 Only LSE-D / LSE-C apply, plus LMD where the clip comes with ground-truth articulation (the
 bundled A / B clips). A user's own audio files are driving clips too.
+
+A user's clip is identified by the sha256 of its audio file, not by its name: its clip id is
+``<file stem>-<first 12 hex digits of the sha256>`` (the stem kept for display), so two
+different files of one name (``x/a.wav``, ``y/a.wav``, ``a.m4a``) are two clips and one file
+copied under two names is one. The bundled names (``A``, ``B``) are reserved: a user's ``A.wav``
+never passes for the bundled clip. The record keeps the file's absolute path and hash
+(artefact ``driving_audio``).
 """
 
 from __future__ import annotations
@@ -32,12 +39,16 @@ class CrossClip:
     w2c: np.ndarray | None = None
     gt_frames: np.ndarray | None = None
     notes: tuple[str, ...] = ()
+    audio_file: dict | None = None  # a user's clip: {"path": absolute, "sha256": ...}
+
+
+BUNDLED_CLIPS = ("A", "B")
 
 
 def bundled_cross_clips(subject) -> list[CrossClip]:
     """The bundled subject's clips A and B (voices and texts not used in training, with GT)."""
     clips = []
-    for name in ("A", "B"):
+    for name in BUNDLED_CLIPS:
         d = subject.root / "cross" / name
         if not (d / "aud.wav").exists():
             continue
@@ -69,7 +80,12 @@ def user_cross_clips(paths: list[str]) -> tuple[list[CrossClip], list[str]]:
             continue
         if float(np.max(np.abs(audio))) == 0.0:
             notes.append(f"{p}: the audio is digital silence")
-        clips.append(CrossClip(Path(p).stem, audio, str(p), None, None, tuple(notes)))
+        path = Path(p).resolve()
+        sha = store.sha256_file(path)
+        if any(c.audio_file["sha256"] == sha for c in clips):
+            continue  # the same audio given twice (or under two names): one clip
+        clips.append(CrossClip(f"{path.stem}-{sha[:12]}", audio, str(path), None, None, tuple(notes),
+                               {"path": str(path), "sha256": sha}))
     return clips, errors
 
 
@@ -98,7 +114,7 @@ def run_cross(cfg: RunConfig, audio_paths: list[str] | None = None) -> tuple[lis
         for seed in cfg.seeds:
             method = build_method(cfg, name, subject)
             info = method.describe()
-            todo = [c for c in clips if cfg.force or not stored(cfg.results, subject, info.name, "cross", c.name, seed, info.config_hash)]
+            todo = [c for c in clips if cfg.force or not _done(cfg, subject, info, c.name, seed, renders_dir)]
             if not todo:
                 log(f"{info.name} seed {seed}: cross clips already in {cfg.results}; skipped")
                 continue
@@ -114,10 +130,28 @@ def run_cross(cfg: RunConfig, audio_paths: list[str] | None = None) -> tuple[lis
                 log(f"{info.name} on clip {c.name}: {n} frames at {rc['fps']:.1f} FPS; scoring")
                 gt = c.gt_frames[:n] if c.gt_frames is not None and len(c.gt_frames) >= n else None
                 res = cfg.suite.score(frames, gt, driving.audio, reference=False, lmd=gt is not None)
-                art = {"render": write_render(cfg.results, f"{renders_dir}/{render_stem(info, seed)}-cross-{c.name}.mp4", frames, driving.audio)}
+                art = {"render": write_render(cfg.results, _render_rel(renders_dir, info, seed, c.name), frames, driving.audio)}
+                if c.audio_file is not None:
+                    art["driving_audio"] = dict(c.audio_file)
                 rec = build_record(info=info, subject=subject, protocol="cross", clip=c.name, split=c.source, n_frames=n, seed=seed,
                                    metrics=metrics_block(res), cost=cost_block(method, fit_cost, rc), artefacts=art,
                                    notes=list(c.notes))
                 store.write_record(cfg.results, rec)
                 records.append(rec)
     return records, errors
+
+
+def _render_rel(renders_dir: str, info, seed: int, clip: str) -> str:
+    return f"{renders_dir}/{render_stem(info, seed)}-cross-{clip}.mp4"
+
+
+def _done(cfg: RunConfig, subject, info, clip: str, seed: int, renders_dir: str) -> bool:
+    """A clip is done when its record is in the store and the render it points to is still there."""
+    rec = stored(cfg.results, subject, info.name, "cross", clip, seed, info.config_hash)
+    if rec is None:
+        return False
+    rel = ((rec.get("artefacts") or {}).get("render") or {}).get("path") or _render_rel(renders_dir, info, seed, clip)
+    if not (Path(cfg.results) / rel).is_file():
+        log(f"{info.name} seed {seed}: the render of clip {clip} is missing ({Path(cfg.results) / rel}); made again")
+        return False
+    return True

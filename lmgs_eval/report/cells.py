@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from lmgs_eval.report.stats import ALPHA, bootstrap_ci_seeds, mean_over_seeds, paired_test
+from lmgs_eval.report.stats import ALPHA, PairedTest, bootstrap_ci_seeds, mean_over_seeds, paired_test, seed_test
 from lmgs_eval.report.table_model import (BUSY, BUSY_SHARE, FAMILY_ORDER, METRICS, MIXED, OURS, SLOW_HOST, TIE, Cell, Column,
                                           Record, Row, Section, column_backends)
 from lmgs_eval.results import budget_note
@@ -54,6 +54,7 @@ def metric_cell(records: Sequence[Record], key: str) -> Cell:
         n_seeds=len(vals),
         ci=bootstrap_ci_seeds(items) if per_item_ok else None,
         paired=mean_over_seeds(items) if per_item_ok else None,
+        values=vals,
         backends=backends,
     )
 
@@ -154,6 +155,7 @@ def rank_section(sec: Section, columns: Sequence[Column], alpha: float = ALPHA) 
     FPS timed on a busy host are marked first (:func:`flag_busy_timings`).
     """
     flag_busy_timings(sec, columns)
+    used: list[str] = []
     for col in columns:
         if col.kind != "metric" or not col.rank:
             continue
@@ -172,30 +174,46 @@ def rank_section(sec: Section, columns: Sequence[Column], alpha: float = ALPHA) 
         sign = -1.0 if col.higher_is_better else 1.0
         rows.sort(key=lambda r: sign * r.cells[col.id].mean)
         best = rows[0].cells[col.id]
-        tests = []
-        for other in rows[1:]:
-            oc = other.cells[col.id]
-            t = None
-            if best.paired is not None and oc.paired is not None and len(best.paired) == len(oc.paired):
-                t = paired_test(best.paired, oc.paired)
-            tests.append(t)
+        tests = [compare(best, other.cells[col.id]) for other in rows[1:]]
         name = f"{col.group + ' ' if col.group else ''}{col.label}"
         if tests[0] is None:
             best.mark, rows[1].cells[col.id].mark = "best", "second"
             sec.notes.append(f"{name}: best / second not tested for significance (no per-item values on the same "
-                             f"items).")
+                             f"items, nor two seeds on each side).")
             continue
         if tests[0].significant(alpha):
             best.mark, rows[1].cells[col.id].mark = "best", "second"
+            used.append(f"{name} {rows[0].label} vs {rows[1].label}: {tests[0].how}, {p_text(tests[0].p)}")
             continue
         best.mark = "tie"
         tied = [rows[0].label]
         for other, t in zip(rows[1:], tests):
             if t is not None and not t.significant(alpha):
                 other.cells[col.id].mark = "tie"
-                tied.append(f"{other.label} (p={t.p:.2g})")
-        sec.notes.append(f"{TIE} {name}: {', '.join(tied)} are not significantly different (paired bootstrap and "
-                         f"Wilcoxon over the same items, p ≥ {alpha:g}); no winner is bolded.")
+                tied.append(f"{other.label} ({t.how}, {p_text(t.p)})")
+        sec.notes.append(f"{TIE} {name}: {', '.join(tied)} are not significantly different from the best "
+                         f"(p ≥ {alpha:g}); no winner is bolded.")
+    if used:
+        sec.notes.append("Bold / underline made by: " + "; ".join(used) + ".")
+
+
+def p_text(p: float) -> str:
+    """A p-value as the notes print it."""
+    return "p < 0.001" if p < 0.001 else f"p = {p:.2g}"
+
+
+def compare(a: Cell, b: Cell) -> PairedTest | None:
+    """The test behind a mark between two cells of one column.
+
+    Two trained rows with at least two seeds each are compared at the seed level (Welch's t on
+    the seed values): the seed is the unit of replication. Otherwise, when both have per-frame
+    values on the same frames (averaged over seeds), a circular-block paired bootstrap over
+    the frames; None when neither is possible.
+    """
+    t = seed_test(a.values, b.values) if len(a.values) >= 2 and len(b.values) >= 2 else None
+    if t is None and a.paired is not None and b.paired is not None and len(a.paired) == len(b.paired):
+        t = paired_test(a.paired, b.paired)
+    return t
 
 
 def subject_title(recs: Iterable[Record]) -> str:

@@ -75,7 +75,8 @@ class Cell:
         std: sample std over seeds (None with one seed).
         n_seeds: seeds with a value.
         ci: bootstrap CI over items (and seeds), None without per-item values.
-        paired: per-item values averaged over seeds (for the paired test), or None.
+        paired: per-item values averaged over seeds (for the frame-level test), or None.
+        values: the value of each seed (for the seed-level test).
         backends: ``backend vVERSION`` strings of the values.
         mark: ``best``, ``second``, ``tie`` or ``""``.
         text: a text cell (✓ / ✗, failure notes) instead of a number.
@@ -87,6 +88,7 @@ class Cell:
     n_seeds: int = 0
     ci: CI | None = None
     paired: list[float] | None = None
+    values: list[float] = field(default_factory=list)
     backends: set[str] = field(default_factory=set)
     mark: str = ""
     text: str | None = None

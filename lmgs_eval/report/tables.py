@@ -14,12 +14,15 @@ and CSV. The layouts follow the paper (``paper.tex``):
   method x subject, in the manner of nerfbaselines): :mod:`lmgs_eval.report.diagnostics`.
 
 How a cell is made: the mean over seeds (``± std`` when there are several); its bootstrap
-95% CI over items and seeds (:func:`lmgs_eval.report.stats.bootstrap_ci_seeds`) goes to the CSV
-(and to Markdown/LaTeX with ``show_ci``). Ranking per column within a subject: the best
-is **bold** only if a paired test over the same items (per-item values averaged over
-seeds; paired bootstrap and Wilcoxon, the larger p) says it differs from the runner-up at
-p < 0.05; then the runner-up is underlined. Otherwise the best and every method not
-significantly different from it are marked † (a tie), and nothing is bolded. A column
+95% CI over seeds and circular blocks of frames (:func:`lmgs_eval.report.stats.bootstrap_ci_seeds`)
+goes to the CSV (and to Markdown/LaTeX with ``show_ci``). Ranking per column within a subject:
+the best is **bold** only if a test says it differs from the runner-up at p < 0.05; then the
+runner-up is underlined. The test (:func:`lmgs_eval.report.cells.compare`) is Welch's t on the
+seed values when both rows have at least two seeds (the seed is the unit of replication of a
+trained method), otherwise a circular-block paired bootstrap over the same frames (per-frame
+values averaged over seeds, block length chosen from the differences). Otherwise the best
+and every method not significantly different from it are marked † (a tie), and nothing is
+bolded. Each section's notes name the test and p behind every mark. A column
 whose rows were made by different metric backends is not ranked and is flagged ‡; the
 backend of every column is named in the notes, with every stand-in (subjects, metric
 scorers, method components) and each method's description.

@@ -119,7 +119,7 @@ IMPORTED_FILE = ".imported.json"
 """Ledger of a store's records copied from elsewhere by :func:`copy_records` (hidden: not a record)."""
 
 
-MADE_ELSEWHERE = ("render", "checkpoint")
+MADE_ELSEWHERE = ("render", "checkpoint", "driving_audio")
 """Artefact roles that stay on the machine that made a record (ground truth and weights travel)."""
 
 
