@@ -51,7 +51,7 @@ class IngestConfig:
     crop: str = "auto"
     focal: float | None = None
     smooth_window: int = 5
-    pose_sigma: float = 1.0
+    pose_sigma: float = 2.0
     plate_frames: int = 60
 
 
