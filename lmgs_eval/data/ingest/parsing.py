@@ -9,6 +9,11 @@ frame corners outside a widened head prior. The person is then split by the head
 head (face and hair) inside it, the neck below the chin within the jaw's width, the torso
 the rest.
 
+GrabCut learns its colour models on every ``KEYFRAME``-th frame and only cuts, with the models
+frozen, in between. The core of the head prior is seeded as certain person, so the hair's
+colours belong to the person's model; hair that hangs outside the prior (long hair beside the
+neck) is found only where its colour differs from the background's.
+
 The plate (``bc.jpg``) assumes a static camera: each pixel is the median of the frames where
 it is background (the person dilated away); pixels the person never uncovers are inpainted
 (OpenCV Telea). The residual of the background against the plate is the static-camera check.
@@ -22,6 +27,7 @@ import numpy as np
 
 PARSING_COLOURS = {"background": (255, 255, 255), "head": (255, 0, 0), "neck": (0, 255, 0), "torso": (0, 0, 255)}
 GRABCUT_SIDE = 160  # GrabCut runs at this size (the masks are upsampled with a smooth edge)
+KEYFRAME = 25  # frames between GrabCut's colour-model updates (frozen models in between)
 HAIR_UP = 0.85  # head prior: its top above the brows, in face heights (brow to chin)
 HEAD_WIDE = 1.55  # head prior: half width in jaw half widths
 
@@ -42,8 +48,13 @@ def head_outline(lms: np.ndarray, hair_up: float = HAIR_UP, head_wide: float = H
     return outline(lms, PhotoSpec("", "", 0.0, 0.0, hair_up, head_wide), n)
 
 
-def person_mask(img: np.ndarray, lms: np.ndarray) -> np.ndarray:
-    """The person (head, neck, torso) in one frame, bool ``[H, W]``, by seeded GrabCut."""
+def person_mask(img: np.ndarray, lms: np.ndarray, model: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, tuple]:
+    """The person (head, neck, torso) in one frame, bool ``[H, W]``, by seeded GrabCut.
+
+    With ``model`` (the colour models a keyframe learned) one graph cut runs with the models
+    frozen (``GC_EVAL_FREEZE_MODEL``: a fifth of the cost); without, three iterations learn
+    them from the seeds. Returns the mask and the models.
+    """
     import cv2
 
     h, w = img.shape[:2]
@@ -56,7 +67,12 @@ def person_mask(img: np.ndarray, lms: np.ndarray) -> np.ndarray:
     jw = l[16, 0] - l[0, 0]
     jcx = 0.5 * (l[0, 0] + l[16, 0])
     gc = np.full((sh, sw), cv2.GC_PR_BGD, np.uint8)
-    gc[_poly(head_outline(l), (sh, sw))] = cv2.GC_PR_FGD
+    prior = head_outline(l)
+    gc[_poly(prior, (sh, sw))] = cv2.GC_PR_FGD
+    # the head prior's core (shrunk to 80 % about the face centre) is certainly face or hair:
+    # seeding it makes the hair's colours part of the person's model, not the background's
+    fc = l[:68].mean(0)
+    gc[_poly(fc + 0.8 * (prior - fc), (sh, sw))] = cv2.GC_FGD
     shoulders = (yy > l[8, 1] + 0.1 * fh) & (np.abs(xx - jcx) < 0.45 * jw + 1.6 * np.maximum(0, yy - l[8, 1]))
     gc[shoulders] = cv2.GC_PR_FGD
     gc[(yy > l[8, 1] + 0.35 * fh) & (np.abs(xx - jcx) < 0.3 * jw)] = cv2.GC_FGD
@@ -65,11 +81,18 @@ def person_mask(img: np.ndarray, lms: np.ndarray) -> np.ndarray:
     outside = ~_poly(head_outline(l, HAIR_UP + 0.3, HEAD_WIDE * 1.3), (sh, sw))
     gc[outside & (yy < l[0, 1])] = cv2.GC_BGD
     cv2.setRNGSeed(0)
-    bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+    bgr = np.ascontiguousarray(small[:, :, ::-1])
+    seeds = gc.copy()
     try:
-        cv2.grabCut(np.ascontiguousarray(small[:, :, ::-1]), gc, None, bgd, fgd, 3, cv2.GC_INIT_WITH_MASK)
-    except cv2.error:  # a degenerate frame (e.g. uniform): keep the prior
-        pass
+        if model is not None:
+            bgd, fgd = model[0].copy(), model[1].copy()
+            cv2.grabCut(bgr, gc, None, bgd, fgd, 1, cv2.GC_EVAL_FREEZE_MODEL)
+        else:
+            bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+            cv2.grabCut(bgr, gc, None, bgd, fgd, 3, cv2.GC_INIT_WITH_MASK)
+            model = (bgd, fgd)
+    except cv2.error:  # a degenerate frame (e.g. uniform): keep the seeds
+        gc = seeds
     fg = ((gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD)).astype(np.uint8)
     fg = cv2.morphologyEx(fg, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
     n, lab, stats, _ = cv2.connectedComponentsWithStats(fg, 8)
@@ -81,7 +104,7 @@ def person_mask(img: np.ndarray, lms: np.ndarray) -> np.ndarray:
     cv2.floodFill(filled, ff, (0, 0), 2)
     fg = ((filled != 2) | (fg == 1)).astype(np.float32)
     big = cv2.resize(cv2.GaussianBlur(fg, (0, 0), 0.7), (w, h), interpolation=cv2.INTER_LINEAR)
-    return (big >= 0.5) | _poly(np.concatenate([lms[:17], lms[26:16:-1]]), (h, w))
+    return (big >= 0.5) | _poly(np.concatenate([lms[:17], lms[26:16:-1]]), (h, w)), model
 
 
 @dataclass(frozen=True)
