@@ -11,6 +11,8 @@ was rendered from; ingesting that video and comparing gives the figures of ``des
 * ``translation_rel``: camera-to-head distance error relative to the true distance (scale of
   the world removed: the ingest's world unit is the template's jaw width);
 * ``head_iou``: intersection over union of the head parsing masks, mean over frames;
+* ``depth_rel``, ``normal_deg``, ``geometry_cover``: the depth / normal priors against the
+  truth's maps (:func:`geometry_error`);
 * ``plate_psnr``: PSNR of ``bc.jpg`` over the pixels that are background in every frame of
   the truth (where the background is visible); ``audio_identical``: ``aud.wav`` sample-equal.
 """
@@ -74,6 +76,27 @@ def plate_psnr(true_dir: Path, est_dir: Path, n: int) -> tuple[float, float]:
     return float(-10 * np.log10(max(mse, 1e-12))), float(vis.mean())
 
 
+def geometry_error(t, e) -> dict[str, float]:
+    """Depth and normal priors against the truth's maps, over pixels where both have a surface:
+    median relative depth error after the one world scale (camera distances) is removed, mean
+    normal angle (degrees), and the share of the truth's surface the prior covers."""
+    if not (t.has_geometry and e.has_geometry):
+        return {}
+    dt = np.linalg.norm(t.c2w[:, :3, 3], axis=1)
+    de = np.linalg.norm(e.c2w[:, :3, 3], axis=1)
+    scale = float(np.dot(dt, de) / np.dot(de, de))
+    rel, ang, cover = [], [], []
+    for i in np.linspace(0, t.n_frames - 1, min(10, t.n_frames)).round().astype(int):
+        a, b = t.depth(i), e.depth(i) * scale
+        both = (a > 0) & (b > 0)
+        cover.append(both.sum() / max(1, (a > 0).sum()))
+        rel.append(np.abs(b[both] - a[both]) / a[both])
+        na, nb = t.normal(i)[both], e.normal(i)[both]
+        ang.append(np.degrees(np.arccos(np.clip((na * nb).sum(1), -1, 1))))
+    return {"depth_rel": float(np.median(np.concatenate(rel))), "normal_deg": float(np.mean(np.concatenate(ang))),
+            "geometry_cover": float(np.mean(cover))}
+
+
 def _snr(ref: np.ndarray, est: np.ndarray) -> float:
     n = min(len(ref), len(est))
     noise = float(np.sum((ref[:n] - est[:n]) ** 2))
@@ -103,4 +126,5 @@ def compare(true_dir: str | Path, est_dir: str | Path) -> dict[str, float]:
         "blink_corr": float(np.corrcoef(t.blink, e.blink)[0, 1]) if t.blink.std() > 0 and e.blink.std() > 0 else float("nan"),
         "audio_identical": bool(len(t.audio) == len(e.audio) and np.array_equal(t.audio, e.audio)),
         "audio_snr_db": _snr(t.audio, e.audio),
+        **geometry_error(t, e),
     }

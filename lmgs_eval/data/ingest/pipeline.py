@@ -1,7 +1,8 @@
 """``ingest``: a raw talking-head video in, a subject in the ER-NeRF / TalkingGaussian layout out.
 
 Stages (each timed; frames/s in the manifest): decode + track -> checks -> crop + frames ->
-landmarks -> pose -> parsing + plate -> composites -> audio, video, manifest.
+landmarks -> pose -> parsing + plate -> depth / normal priors -> composites -> audio, video,
+manifest.
 
 The subject is built in a hidden work folder beside its final place
 (``<data root>/.<name>.ingest``) and renamed into place at the end, so no half-written subject
@@ -26,7 +27,7 @@ from lmgs_eval.data.ingest import decode, writer
 from lmgs_eval.data.ingest.crop import Window, choose_window
 from lmgs_eval.errors import UserError
 
-INGEST_VERSION = "1"
+INGEST_VERSION = "2"  # 2: depth / normal priors
 MIN_SECONDS = 10.0  # shorter clips are ingested with a warning: too little to train on
 MIN_FACE_PX = 100  # jaw width in source pixels under which the face is flagged as small
 MAX_FACE_SHARE = 0.02  # moving-camera flag: background residual above STATIC_LEVELS in more than this share...
@@ -182,6 +183,9 @@ def _run(ctx: _Ctx, key: dict) -> None:
     if "parsing" not in done:
         stages.parsing(ctx, sel)
         _done(ctx, "parsing")
+    if "geometry" not in done:
+        stages.geometry(ctx, sel)
+        _done(ctx, "geometry")
     if "composites" not in done:
         stages.composites(ctx, sel)
         _done(ctx, "composites")

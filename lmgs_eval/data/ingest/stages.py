@@ -154,6 +154,29 @@ def parsing(ctx, sel) -> None:
     ctx.timed("parsing", t0, n)
 
 
+def geometry(ctx, sel) -> None:
+    """Depth and normal priors from the posed head ellipsoid, inside each frame's head mask."""
+    from lmgs_eval.data.ingest.geometry import DEPTH_SCALE, head_ellipsoid, render_prior
+
+    t0 = time.perf_counter()
+    n, s = len(sel["lms"]), ctx.cfg.size
+    pz = np.load(ctx.work / "pose.npz")
+    centre, axes = head_ellipsoid(pz["template"])
+    for d in ("depth", "normal"):
+        (ctx.sub / d).mkdir(exist_ok=True)
+    bar = ctx.bar(n, "depth + normal priors")
+    for i in range(n):
+        p = io.read_rgb_u8(ctx.sub / "parsing" / f"{i}.png")
+        depth, normal = render_prior(pz["w2c"][i], float(pz["focal"]), s, s, centre, axes, np.all(p == (255, 0, 0), axis=-1))
+        io.write_depth(ctx.sub / "depth" / f"{i}.png", depth, DEPTH_SCALE)
+        io.write_normal(ctx.sub / "normal" / f"{i}.png", normal)
+        if bar is not None:
+            bar.update(1)
+    if bar is not None:
+        bar.close()
+    ctx.timed("geometry", t0, n)
+
+
 def composites(ctx, sel) -> None:
     """``gt_imgs`` (the frame over the plate outside the person) and ``torso_imgs`` (RGBA)."""
     t0 = time.perf_counter()
@@ -202,6 +225,9 @@ def finish(ctx, info: decode.VideoInfo, sel, audio: np.ndarray, source: str, key
         "lms3d": "2D landmarks lifted onto their camera rays at the depth of the fitted 68-point template (world = head frame, metres)",
         "parsing_colours": {"background": [255, 255, 255], "head": [255, 0, 0], "neck": [0, 255, 0], "torso": [0, 0, 255]},
         "teeth_mask": "inside of the inner-lip polygon (landmarks 60-67)",
+        "depth_scale": 10000.0,
+        "depth": "prior, not a measurement: camera z (metres) x depth_scale of a head-sized ellipsoid posed with the fitted head, inside the head mask; 0 elsewhere",
+        "normal": "prior: camera-space unit normals (OpenCV axes) of the same ellipsoid, facing the camera; 0 elsewhere",
         "world_units": "metres; the head is fixed, the camera moves (ER-NeRF convention)",
     }
     writer.write_json(ctx.sub / "meta.json", meta)
