@@ -28,7 +28,7 @@ def head_ellipsoid(template: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def render_prior(w2c: np.ndarray, focal: float, w: int, h: int, centre: np.ndarray, axes: np.ndarray,
-                 mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                 mask: np.ndarray, *, cx: float | None = None, cy: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Depth ``[H, W]`` (camera z, 0 off the surface) and unit normals ``[H, W, 3]`` (OpenCV
     camera axes, facing the camera) of the ellipsoid, inside ``mask`` only."""
     ys, xs = np.nonzero(mask)
@@ -36,7 +36,9 @@ def render_prior(w2c: np.ndarray, focal: float, w: int, h: int, centre: np.ndarr
     normal = np.zeros((h, w, 3), np.float32)
     if len(ys) == 0:
         return depth, normal
-    d_cam = np.stack([(xs + 0.5 - w / 2) / focal, (ys + 0.5 - h / 2) / focal, np.ones(len(xs))], 1)
+    cx = w / 2 if cx is None else cx
+    cy = h / 2 if cy is None else cy
+    d_cam = np.stack([(xs + 0.5 - cx) / focal, (ys + 0.5 - cy) / focal, np.ones(len(xs))], 1)
     R, t = w2c[:3, :3], w2c[:3, 3]
     o = -R.T @ t  # camera centre in the world
     d = d_cam @ R  # = (R.T @ d_cam.T).T
