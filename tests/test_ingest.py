@@ -99,7 +99,8 @@ def test_manifest_records_input_and_files(truth, ingested):
     man = json.loads((folder / "manifest.json").read_text())
     assert man["input"]["sha256"] == hashlib.sha256((truth / "astronaut.mp4").read_bytes()).hexdigest()
     assert man["parameters"]["size"] == SIZE
-    assert {"decode_track", "parsing", "pose"} <= set(man["timings"])
+    assert {"decode_track", "parsing", "pose", "geometry"} <= set(man["timings"])
+    assert set(man["flags"]) == {"short_clip", "small_face"}  # 3 s; the jaw spans 89 px at 256 px
     for rel in ("aud.wav", "bc.jpg", "ori_imgs/0.lms", "transforms_val.json"):
         assert man["files"][rel] == hashlib.sha256((folder / rel).read_bytes()).hexdigest()
 
@@ -166,6 +167,41 @@ def test_4k_input_is_downscaled_on_decode(tmp_path):
     info = decode.probe(path)
     assert (info.width, info.height, info.src_width) == (1920, 1080, 3840)
     assert next(decode.frames_25fps(info))[1].shape == (1080, 1920, 3)
+
+
+def test_phone_rotation_metadata_is_applied(tmp_path):
+    """A landscape-stored video whose track header says "rotate 90 deg" (what phones write: the
+    tkhd display matrix) decodes upright: portrait, the stored left edge on top, as ffmpeg shows it."""
+    import struct
+
+    import av
+
+    from lmgs_eval.data.ingest import decode
+
+    path = tmp_path / "phone.mp4"
+    with av.open(str(path), "w") as c:
+        s = c.add_stream("libx264", rate=25)
+        s.width, s.height = 64, 32
+        s.pix_fmt = "yuv420p"
+        img = np.zeros((32, 64, 3), np.uint8)
+        img[:, :32] = 255  # stored: left half white
+        for _ in range(3):
+            for p in s.encode(av.VideoFrame.from_ndarray(img, format="rgb24")):
+                c.mux(p)
+        for p in s.encode():
+            c.mux(p)
+    b = bytearray(path.read_bytes())
+    i = b.find(b"tkhd")
+    assert b[i + 4] == 0  # version 0 header: the matrix follows 36 bytes of fields
+    off = i + 8 + 20 + 8 + 8
+    assert struct.unpack(">9i", b[off : off + 36]) == (0x10000, 0, 0, 0, 0x10000, 0, 0, 0, 0x40000000)  # identity
+    b[off : off + 36] = struct.pack(">9i", 0, 0x10000, 0, -0x10000, 0, 0, 0, 0, 0x40000000)  # 90 deg
+    path.write_bytes(bytes(b))
+    info = decode.probe(path)
+    assert (info.rotation, info.width, info.height) == (90, 32, 64)
+    up = next(decode.frames_25fps(info))[1]
+    assert up.shape == (64, 32, 3)
+    assert up[:28].mean() > 250 and up[36:].mean() < 5  # the stored left half is now the top
 
 
 def test_given_audio_is_used_sample_for_sample(truth):
@@ -308,3 +344,22 @@ def test_plain_folder_is_completed_outside_itself(truth, tmp_path):
     clip = subject_to_clip(s, s.train_ids[:3])
     assert clip.depth is not None and clip.landmarks3d is not None
     assert len(init_face(clip, 100, 0).means) > 0 and len(init_mouth(clip, 20, 0).means) == 20
+
+
+def test_two_faces_track_the_central_one_and_say_so(truth, tmp_path):
+    from lmgs_eval.data import io
+
+    frames = []
+    for i in range(25):
+        face = io.read_rgb_u8(truth / "ori_imgs" / f"{i}.jpg")
+        pad = np.full((SIZE, 64, 3), 128, np.uint8)
+        # two faces of one size; the right-hand one is nearer the frame's centre
+        frames.append(np.concatenate([face[:, ::-1], face, pad], axis=1))
+    audio, _ = io.load_audio(truth / "aud.wav")
+    io.write_video(tmp_path / "two.mp4", np.stack(frames), 25, audio[: 25 * 640])
+    root = tmp_path / "data"
+    rc, out, err = run_cli("ingest", str(tmp_path / "two.mp4"), "--size", "128", "--data-root", str(root), "--quiet")
+    assert rc == 0, err
+    man = json.loads((root / "two" / "manifest.json").read_text())
+    assert "2 faces" in man["flags"]["several_faces"]
+    assert man["window"]["x0"] >= SIZE * 0.9  # the window is on the right-hand face

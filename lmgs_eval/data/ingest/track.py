@@ -19,7 +19,8 @@ from lmgs_eval.errors import UserError
 
 REDETECT = 25  # frames between detections while the track holds
 MAX_GAP = 12  # frames: shorter gaps without a face are interpolated, longer ones refused
-DETECT_SIDE = 480  # the detector runs on a copy scaled to at most this side
+DETECT_SIDE = 640  # the detector runs on a copy scaled to at most this side (faces from ~80 px
+# there are found at once; smaller ones by a second pass at twice the size)
 
 
 @dataclass
