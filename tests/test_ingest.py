@@ -363,3 +363,34 @@ def test_two_faces_track_the_central_one_and_say_so(truth, tmp_path):
     man = json.loads((root / "two" / "manifest.json").read_text())
     assert "2 faces" in man["flags"]["several_faces"]
     assert man["window"]["x0"] >= SIZE * 0.9  # the window is on the right-hand face
+
+
+def test_moving_camera_is_flagged_with_its_frames(truth, tmp_path):
+    import cv2
+
+    from lmgs_eval.data import io
+
+    # a textured background that pans 1.5 px a frame behind the person (no cut): the plate,
+    # which assumes a still camera, cannot match it
+    yy, xx = np.mgrid[0:SIZE, 0 : 2 * SIZE]
+    texture = np.repeat((60 + 140 * (((xx // 12) + (yy // 12)) % 2))[..., None], 3, 2).astype(np.float32)  # checks
+    frames = []
+    for i in range(40):
+        img = io.read_rgb_u8(truth / "ori_imgs" / f"{i}.jpg")
+        bg = np.all(io.read_rgb_u8(truth / "parsing" / f"{i}.png") == 255, axis=-1)
+        m = np.array([[1.0, 0, -1.5 * i], [0, 1.0, 0]])
+        back = cv2.warpAffine(texture, m, (SIZE, SIZE))
+        frames.append(np.where(bg[..., None], np.clip(back, 0, 255).astype(np.uint8), img))
+    audio, _ = io.load_audio(truth / "aud.wav")
+    io.write_video(tmp_path / "pan.mp4", np.stack(frames), 25, audio[: 40 * 640])
+    root = tmp_path / "data"
+    rc, _, err = run_cli("ingest", str(tmp_path / "pan.mp4"), "--size", "128", "--data-root", str(root), "--quiet")
+    assert rc == 0, err
+    flag = json.loads((root / "pan" / "manifest.json").read_text())["flags"].get("moving_camera", "")
+    assert "moving camera" in flag and "video frames 0-" in flag
+    assert "moving camera" in err
+
+
+def test_still_camera_is_not_flagged(ingested):
+    man = json.loads((ingested[0] / "manifest.json").read_text())
+    assert "moving_camera" not in man["flags"]

@@ -153,6 +153,7 @@ class PlateBuilder:
     def __init__(self, h: int, w: int, max_frames: int, n_frames: int) -> None:
         self.keep = set(np.linspace(0, n_frames - 1, min(max_frames, n_frames)).round().astype(int).tolist())
         self.stack: list[np.ndarray] = []
+        self.ids: list[int] = []
         self.masks: list[np.ndarray] = []
         self.shape = (h, w)
 
@@ -163,6 +164,7 @@ class PlateBuilder:
             return
         grow = max(3, int(round(0.012 * max(self.shape))) * 2 + 1)
         self.stack.append(img)
+        self.ids.append(int(k))
         self.masks.append(cv2.dilate(person.astype(np.uint8), np.ones((grow, grow), np.uint8)).astype(bool))
 
     def plate(self) -> tuple[np.ndarray, np.ndarray, list[float]]:

@@ -22,15 +22,13 @@ from pathlib import Path
 
 import numpy as np
 
-from lmgs_eval.data import io
 from lmgs_eval.data.ingest import decode, writer
-from lmgs_eval.data.ingest.crop import Window, choose_window
 from lmgs_eval.errors import UserError
 
 INGEST_VERSION = "2"  # 2: depth / normal priors
 MIN_SECONDS = 10.0  # shorter clips are ingested with a warning: too little to train on
 MIN_FACE_PX = 100  # jaw width in source pixels under which the face is flagged as small
-MAX_FACE_SHARE = 0.02  # moving-camera flag: background residual above STATIC_LEVELS in more than this share...
+MOVING_SHARE = 0.02  # moving-camera flag: background residual above STATIC_LEVELS in more than this share...
 STATIC_LEVELS = 10.0  # ...of the sampled frames (grey levels, median over the background)
 
 
@@ -192,10 +190,6 @@ def _run(ctx: _Ctx, key: dict) -> None:
     stages.finish(ctx, info, sel, audio, source, key)
 
 
-def window_of(d: dict) -> Window:
-    return Window(float(d["x0"]), float(d["y0"]), float(d["side"]), int(d["size"]), bool(d["whole_frame"]))
-
-
 def check_frames(ctx: _Ctx, info: decode.VideoInfo, n_audio_frames: int, first: int, last: int) -> tuple[int, int]:
     """The frame range kept after the face coverage and the audio's length are taken into account."""
     if n_audio_frames < last:
@@ -217,4 +211,4 @@ def save_npz(path: Path, **arrays) -> None:
             np.savez(f, **arrays)
 
 
-__all__ = ["INGEST_VERSION", "IngestConfig", "ingest", "io"]
+__all__ = ["INGEST_VERSION", "IngestConfig", "ingest"]

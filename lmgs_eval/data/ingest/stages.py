@@ -11,8 +11,7 @@ from lmgs_eval.data import io
 from lmgs_eval.data.ingest import decode, pose as pose_mod, track as track_mod, writer
 from lmgs_eval.data.ingest.crop import choose_window
 from lmgs_eval.data.ingest.parsing import KEYFRAME, PlateBuilder, mouth_mask, person_mask, split_parts
-from lmgs_eval.data.ingest.pipeline import (INGEST_VERSION, MAX_FACE_SHARE, MIN_FACE_PX, STATIC_LEVELS, check_frames, save_npz,
-                                            window_of)
+from lmgs_eval.data.ingest.pipeline import INGEST_VERSION, MIN_FACE_PX, MOVING_SHARE, STATIC_LEVELS, check_frames, save_npz
 from lmgs_eval.errors import UserError
 
 SPF = 640
@@ -146,11 +145,13 @@ def parsing(ctx, sel) -> None:
         bar.close()
     bc, seen, resid = plate.plate()
     io.write_rgb(ctx.sub / "bc.jpg", bc)
-    ctx.log.append(f"plate: {100 * seen.mean():.1f} % of its pixels seen behind the person, the rest inpainted")
-    moving = [r for r in resid if r > STATIC_LEVELS]
-    if len(moving) > MAX_FACE_SHARE * len(resid) + 1:
+    ctx.log.append(f"plate: {100 * seen.mean():.1f} % of its pixels seen behind the person, the rest inpainted; the background "
+                   f"differs from it by {np.median(resid):.1f} grey levels in the median frame ({max(resid):.1f} at most)")
+    moving = [k + int(sel["first"]) for k, r in zip(plate.ids, resid) if r > STATIC_LEVELS]
+    if len(moving) > MOVING_SHARE * len(resid) + 1:
         ctx.warn("moving_camera", f"{ctx.video}: the background differs from the plate by more than {STATIC_LEVELS:g} grey levels "
-                 f"in {len(moving)} of {len(resid)} sampled frames: a moving camera or changing light; the plate (static camera) will be wrong there")
+                 f"in {len(moving)} of {len(resid)} sampled frames (video frames {_ranges(moving)}): a moving camera or changing "
+                 f"light; the plate assumes a static camera and is wrong there")
     ctx.timed("parsing", t0, n)
 
 
