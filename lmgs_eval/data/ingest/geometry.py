@@ -38,24 +38,27 @@ def render_prior(w2c: np.ndarray, focal: float, w: int, h: int, centre: np.ndarr
         return depth, normal
     cx = w / 2 if cx is None else cx
     cy = h / 2 if cy is None else cy
-    d_cam = np.stack([(xs + 0.5 - cx) / focal, (ys + 0.5 - cy) / focal, np.ones(len(xs))], 1)
+    f32 = np.float32
+    d_cam = np.empty((len(xs), 3), f32)
+    d_cam[:, 0] = (xs.astype(f32) + f32(0.5 - cx)) / f32(focal)
+    d_cam[:, 1] = (ys.astype(f32) + f32(0.5 - cy)) / f32(focal)
+    d_cam[:, 2] = 1.0
     R, t = w2c[:3, :3], w2c[:3, 3]
     o = -R.T @ t  # camera centre in the world
-    d = d_cam @ R  # = (R.T @ d_cam.T).T
-    o_s, d_s = (o - centre) / axes, d / axes
-    a = (d_s**2).sum(1)
-    b = 2 * d_s @ o_s
-    c = float(o_s @ o_s) - 1.0
+    d_s = d_cam @ (R / axes[None, :]).astype(f32)  # world ray directions, in the unit sphere's frame
+    o_s = ((o - centre) / axes).astype(f32)
+    a = np.einsum("ij,ij->i", d_s, d_s)
+    b = 2 * (d_s @ o_s)
+    c = f32(o_s @ o_s - 1.0)
     disc = b * b - 4 * a * c
     hit = disc > 0
     tt = (-b[hit] - np.sqrt(disc[hit])) / (2 * a[hit])  # camera z, since d_cam has z = 1
     front = tt > 0
-    yh, xh = ys[hit][front], xs[hit][front]
+    sel = np.nonzero(hit)[0][front]
     tt = tt[front]
-    p = o + tt[:, None] * d[hit][front]
-    n_w = (p - centre) / axes**2
-    n_c = n_w @ R.T
-    n_c /= np.linalg.norm(n_c, axis=1, keepdims=True)
-    depth[yh, xh] = tt
-    normal[yh, xh] = n_c
+    p_s = o_s + tt[:, None] * d_s[sel]  # the hit on the unit sphere; its world normal is p_s / axes
+    n_c = (p_s / axes[None, :].astype(f32)) @ R.T.astype(f32)
+    n_c /= np.sqrt(np.einsum("ij,ij->i", n_c, n_c))[:, None]
+    depth[ys[sel], xs[sel]] = tt
+    normal[ys[sel], xs[sel]] = n_c
     return depth, normal

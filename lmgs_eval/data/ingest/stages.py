@@ -170,7 +170,8 @@ def geometry(ctx, sel) -> None:
         p = io.read_rgb_u8(ctx.sub / "parsing" / f"{i}.png")
         depth, normal = render_prior(pz["w2c"][i], float(pz["focal"]), s, s, centre, axes, np.all(p == (255, 0, 0), axis=-1))
         io.write_depth(ctx.sub / "depth" / f"{i}.png", depth, DEPTH_SCALE)
-        io.write_normal(ctx.sub / "normal" / f"{i}.png", normal)
+        valid = normal.any(-1, keepdims=True)  # the encoding of io.write_normal, in float32
+        _png(ctx.sub / "normal" / f"{i}.png", np.where(valid, np.clip(np.rint((normal + 1) * 127.5), 0, 255), 0).astype(np.uint8))
         if bar is not None:
             bar.update(1)
     if bar is not None:
