@@ -394,3 +394,16 @@ def test_moving_camera_is_flagged_with_its_frames(truth, tmp_path):
 def test_still_camera_is_not_flagged(ingested):
     man = json.loads((ingested[0] / "manifest.json").read_text())
     assert "moving_camera" not in man["flags"]
+
+
+def test_processes_do_not_change_a_single_file(truth, tmp_path):
+    """The per-frame stages run in chunks over processes; one process or two write the same files."""
+    from lmgs_eval.data.ingest import IngestConfig, ingest
+
+    cfg = IngestConfig(size=128)
+    got = []
+    for jobs in (1, 2):
+        folder = ingest(truth / "astronaut.mp4", f"j{jobs}", data_root=tmp_path, cfg=cfg, progress=False, jobs=jobs)
+        files = json.loads((folder / "manifest.json").read_text())["files"]
+        got.append({k: v for k, v in files.items() if k != f"j{jobs}.mp4"})  # named after the subject
+    assert len(got[0]) > 400 and got[0] == got[1]

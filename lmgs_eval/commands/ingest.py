@@ -20,6 +20,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data-root", help="folder of subjects (default: $LMGS_DATA or ~/.cache/lmgs/data)")
     p.add_argument("--preview", action="store_true", help="also write preview.png: a contact sheet of frames, landmarks, masks, plate and pose axes")
     p.add_argument("--force", action="store_true", help="replace an existing subject of that name")
+    p.add_argument("--jobs", type=int, default=None, help="processes for the per-frame stages (default: CPU count, at most 4)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
@@ -29,7 +30,7 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     cfg = IngestConfig(size=args.size, crop=args.crop, focal=args.focal)
     folder = ingest(args.video, args.name, audio=args.audio, data_root=args.data_root, cfg=cfg, force=args.force,
-                    progress=not args.quiet)
+                    progress=not args.quiet, jobs=args.jobs)
     man = json.loads((folder / "manifest.json").read_text())
     fr, ps = man["frames"], man["pose"]
     print(f"{folder.name}: {fr['kept']} frames {args.size}x{args.size} at 25 fps ({fr['kept'] / 25:.1f} s; "

@@ -26,11 +26,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--size", type=int, default=512, help="frame size of the bundled clip and of the ingest (default 512)")
     p.add_argument("--video", help="time this video instead (no ground truth)")
     p.add_argument("--data-root", help="where bundled subjects are built (default: $LMGS_DATA or ~/.cache/lmgs/data)")
+    p.add_argument("--jobs", type=int, default=None, help="processes for the per-frame stages (default: CPU count, at most 4)")
 
 
 def _cpu() -> float:
-    r = resource.getrusage(resource.RUSAGE_SELF)
-    return r.ru_utime + r.ru_stime
+    """CPU seconds of this process and of its finished worker processes."""
+    return sum(r.ru_utime + r.ru_stime for r in (resource.getrusage(resource.RUSAGE_SELF),
+                                                  resource.getrusage(resource.RUSAGE_CHILDREN)))
 
 
 def run(args: argparse.Namespace) -> dict:
@@ -46,7 +48,7 @@ def run(args: argparse.Namespace) -> dict:
         video = truth / f"{args.subject}.mp4"
     with tempfile.TemporaryDirectory(prefix="lmgs-bench-ingest-") as tmp:
         t0, c0 = time.perf_counter(), _cpu()
-        folder = ingest(video, "bench", data_root=tmp, cfg=IngestConfig(size=args.size), progress=False)
+        folder = ingest(video, "bench", data_root=tmp, cfg=IngestConfig(size=args.size), progress=False, jobs=args.jobs)
         wall, cpu = time.perf_counter() - t0, _cpu() - c0
         man = json.loads((folder / "manifest.json").read_text())
         acc = compare(truth, folder) if truth is not None else {}

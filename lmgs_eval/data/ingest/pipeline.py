@@ -63,6 +63,7 @@ class _Ctx:
     work: Path  # hidden work folder
     sub: Path  # the subject being written, inside it
     progress: bool
+    jobs: int
     log: list[str]
     flags: dict
     timings: dict
@@ -84,8 +85,11 @@ class _Ctx:
 
 
 def ingest(video: str | Path, name: str | None = None, *, audio: str | Path | None = None, data_root: str | Path | None = None,
-           cfg: IngestConfig = IngestConfig(), force: bool = False, progress: bool = True) -> Path:
+           cfg: IngestConfig = IngestConfig(), force: bool = False, progress: bool = True, jobs: int | None = None) -> Path:
     """Ingest ``video`` as subject ``name`` under the data root; returns the subject folder.
+
+    ``jobs``: processes for the per-frame stages (default: the CPU count, at most 4); the
+    files are the same for any number.
 
     Raises:
         UserError: a bad input (one line naming the file and what is wrong); nothing is left
@@ -103,6 +107,7 @@ def ingest(video: str | Path, name: str | None = None, *, audio: str | Path | No
         raise UserError(f"--crop {cfg.crop!r}: must be auto, head or none")
     if cfg.focal is not None and not cfg.focal > 0:
         raise UserError(f"--focal {cfg.focal}: must be positive")
+    njobs = _jobs(jobs)
     root = _data_root(data_root)
     final = root / name
     if final.exists() and not force:
@@ -129,7 +134,7 @@ def ingest(video: str | Path, name: str | None = None, *, audio: str | Path | No
     sub.mkdir(parents=True, exist_ok=True)
     if not state.exists():
         writer.write_json(state, {"key": key, "done": [], "flags": {}, "log": [], "timings": {}})
-    ctx = _Ctx(video, Path(audio) if audio else None, name, cfg, work, sub, progress, [], {}, {})
+    ctx = _Ctx(video, Path(audio) if audio else None, name, cfg, work, sub, progress, njobs, [], {}, {})
     try:
         _run(ctx, key)
     except UserError:
@@ -140,6 +145,16 @@ def ingest(video: str | Path, name: str | None = None, *, audio: str | Path | No
     sub.rename(final)
     shutil.rmtree(work, ignore_errors=True)
     return final
+
+
+def _jobs(jobs: int | None) -> int:
+    import os
+
+    if jobs is None:
+        return max(1, min(4, os.cpu_count() or 1))
+    if jobs < 1:
+        raise UserError(f"--jobs {jobs}: must be at least 1")
+    return int(jobs)
 
 
 def _load_state(ctx: _Ctx) -> dict:

@@ -10,7 +10,8 @@ import numpy as np
 from lmgs_eval.data import io
 from lmgs_eval.data.ingest import decode, pose as pose_mod, track as track_mod, writer
 from lmgs_eval.data.ingest.crop import choose_window
-from lmgs_eval.data.ingest.parsing import KEYFRAME, PlateBuilder, mouth_mask, person_mask, split_parts
+from lmgs_eval.data.ingest import frames as frames_mod
+from lmgs_eval.data.ingest.parsing import PlateBuilder
 from lmgs_eval.data.ingest.pipeline import INGEST_VERSION, MIN_FACE_PX, MOVING_SHARE, STATIC_LEVELS, check_frames, save_npz
 from lmgs_eval.errors import UserError
 
@@ -86,15 +87,6 @@ def frames(ctx, info: decode.VideoInfo, tr, audio: np.ndarray) -> None:
     ctx.timed("crop_frames", t0, n)
 
 
-def _png(path, img: np.ndarray) -> None:
-    """An RGB or RGBA uint8 PNG at zlib level 1 (lossless like any level; 3-4x faster to write)."""
-    import cv2
-
-    order = [2, 1, 0, 3][: img.shape[2]]
-    if not cv2.imwrite(str(path), np.ascontiguousarray(img[:, :, order]), [cv2.IMWRITE_PNG_COMPRESSION, 1]):
-        raise UserError(f"{path}: could not write image")
-
-
 def _ranges(ks) -> str:
     ks = sorted(ks)
     parts, a = [], ks[0]
@@ -131,16 +123,9 @@ def parsing(ctx, sel) -> None:
         (ctx.sub / d).mkdir(exist_ok=True)
     plate = PlateBuilder(s, s, ctx.cfg.plate_frames, n)
     bar = ctx.bar(n, "parsing")
-    model = None
-    for i in range(n):
-        img = io.read_rgb_u8(ctx.sub / "ori_imgs" / f"{i}.jpg")
-        person, model = person_mask(img, lms[i], None if i % KEYFRAME == 0 else model)
-        parts = split_parts(person, lms[i])
-        _png(ctx.sub / "parsing" / f"{i}.png", parts.colour_map())
-        np.save(ctx.sub / "teeth_mask" / f"{i}.npy", mouth_mask(lms[i], (s, s)) & parts.head)
-        plate.add(i, img, parts.person)
-        if bar is not None:
-            bar.update(1)
+    for chunk in frames_mod.run_chunks(frames_mod.parse, n, ((ctx.sub, lms), (frozenset(plate.keep),)), ctx.jobs, bar):
+        for k, img, person in chunk:
+            plate.add(k, img, person)
     if bar is not None:
         bar.close()
     bc, seen, resid = plate.plate()
@@ -157,23 +142,16 @@ def parsing(ctx, sel) -> None:
 
 def geometry(ctx, sel) -> None:
     """Depth and normal priors from the posed head ellipsoid, inside each frame's head mask."""
-    from lmgs_eval.data.ingest.geometry import DEPTH_SCALE, head_ellipsoid, render_prior
+    from lmgs_eval.data.ingest.geometry import head_ellipsoid
 
     t0 = time.perf_counter()
-    n, s = len(sel["lms"]), ctx.cfg.size
+    n = len(sel["lms"])
     pz = np.load(ctx.work / "pose.npz")
     centre, axes = head_ellipsoid(pz["template"])
     for d in ("depth", "normal"):
         (ctx.sub / d).mkdir(exist_ok=True)
     bar = ctx.bar(n, "depth + normal priors")
-    for i in range(n):
-        p = io.read_rgb_u8(ctx.sub / "parsing" / f"{i}.png")
-        depth, normal = render_prior(pz["w2c"][i], float(pz["focal"]), s, s, centre, axes, np.all(p == (255, 0, 0), axis=-1))
-        io.write_depth(ctx.sub / "depth" / f"{i}.png", depth, DEPTH_SCALE)
-        valid = normal.any(-1, keepdims=True)  # the encoding of io.write_normal, in float32
-        _png(ctx.sub / "normal" / f"{i}.png", np.where(valid, np.clip(np.rint((normal + 1) * 127.5), 0, 255), 0).astype(np.uint8))
-        if bar is not None:
-            bar.update(1)
+    frames_mod.run_chunks(frames_mod.geometry, n, ((ctx.sub, pz["w2c"], float(pz["focal"]), centre, axes), ()), ctx.jobs, bar)
     if bar is not None:
         bar.close()
     ctx.timed("geometry", t0, n)
@@ -183,20 +161,10 @@ def composites(ctx, sel) -> None:
     """``gt_imgs`` (the frame over the plate outside the person) and ``torso_imgs`` (RGBA)."""
     t0 = time.perf_counter()
     n = len(sel["lms"])
-    bc = io.read_rgb_u8(ctx.sub / "bc.jpg")
     for d in ("gt_imgs", "torso_imgs"):
         (ctx.sub / d).mkdir(exist_ok=True)
     bar = ctx.bar(n, "composites")
-    for i in range(n):
-        img = io.read_rgb_u8(ctx.sub / "ori_imgs" / f"{i}.jpg")
-        p = io.read_rgb_u8(ctx.sub / "parsing" / f"{i}.png")
-        bg = np.all(p == 255, axis=-1)
-        head = np.all(p == (255, 0, 0), axis=-1)
-        io.write_rgb(ctx.sub / "gt_imgs" / f"{i}.jpg", np.where(bg[..., None], bc, img))
-        alpha = (~bg & ~head).astype(np.uint8) * 255
-        _png(ctx.sub / "torso_imgs" / f"{i}.png", np.concatenate([img, alpha[..., None]], -1))
-        if bar is not None:
-            bar.update(1)
+    frames_mod.run_chunks(frames_mod.composite, n, ((ctx.sub,), ()), ctx.jobs, bar)
     if bar is not None:
         bar.close()
     ctx.timed("composites", t0, n)
