@@ -407,3 +407,21 @@ def test_processes_do_not_change_a_single_file(truth, tmp_path):
         files = json.loads((folder / "manifest.json").read_text())["files"]
         got.append({k: v for k, v in files.items() if k != f"j{jobs}.mp4"})  # named after the subject
     assert len(got[0]) > 400 and got[0] == got[1]
+
+
+def test_shorter_audio_drops_the_frames_it_does_not_cover(truth, tmp_path):
+    from conftest import write_pcm_wav
+    from lmgs_eval.data import io
+    from lmgs_eval.data.layout import read_subject
+
+    audio, _ = io.load_audio(truth / "aud.wav")
+    write_pcm_wav(tmp_path / "short.wav", audio[: 50 * 640 + 100], 16000)  # 2 s for a 3 s video
+    root = tmp_path / "data"
+    rc, out, err = run_cli("ingest", str(truth / "astronaut.mp4"), "--audio", str(tmp_path / "short.wav"), "--name", "cut",
+                           "--size", "128", "--data-root", str(root), "--quiet")
+    assert rc == 0, err
+    s = read_subject(root / "cut")
+    assert s.n_frames == 50
+    assert "audio_shorter" in json.loads((root / "cut" / "manifest.json").read_text())["flags"]
+    # the given audio from the first frame (two 16-bit round trips, each scaling by 32767 / 32768)
+    np.testing.assert_allclose(s.audio, audio[: 50 * 640], atol=3 / 32767)
