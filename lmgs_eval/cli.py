@@ -32,6 +32,7 @@ COMMANDS: dict[str, str] = {
     "verify": "lmgs_eval.commands.verify",
     "bench": "lmgs_eval.commands.bench",
     "demo": "lmgs_eval.commands.demo",
+    "ingest": "lmgs_eval.commands.ingest",
 }
 
 

@@ -25,7 +25,8 @@ def test_reads_what_was_written(ernerf_folder):
     np.testing.assert_allclose(s.audio, w["audio"], atol=1.0 / 32767)
     assert s.audio_features["ds"].shape == (w["n"], 16, 29)
     assert s.focal == 40.0 and s.cx == w["size"] / 2
-    assert s.notes == ()
+    assert read_subject(root, derive=False).notes == ()  # nothing repaired
+    assert len(s.notes) == 1 and "derived" in s.notes[0]  # 3D landmarks and a head prior, named
     assert s.frame(3).shape == (w["size"], w["size"], 3)
     assert abs(float(s.frame(3).mean()) - (40 + 30) / 255) < 2 / 255
 

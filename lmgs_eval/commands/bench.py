@@ -17,6 +17,7 @@ TARGETS: dict[str, str] = {
     "raster": "lmgs.render.bench",
     "metrics": "lmgs_eval.metrics.bench",
     "model": "lmgs.bench",
+    "ingest": "lmgs_eval.data.ingest.bench",
 }
 
 

@@ -29,6 +29,7 @@ import numpy as np
 
 from lmgs_eval.data import io
 from lmgs_eval.data.subject import FPS, SAMPLE_RATE, Subject
+from lmgs.errors import InputError
 from lmgs_eval.errors import UserError
 
 SAMPLES_PER_FRAME = SAMPLE_RATE // FPS  # 640
@@ -203,7 +204,7 @@ def check_jpegs(root: str | Path) -> int:
     return len(files)
 
 
-def read_subject(root: str | Path, name: str | None = None, *, check_images: bool = True) -> Subject:
+def read_subject(root: str | Path, name: str | None = None, *, check_images: bool = True, derive: bool = True) -> Subject:
     """Read a processed subject folder.
 
     Args:
@@ -211,6 +212,9 @@ def read_subject(root: str | Path, name: str | None = None, *, check_images: boo
         name: subject name; the folder name by default.
         check_images: check that every ``gt_imgs/<i>.jpg`` exists (a directory listing,
             no decoding) and that the first decodes.
+        derive: where the folder has no ``lms3d.npy`` or no depth/normal maps, derive 3D
+            landmarks and a head prior from its landmarks and cameras
+            (:mod:`lmgs_eval.data.ingest.complete`; cached outside the folder, named in the notes).
 
     Raises:
         UserError: naming the file and what is wrong.
@@ -298,6 +302,27 @@ def read_subject(root: str | Path, name: str | None = None, *, check_images: boo
             raise UserError(f"{p3}: expected [{n}, 68, 3], got {lms3d.shape}")
 
     meta = _read_json(root / "meta.json") if (root / "meta.json").exists() else {}
+    head_prior = prior = None
+    has_maps = (root / "depth").is_dir() and (root / "normal").is_dir()
+    if derive and (lms3d is None or not has_maps):
+        from lmgs_eval.data.ingest.complete import derive as _derive
+
+        try:
+            got3d, prior, cache = _derive(root, lms, c2w, focal, cx, cy)
+        except (InputError, ValueError, np.linalg.LinAlgError) as exc:
+            got3d = prior = None
+            notes.append(f"{root}: no lms3d.npy or depth/normal maps, and none could be derived ({exc})")
+    if derive and prior is not None:
+        missing, what = [], []
+        if lms3d is None:
+            lms3d = got3d
+            missing.append("lms3d.npy")
+            what.append("3D landmarks (2D landmarks lifted on their camera rays with a generic face relief)")
+        if not has_maps:
+            head_prior = prior
+            missing.append("depth/normal maps")
+            what.append("depth / normal priors (a head ellipsoid placed on those landmarks, inside the head parsing mask)")
+        notes.append(f"{root}: no {' or '.join(missing)}; derived {' and '.join(what)}, cached at {cache} ({prior.source})")
     return Subject(
         name=name,
         root=root,
@@ -318,4 +343,5 @@ def read_subject(root: str | Path, name: str | None = None, *, check_images: boo
         bundled=bool(meta.get("bundled", False)),
         notes=tuple(notes),
         meta=meta,
+        head_prior=head_prior,
     )

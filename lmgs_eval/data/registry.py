@@ -177,7 +177,7 @@ def list_subjects(root: str | Path | None = None) -> list[dict]:
     for d in _found_dirs(droot):
         seen.add(d.name)
         try:
-            s = read_subject(d, check_images=False)
+            s = read_subject(d, check_images=False, derive=False)
             row = {**s.describe(), "built": True, "status": "ok"}
         except UserError as exc:
             row = {"name": d.name, "path": str(d), "built": True, "status": f"error: {exc}"}

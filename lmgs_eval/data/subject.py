@@ -42,6 +42,9 @@ class Subject:
             the paper's data); ``meta`` then says how it was made.
         notes: repairs applied while reading (resampling, mixing to mono...), one per line.
         meta: free-form metadata (``meta.json`` of bundled subjects).
+        head_prior: where the folder has no depth/normal maps, a head ellipsoid derived from its
+            landmarks and cameras (:mod:`lmgs_eval.data.ingest.complete`); :meth:`depth` and
+            :meth:`normal` then ray-cast it inside the head parsing mask. ``notes`` say so.
     """
 
     name: str
@@ -65,6 +68,7 @@ class Subject:
     meta: dict = field(default_factory=dict)
     fps: int = FPS
     sample_rate: int = SAMPLE_RATE
+    head_prior: object | None = None  # lmgs_eval.data.ingest.complete.HeadPrior
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -134,16 +138,27 @@ class Subject:
     def depth(self, i: int) -> np.ndarray | None:
         """Depth map ``[H, W]`` float32 (camera z, world units; 0 = background), or None."""
         p = self._img("depth", i, "png")
-        return read_depth(p, float(self.meta.get("depth_scale", 1000.0))) if p.exists() else None
+        if p.exists():
+            return read_depth(p, float(self.meta.get("depth_scale", 1000.0)))
+        return self._prior(i)[0] if self.head_prior is not None else None
+
+    def _prior(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """Depth and normals of the derived head prior in frame ``i`` (inside the head mask)."""
+        p = self.parsing(i)
+        mask = np.all(p == (255, 0, 0), axis=-1) if p is not None else np.ones((self.height, self.width), bool)
+        w2c = self.camera(i).world_to_camera.numpy().astype(np.float64)
+        return self.head_prior.render(w2c, self.focal, self.cx, self.cy, self.width, self.height, mask)
 
     def normal(self, i: int) -> np.ndarray | None:
         """Normal map ``[H, W, 3]`` float32, unit camera-space normals (OpenCV axes), or None."""
         p = self._img("normal", i, "png")
-        return read_normal(p) if p.exists() else None
+        if p.exists():
+            return read_normal(p)
+        return self._prior(i)[1] if self.head_prior is not None else None
 
     @property
     def has_geometry(self) -> bool:
-        return (self.root / "depth").is_dir() and (self.root / "normal").is_dir()
+        return ((self.root / "depth").is_dir() and (self.root / "normal").is_dir()) or self.head_prior is not None
 
     def camera(self, i: int):
         """The :class:`lmgs.types.Camera` of frame ``i``."""
@@ -164,6 +179,7 @@ class Subject:
             "audio_features": sorted(self.audio_features),
             "landmarks3d": self.landmarks3d is not None,
             "geometry": self.has_geometry,
+            "geometry_derived": self.head_prior is not None,
             "bundled": self.bundled,
             "standin": self.meta.get("standin") if self.bundled else None,
             "budget_density": self.budget_density,

@@ -1,0 +1,50 @@
+"""``lmgs-eval ingest VIDEO``: make a processed subject from a raw talking-head video."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+HELP = "make a subject in the ER-NeRF / TalkingGaussian layout from a raw talking-head video (CPU, offline)"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("video", help="the video (any format ffmpeg reads; audio from its own track unless --audio)")
+    p.add_argument("--audio", help="speech to use instead of the video's own track (WAV or any audio file)")
+    p.add_argument("--name", help="subject name (default: the video's file name without extension)")
+    p.add_argument("--size", type=int, default=512, help="output frame side in pixels (default 512)")
+    p.add_argument("--crop", choices=("auto", "head", "none"), default="auto",
+                   help="auto: a fixed square window around the head unless the video already is a head crop (default)")
+    p.add_argument("--focal", type=float, default=None, help="focal length in output pixels (default: searched over the clip)")
+    p.add_argument("--data-root", help="folder of subjects (default: $LMGS_DATA or ~/.cache/lmgs/data)")
+    p.add_argument("--preview", action="store_true", help="also write preview.png: a contact sheet of frames, landmarks, masks, plate and pose axes")
+    p.add_argument("--force", action="store_true", help="replace an existing subject of that name")
+    p.add_argument("--jobs", type=int, default=None, help="processes for the per-frame stages (default: CPU count, at most 4)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def run(args: argparse.Namespace) -> int:
+    from lmgs_eval.data.ingest import IngestConfig, ingest
+
+    t0 = time.perf_counter()
+    cfg = IngestConfig(size=args.size, crop=args.crop, focal=args.focal)
+    folder = ingest(args.video, args.name, audio=args.audio, data_root=args.data_root, cfg=cfg, force=args.force,
+                    progress=not args.quiet, jobs=args.jobs)
+    man = json.loads((folder / "manifest.json").read_text())
+    fr, ps = man["frames"], man["pose"]
+    print(f"{folder.name}: {fr['kept']} frames {args.size}x{args.size} at 25 fps ({fr['kept'] / 25:.1f} s; "
+          f"{fr['without_face']} without a detected face, interpolated) at {folder} [{time.perf_counter() - t0:.1f} s]")
+    print(f"  focal {ps['focal']:.0f} px ({ps['focal_widths']:.2f} frame widths); pitch/yaw/roll "
+          f"{ps['pitch_yaw_roll_deg_min']} .. {ps['pitch_yaw_roll_deg_max']} deg; reprojection {ps['reprojection_px_mean']:.2f} px")
+    print("  " + ", ".join(f"{k} {v['frames_per_s']} frames/s" for k, v in man["timings"].items()))
+    for k, v in man["flags"].items():
+        print(f"  flag {k}: {v}")
+    for note in man["notes"]:
+        print(f"  note: {note}")
+    if args.preview:
+        from lmgs_eval.data.ingest.preview import contact_sheet
+
+        print(f"  preview: {contact_sheet(folder, folder / 'preview.png')}")
+    print(f"  next: lmgs-eval prepare --subject {folder.name}" + (f" --data-root {args.data_root}" if args.data_root else ""))
+    return 0

@@ -1,0 +1,130 @@
+"""An ingested subject against the ground truth of the same footage (a bundled subject).
+
+The bundled generator writes each subject's raw video (``<name>.mp4``) beside the truth it
+was rendered from; ingesting that video and comparing gives the figures of ``design.md``:
+
+* ``landmark_px``: mean distance of the 68 landmarks, per frame then over frames (pixels);
+* ``rotation_deg``: head rotation error after removing one constant rotation (the two world
+  frames differ by a fixed rotation: the template's axes are not the generator's), mean over
+  frames, and ``rotation_spread_deg``: the truth's own mean rotation away from its mean pose
+  (what a fit that returned a constant pose would score);
+* ``translation_rel``: camera-to-head distance error relative to the true distance (scale of
+  the world removed: the ingest's world unit is the template's jaw width);
+* ``head_iou``: intersection over union of the head parsing masks, mean over frames;
+* ``depth_rel``, ``normal_deg``, ``geometry_cover``: the depth / normal priors against the
+  truth's maps (:func:`geometry_error`);
+* ``plate_psnr``: PSNR of ``bc.jpg`` over the pixels that are background in every frame of
+  the truth (where the background is visible); ``audio_identical``: ``aud.wav`` sample-equal.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+def _rotations(c2w: np.ndarray) -> np.ndarray:
+    return np.linalg.inv(c2w @ GL_TO_CV)[:, :3, :3]  # world-to-camera rotation, OpenCV camera
+
+
+def rotation_error_deg(c2w_true: np.ndarray, c2w_est: np.ndarray) -> tuple[float, float]:
+    """Mean head-rotation error (degrees) up to one constant rotation, and the truth's spread."""
+    from scipy.spatial.transform import Rotation
+
+    rt, re = Rotation.from_matrix(_rotations(c2w_true)), Rotation.from_matrix(_rotations(c2w_est))
+    d = rt.inv() * re  # R_true^T R_est = Q (constant) if the estimate is right
+    q = d.mean()
+    err = np.degrees((d * q.inv()).magnitude())
+    spread = np.degrees((rt * rt.mean().inv()).magnitude())
+    return float(err.mean()), float(spread.mean())
+
+
+def distance_error_rel(c2w_true: np.ndarray, c2w_est: np.ndarray) -> float:
+    """Relative error of the per-frame camera distance to the world origin after one best scale."""
+    dt = np.linalg.norm(c2w_true[:, :3, 3], axis=1)
+    de = np.linalg.norm(c2w_est[:, :3, 3], axis=1)
+    s = float(np.dot(dt, de) / np.dot(de, de))
+    return float(np.mean(np.abs(s * de - dt) / dt))
+
+
+def head_iou(true_dir: Path, est_dir: Path, n: int) -> float:
+    from lmgs_eval.data.io import read_rgb_u8
+
+    ious = []
+    for i in range(n):
+        a = np.all(read_rgb_u8(true_dir / "parsing" / f"{i}.png") == (255, 0, 0), axis=-1)
+        b = np.all(read_rgb_u8(est_dir / "parsing" / f"{i}.png") == (255, 0, 0), axis=-1)
+        u = (a | b).sum()
+        ious.append((a & b).sum() / u if u else 1.0)
+    return float(np.mean(ious))
+
+
+def plate_psnr(true_dir: Path, est_dir: Path, n: int) -> tuple[float, float]:
+    """PSNR (dB) of the plate where the truth's background is visible in every frame, and the
+    share of the frame that is."""
+    from lmgs_eval.data.io import read_rgb, read_rgb_u8
+
+    vis = None
+    for i in range(n):
+        bg = np.all(read_rgb_u8(true_dir / "parsing" / f"{i}.png") == 255, axis=-1)
+        vis = bg if vis is None else vis & bg
+    a, b = read_rgb(true_dir / "bc.jpg"), read_rgb(est_dir / "bc.jpg")
+    mse = float(np.mean((a[vis] - b[vis]) ** 2)) if vis.any() else float("nan")
+    return float(-10 * np.log10(max(mse, 1e-12))), float(vis.mean())
+
+
+def geometry_error(t, e) -> dict[str, float]:
+    """Depth and normal priors against the truth's maps, over pixels where both have a surface:
+    median relative depth error after the one world scale (camera distances) is removed, mean
+    normal angle (degrees), and the share of the truth's surface the prior covers."""
+    if not (t.has_geometry and e.has_geometry):
+        return {}
+    dt = np.linalg.norm(t.c2w[:, :3, 3], axis=1)
+    de = np.linalg.norm(e.c2w[:, :3, 3], axis=1)
+    scale = float(np.dot(dt, de) / np.dot(de, de))
+    rel, ang, cover = [], [], []
+    for i in np.linspace(0, t.n_frames - 1, min(10, t.n_frames)).round().astype(int):
+        a, b = t.depth(i), e.depth(i) * scale
+        both = (a > 0) & (b > 0)
+        cover.append(both.sum() / max(1, (a > 0).sum()))
+        rel.append(np.abs(b[both] - a[both]) / a[both])
+        na, nb = t.normal(i)[both], e.normal(i)[both]
+        ang.append(np.degrees(np.arccos(np.clip((na * nb).sum(1), -1, 1))))
+    return {"depth_rel": float(np.median(np.concatenate(rel))), "normal_deg": float(np.mean(np.concatenate(ang))),
+            "geometry_cover": float(np.mean(cover))}
+
+
+def _snr(ref: np.ndarray, est: np.ndarray) -> float:
+    n = min(len(ref), len(est))
+    noise = float(np.sum((ref[:n] - est[:n]) ** 2))
+    return float("inf") if noise == 0 else float(10 * np.log10(np.sum(ref[:n] ** 2) / noise))
+
+
+def compare(true_dir: str | Path, est_dir: str | Path) -> dict[str, float]:
+    """Every figure of the module docstring for an ingest of a bundled subject's own video."""
+    from lmgs_eval.data.layout import read_subject
+
+    t, e = read_subject(Path(true_dir)), read_subject(Path(est_dir))
+    if (t.n_frames, t.width) != (e.n_frames, e.width):
+        raise ValueError(f"{est_dir}: {e.n_frames} frames of {e.width} px, the truth has {t.n_frames} of {t.width}")
+    n = t.n_frames
+    rot, spread = rotation_error_deg(t.c2w, e.c2w)
+    psnr, vis = plate_psnr(t.root, e.root, n)
+    return {
+        "landmark_px": float(np.linalg.norm(t.landmarks - e.landmarks, axis=2).mean()),
+        "mouth_landmark_px": float(np.linalg.norm(t.landmarks[:, 48:] - e.landmarks[:, 48:], axis=2).mean()),
+        "rotation_deg": rot,
+        "rotation_spread_deg": spread,
+        "translation_rel": distance_error_rel(t.c2w, e.c2w),
+        "focal_rel": float(e.focal / t.focal),
+        "head_iou": head_iou(t.root, e.root, n),
+        "plate_psnr": psnr,
+        "plate_visible": vis,
+        "blink_corr": float(np.corrcoef(t.blink, e.blink)[0, 1]) if t.blink.std() > 0 and e.blink.std() > 0 else float("nan"),
+        "audio_identical": bool(len(t.audio) == len(e.audio) and np.array_equal(t.audio, e.audio)),
+        "audio_snr_db": _snr(t.audio, e.audio),
+        **geometry_error(t, e),
+    }

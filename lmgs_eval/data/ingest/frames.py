@@ -1,0 +1,94 @@
+"""The per-frame work of the parsing, geometry and composite stages, run in chunks of frames.
+
+Each function handles frames ``[a, b)`` of the subject folder ``sub`` and writes their files;
+nothing depends on another chunk, so :func:`run_chunks` can spread the chunks over processes.
+Parsing chunks start on a GrabCut keyframe (a multiple of :data:`parsing.KEYFRAME`), so the
+colour models, and hence every file, are the same for any number of processes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from lmgs_eval.data import io
+from lmgs_eval.data.ingest.parsing import KEYFRAME, mouth_mask, person_mask, split_parts
+from lmgs_eval.errors import UserError
+
+CHUNK = 2 * KEYFRAME
+
+
+def png(path, img: np.ndarray) -> None:
+    """An RGB or RGBA uint8 PNG at zlib level 1 (lossless like any level; 3-4x faster to write)."""
+    import cv2
+
+    order = [2, 1, 0, 3][: img.shape[2]]
+    if not cv2.imwrite(str(path), np.ascontiguousarray(img[:, :, order]), [cv2.IMWRITE_PNG_COMPRESSION, 1]):
+        raise UserError(f"{path}: could not write image")
+
+
+def parse(sub: Path, lms: np.ndarray, a: int, b: int, keep: frozenset) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """Parsing maps and mouth masks of frames ``[a, b)``; returns ``(k, frame, person)`` of the
+    frames in ``keep`` (the plate's samples)."""
+    out, model = [], None
+    for i in range(a, b):
+        img = io.read_rgb_u8(sub / "ori_imgs" / f"{i}.jpg")
+        person, model = person_mask(img, lms[i], None if i % KEYFRAME == 0 or model is None else model)
+        parts = split_parts(person, lms[i])
+        png(sub / "parsing" / f"{i}.png", parts.colour_map())
+        np.save(sub / "teeth_mask" / f"{i}.npy", mouth_mask(lms[i], img.shape[:2]) & parts.head)
+        if i in keep:
+            out.append((i, img, parts.person))
+    return out
+
+
+def geometry(sub: Path, w2c: np.ndarray, focal: float, centre: np.ndarray, axes: np.ndarray, a: int, b: int) -> None:
+    """Depth and normal priors of frames ``[a, b)`` inside their head masks."""
+    from lmgs_eval.data.ingest.geometry import DEPTH_SCALE, render_prior
+
+    for i in range(a, b):
+        p = io.read_rgb_u8(sub / "parsing" / f"{i}.png")
+        h, w = p.shape[:2]
+        depth, normal = render_prior(w2c[i], focal, w, h, centre, axes, np.all(p == (255, 0, 0), axis=-1))
+        io.write_depth(sub / "depth" / f"{i}.png", depth, DEPTH_SCALE)
+        valid = normal.any(-1, keepdims=True)  # the encoding of io.write_normal, in float32
+        png(sub / "normal" / f"{i}.png", np.where(valid, np.clip(np.rint((normal + 1) * 127.5), 0, 255), 0).astype(np.uint8))
+
+
+def composite(sub: Path, a: int, b: int) -> None:
+    """``gt_imgs`` (the frame over the plate outside the person) and ``torso_imgs`` (RGBA)."""
+    bc = io.read_rgb_u8(sub / "bc.jpg")
+    for i in range(a, b):
+        img = io.read_rgb_u8(sub / "ori_imgs" / f"{i}.jpg")
+        p = io.read_rgb_u8(sub / "parsing" / f"{i}.png")
+        bg = np.all(p == 255, axis=-1)
+        head = np.all(p == (255, 0, 0), axis=-1)
+        io.write_rgb(sub / "gt_imgs" / f"{i}.jpg", np.where(bg[..., None], bc, img))
+        alpha = (~bg & ~head).astype(np.uint8) * 255
+        png(sub / "torso_imgs" / f"{i}.png", np.concatenate([img, alpha[..., None]], -1))
+
+
+def run_chunks(fn: Callable, n: int, args: tuple, jobs: int, bar=None) -> list:
+    """``fn(*args, a, b, *rest)`` over chunks ``[a, b)`` of ``range(n)``, in ``jobs`` processes
+    (spawned: a fresh interpreter, no threads inherited). Returns the results in chunk order."""
+    spans = [(a, min(n, a + CHUNK)) for a in range(0, n, CHUNK)]
+    if jobs <= 1 or len(spans) == 1:
+        out = []
+        for a, b in spans:
+            out.append(fn(*args[0], a, b, *args[1]))
+            if bar is not None:
+                bar.update(b - a)
+        return out
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as ex:
+        futs = [ex.submit(fn, *args[0], a, b, *args[1]) for a, b in spans]
+        out = []
+        for (a, b), f in zip(spans, futs):
+            out.append(f.result())
+            if bar is not None:
+                bar.update(b - a)
+    return out

@@ -1,0 +1,64 @@
+"""Depth and normal priors: a head-sized ellipsoid posed with the fitted head, seen by each camera.
+
+The 3DGS methods place their first Gaussians by back-projecting the head's pixels with a depth
+map, and lmgs's Geometry Regularizer compares rendered depth and normals with the maps. A real
+video has neither. This writes the coarsest geometry the fit supports: an ellipsoid in the
+head's frame (centred behind the nose bridge, semi-axes from the jaw width, the proportions
+the bundled heads use), ray-cast per pixel of the head mask. It has no nose, lips or hair
+shape; it tells the methods where the head is and which way its surface faces, no more.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+DEPTH_SCALE = 10000.0  # depth PNG value = camera z (metres) x 10000, as the bundled subjects
+# Semi-axes in jaw widths (x: across, y: up, z: front to back) and the front of the surface
+# relative to the brows' depth: the bundled heads' ellipsoid, a little taller to take the hair.
+AXES = (0.56, 0.85, 0.63)
+
+
+def head_ellipsoid(template: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Centre ``[3]`` and semi-axes ``[3]`` (world metres) for a fitted 68-point template."""
+    jaw = float(np.linalg.norm(template[16] - template[0]))
+    axes = np.asarray(AXES) * jaw
+    front = float(template[17:27, 2].mean())  # the brows lie on the smooth front of the head
+    centre = np.array([0.5 * (template[0, 0] + template[16, 0]), template[28, 1], front - axes[2]])
+    return centre, axes
+
+
+def render_prior(w2c: np.ndarray, focal: float, w: int, h: int, centre: np.ndarray, axes: np.ndarray,
+                 mask: np.ndarray, *, cx: float | None = None, cy: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Depth ``[H, W]`` (camera z, 0 off the surface) and unit normals ``[H, W, 3]`` (OpenCV
+    camera axes, facing the camera) of the ellipsoid, inside ``mask`` only."""
+    ys, xs = np.nonzero(mask)
+    depth = np.zeros((h, w), np.float32)
+    normal = np.zeros((h, w, 3), np.float32)
+    if len(ys) == 0:
+        return depth, normal
+    cx = w / 2 if cx is None else cx
+    cy = h / 2 if cy is None else cy
+    f32 = np.float32
+    d_cam = np.empty((len(xs), 3), f32)
+    d_cam[:, 0] = (xs.astype(f32) + f32(0.5 - cx)) / f32(focal)
+    d_cam[:, 1] = (ys.astype(f32) + f32(0.5 - cy)) / f32(focal)
+    d_cam[:, 2] = 1.0
+    R, t = w2c[:3, :3], w2c[:3, 3]
+    o = -R.T @ t  # camera centre in the world
+    d_s = d_cam @ (R / axes[None, :]).astype(f32)  # world ray directions, in the unit sphere's frame
+    o_s = ((o - centre) / axes).astype(f32)
+    a = np.einsum("ij,ij->i", d_s, d_s)
+    b = 2 * (d_s @ o_s)
+    c = f32(o_s @ o_s - 1.0)
+    disc = b * b - 4 * a * c
+    hit = disc > 0
+    tt = (-b[hit] - np.sqrt(disc[hit])) / (2 * a[hit])  # camera z, since d_cam has z = 1
+    front = tt > 0
+    sel = np.nonzero(hit)[0][front]
+    tt = tt[front]
+    p_s = o_s + tt[:, None] * d_s[sel]  # the hit on the unit sphere; its world normal is p_s / axes
+    n_c = (p_s / axes[None, :].astype(f32)) @ R.T.astype(f32)
+    n_c /= np.sqrt(np.einsum("ij,ij->i", n_c, n_c))[:, None]
+    depth[ys[sel], xs[sel]] = tt
+    normal[ys[sel], xs[sel]] = n_c
+    return depth, normal

@@ -1,0 +1,220 @@
+"""The stages of :func:`lmgs_eval.data.ingest.pipeline.ingest`, each writing into the work folder."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+
+from lmgs_eval.data import io
+from lmgs_eval.data.ingest import decode, pose as pose_mod, track as track_mod, writer
+from lmgs_eval.data.ingest.crop import choose_window
+from lmgs_eval.data.ingest import frames as frames_mod
+from lmgs_eval.data.ingest.parsing import PlateBuilder
+from lmgs_eval.data.ingest.pipeline import INGEST_VERSION, MIN_FACE_PX, MOVING_SHARE, STATIC_LEVELS, check_frames, save_npz
+from lmgs_eval.errors import UserError
+
+SPF = 640
+
+
+def track(ctx, info: decode.VideoInfo) -> None:
+    """Decode at 25 fps, track the face, look for scene cuts."""
+    import cv2
+
+    t0 = time.perf_counter()
+    thumbs = np.zeros((info.n_frames, 64, 64), np.float32)
+
+    def frames():
+        for k, img in decode.frames_25fps(info):
+            thumbs[k] = cv2.resize(cv2.cvtColor(img, cv2.COLOR_RGB2GRAY), (64, 64), interpolation=cv2.INTER_AREA) / 255.0
+            yield k, img
+
+    bar = ctx.bar(info.n_frames, "decode + track")
+    tr = track_mod.track_faces(frames(), info.n_frames, bar)
+    if bar is not None:
+        bar.close()
+    ctx.timed("decode_track", t0, info.n_frames)
+    cuts = decode.scene_cuts(thumbs)
+    if cuts:
+        at = ", ".join(f"{k} ({k / 25:.2f} s)" for k in cuts[:5])
+        raise UserError(f"{ctx.video}: {len(cuts)} scene cut(s) at frame {at}; ingest one shot at a time "
+                        f"(cut the video there, e.g. ffmpeg -ss/-to)")
+    many = tr.faces.max(initial=0)
+    if many > 1:
+        ctx.warn("several_faces", f"{ctx.video}: up to {many} faces in one frame; tracked the largest, most central one")
+    save_npz(ctx.work / "track.npz", lms=tr.lms, faces=tr.faces, detected=tr.detected)
+
+
+def frames(ctx, info: decode.VideoInfo, tr, audio: np.ndarray) -> None:
+    """Checks (coverage, size, audio length), the crop window, the frames and their landmarks."""
+    t0 = time.perf_counter()
+    lms, cov = track_mod.fill_gaps(tr["lms"], str(ctx.video))
+    first, last = check_frames(ctx, info, len(audio) // SPF, cov.first, cov.last)
+    lms = lms[: last - cov.first]
+    if cov.cut:
+        ctx.warn("faceless_ends", f"{len(cov.cut)} frames without a face at the start/end were cut (frames {_ranges(cov.cut)})")
+    missing = [k for k in cov.missing if k < last]
+    if missing:
+        ctx.warn("interpolated", f"{len(missing)} frames without a detected face were interpolated from their neighbours (frames {_ranges(missing)})")
+    jaw = float(np.median(np.linalg.norm(lms[:, 16] - lms[:, 0], axis=1)))
+    if jaw < MIN_FACE_PX:
+        ctx.warn("small_face", f"{ctx.video}: the face is small ({jaw:.0f} px between the jaw corners; at least {MIN_FACE_PX} px advised): landmarks and frames will be coarse")
+    win, notes = choose_window(lms, info.width, info.height, ctx.cfg.size, ctx.cfg.crop)
+    ctx.log += notes
+    n = last - first
+    out = ctx.sub / "ori_imgs"
+    out.mkdir(exist_ok=True)
+    bar = ctx.bar(n, "crop + frames")
+    for k, img in decode.frames_25fps(info):
+        if k < first:
+            continue
+        if k >= last:
+            break
+        io.write_rgb(out / f"{k - first}.jpg", win.apply(img))
+        if bar is not None:
+            bar.update(1)
+    if bar is not None:
+        bar.close()
+    lms_out = win.to_out(lms)
+    smooth = track_mod.smooth_landmarks(lms_out, ctx.cfg.smooth_window) if ctx.cfg.smooth_window > 1 else lms_out
+    for i in range(n):
+        writer.write_lms(out / f"{i}.lms", smooth[i])
+    found = np.ones(n, bool)
+    found[[k - first for k in missing]] = False
+    save_npz(ctx.work / "frames.npz", lms=smooth, raw=lms_out, found=found, first=first, last=last,
+             window=json.dumps(win.to_json()), jaw_px=jaw)
+    ctx.timed("crop_frames", t0, n)
+
+
+def _ranges(ks) -> str:
+    ks = sorted(ks)
+    parts, a = [], ks[0]
+    for p, q in zip(ks, ks[1:] + [None]):
+        if q != p + 1:
+            parts.append(f"{a}-{p}" if p > a else f"{a}")
+            a = q
+    return ", ".join(parts[:6]) + (", ..." if len(parts) > 6 else "")
+
+
+def pose(ctx, sel) -> None:
+    t0 = time.perf_counter()
+    lms = sel["lms"]
+    s = ctx.cfg.size
+    fit = pose_mod.fit_poses(lms, s, s, focal=ctx.cfg.focal, sigma=ctx.cfg.pose_sigma)
+    lo, hi = pose_mod.FOCAL_RANGE
+    if fit.focal_curve and (fit.focal >= 0.99 * hi * s or fit.focal <= 1.01 * lo * s):
+        ctx.log.append(f"the focal search ended at its range's edge ({fit.focal / s:.2f} frame widths): the head turns too little "
+                       f"to pin the focal down; pass --focal to set it")
+    writer.write_transforms(ctx.sub, fit.c2w, fit.focal, s, s)
+    writer.write_track_params(ctx.sub / "track_params.pt", fit.euler, fit.trans, fit.focal)
+    np.save(ctx.sub / "lms3d.npy", pose_mod.lift_landmarks(fit, lms, s, s))
+    save_npz(ctx.work / "pose.npz", w2c=fit.w2c, c2w=fit.c2w, euler=fit.euler, trans=fit.trans, template=fit.template,
+             focal=fit.focal, reproj=fit.reproj_px, curve=np.asarray(fit.focal_curve, np.float64).reshape(-1, 2))
+    ctx.timed("pose", t0, len(lms))
+
+
+def parsing(ctx, sel) -> None:
+    """Per-frame parsing maps and mouth masks; the plate from the background pixels."""
+    t0 = time.perf_counter()
+    lms = sel["lms"]
+    n, s = len(lms), ctx.cfg.size
+    for d in ("parsing", "teeth_mask"):
+        (ctx.sub / d).mkdir(exist_ok=True)
+    plate = PlateBuilder(s, s, ctx.cfg.plate_frames, n)
+    bar = ctx.bar(n, "parsing")
+    for chunk in frames_mod.run_chunks(frames_mod.parse, n, ((ctx.sub, lms), (frozenset(plate.keep),)), ctx.jobs, bar):
+        for k, img, person in chunk:
+            plate.add(k, img, person)
+    if bar is not None:
+        bar.close()
+    bc, seen, resid = plate.plate()
+    io.write_rgb(ctx.sub / "bc.jpg", bc)
+    ctx.log.append(f"plate: {100 * seen.mean():.1f} % of its pixels seen behind the person, the rest inpainted; the background "
+                   f"differs from it by {np.median(resid):.1f} grey levels in the median frame ({max(resid):.1f} at most)")
+    moving = [k + int(sel["first"]) for k, r in zip(plate.ids, resid) if r > STATIC_LEVELS]
+    if len(moving) > MOVING_SHARE * len(resid) + 1:
+        ctx.warn("moving_camera", f"{ctx.video}: the background differs from the plate by more than {STATIC_LEVELS:g} grey levels "
+                 f"in {len(moving)} of {len(resid)} sampled frames (video frames {_ranges(moving)}): a moving camera or changing "
+                 f"light; the plate assumes a static camera and is wrong there")
+    ctx.timed("parsing", t0, n)
+
+
+def geometry(ctx, sel) -> None:
+    """Depth and normal priors from the posed head ellipsoid, inside each frame's head mask."""
+    from lmgs_eval.data.ingest.geometry import head_ellipsoid
+
+    t0 = time.perf_counter()
+    n = len(sel["lms"])
+    pz = np.load(ctx.work / "pose.npz")
+    centre, axes = head_ellipsoid(pz["template"])
+    for d in ("depth", "normal"):
+        (ctx.sub / d).mkdir(exist_ok=True)
+    bar = ctx.bar(n, "depth + normal priors")
+    frames_mod.run_chunks(frames_mod.geometry, n, ((ctx.sub, pz["w2c"], float(pz["focal"]), centre, axes), ()), ctx.jobs, bar)
+    if bar is not None:
+        bar.close()
+    ctx.timed("geometry", t0, n)
+
+
+def composites(ctx, sel) -> None:
+    """``gt_imgs`` (the frame over the plate outside the person) and ``torso_imgs`` (RGBA)."""
+    t0 = time.perf_counter()
+    n = len(sel["lms"])
+    for d in ("gt_imgs", "torso_imgs"):
+        (ctx.sub / d).mkdir(exist_ok=True)
+    bar = ctx.bar(n, "composites")
+    frames_mod.run_chunks(frames_mod.composite, n, ((ctx.sub,), ()), ctx.jobs, bar)
+    if bar is not None:
+        bar.close()
+    ctx.timed("composites", t0, n)
+
+
+def finish(ctx, info: decode.VideoInfo, sel, audio: np.ndarray, source: str, key: dict) -> None:
+    """Audio, action units, the 25 fps video, meta.json and manifest.json."""
+    t0 = time.perf_counter()
+    first, last = int(sel["first"]), int(sel["last"])
+    n = last - first
+    aud = audio[first * SPF : last * SPF]
+    io.write_wav(ctx.sub / "aud.wav", aud)
+    aus = writer.action_units(sel["lms"])
+    writer.write_au_csv(ctx.sub / "au.csv", aus, sel["found"])
+    frames = np.stack([io.read_rgb_u8(ctx.sub / "ori_imgs" / f"{i}.jpg") for i in range(n)])
+    io.write_video(ctx.sub / f"{ctx.name}.mp4", frames, 25, aud)
+    del frames
+    ctx.timed("audio_video", t0, n)
+    pz = np.load(ctx.work / "pose.npz")
+    eul = np.degrees(pz["euler"])
+    meta = {
+        "bundled": False,
+        "ingested": True,
+        "ingest_version": INGEST_VERSION,
+        "source": str(ctx.video),
+        "au_csv": "AU45_r (blink) from the eye aspect ratio, AU25_r / AU26_r from the lip gap and jaw drop: geometric stand-ins for OpenFace's intensities",
+        "track_params": "euler = (pitch, yaw, roll) of the head in radians relative to facing the camera; trans = head position in the camera frame (OpenGL axes, metres); focal in pixels; no 3DMM id/exp",
+        "lms3d": "2D landmarks lifted onto their camera rays at the depth of the fitted 68-point template (world = head frame, metres)",
+        "parsing_colours": {"background": [255, 255, 255], "head": [255, 0, 0], "neck": [0, 255, 0], "torso": [0, 0, 255]},
+        "teeth_mask": "inside of the inner-lip polygon (landmarks 60-67)",
+        "depth_scale": 10000.0,
+        "depth": "prior, not a measurement: camera z (metres) x depth_scale of a head-sized ellipsoid posed with the fitted head, inside the head mask; 0 elsewhere",
+        "normal": "prior: camera-space unit normals (OpenCV axes) of the same ellipsoid, facing the camera; 0 elsewhere",
+        "world_units": "metres; the head is fixed, the camera moves (ER-NeRF convention)",
+    }
+    writer.write_json(ctx.sub / "meta.json", meta)
+    manifest = {
+        "ingest_version": INGEST_VERSION,
+        "input": {"video": str(ctx.video), "sha256": key["input_sha256"], "bytes": ctx.video.stat().st_size, "probe": info.to_json()},
+        "audio": {"source": source, "sha256": key["audio_sha256"], "seconds": round(len(aud) / 16000, 3)},
+        "parameters": key["config"],
+        "tools": writer.tool_versions(),
+        "frames": {"kept": n, "first_source_frame": first, "of": info.n_frames, "without_face": int((~sel["found"]).sum())},
+        "window": json.loads(str(sel["window"])),
+        "pose": {"focal": float(pz["focal"]), "focal_widths": float(pz["focal"]) / ctx.cfg.size,
+                 "focal_search": pz["curve"].tolist(), "reprojection_px_mean": float(pz["reproj"].mean()),
+                 "pitch_yaw_roll_deg_min": eul.min(0).round(2).tolist(), "pitch_yaw_roll_deg_max": eul.max(0).round(2).tolist()},
+        "flags": ctx.flags,
+        "notes": ctx.log,
+        "timings": ctx.timings,
+    }
+    manifest["files"] = writer.file_hashes(ctx.sub)
+    writer.write_json(ctx.sub / "manifest.json", manifest)

@@ -1,0 +1,191 @@
+"""Face tracking with dlib: detect, follow by landmarks, re-detect when lost; gaps and smoothing.
+
+dlib's HOG detector (its 68-point shape predictor's own detector, from
+``face_recognition_models``) is run on the first frame, every ``REDETECT`` frames and whenever
+the track is lost; in between, the box for frame ``k`` comes from the landmarks of frame
+``k - 1`` (the box-to-landmark relation measured at the last detection), so the predictor
+follows the face at a few milliseconds a frame. A tracked shape is rejected (and the face
+re-detected) when it jumps or changes scale more than a head can between two frames.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+
+from lmgs_eval.errors import UserError
+
+REDETECT = 25  # frames between detections while the track holds
+MAX_GAP = 12  # frames: shorter gaps without a face are interpolated, longer ones refused
+DETECT_SIDE = 640  # the detector runs on a copy scaled to at most this side (faces from ~80 px
+# there are found at once; smaller ones by a second pass at twice the size)
+
+
+@dataclass
+class Track:
+    """68 landmarks per frame in the coordinates of the frames given to :func:`track_faces`.
+
+    Attributes:
+        lms: ``[N, 68, 2]`` float64, NaN where no face was found.
+        faces: ``[N]`` faces the detector saw (-1 on frames where it did not run).
+        detected: ``[N]`` bool, the detector ran on this frame.
+    """
+
+    lms: np.ndarray
+    faces: np.ndarray
+    detected: np.ndarray
+
+    @property
+    def found(self) -> np.ndarray:
+        return np.all(np.isfinite(self.lms), axis=(1, 2))
+
+
+def _models():
+    from lmgs_eval.data.bundled.photo import _dlib_models
+
+    return _dlib_models()
+
+
+def _spread(l: np.ndarray) -> float:
+    return float(np.sqrt(((l - l.mean(0)) ** 2).sum(1).mean()))
+
+
+def _shape(sp, img, box) -> np.ndarray:
+    import dlib
+
+    r = dlib.rectangle(*[int(round(v)) for v in box])
+    s = sp(img, r)
+    return np.array([[p.x + 0.5, p.y + 0.5] for p in s.parts()], np.float64)
+
+
+def _detect(det, grey: np.ndarray, prev_box) -> tuple[list, int]:
+    """Face boxes ``(l, t, r, b)`` in ``grey``'s pixels, best first, and how many were seen."""
+    import cv2
+
+    h, w = grey.shape
+    s = min(1.0, DETECT_SIDE / max(h, w))
+    small = cv2.resize(grey, (int(round(w * s)), int(round(h * s))), interpolation=cv2.INTER_AREA) if s < 1 else grey
+    rects = det(small, 0)
+    if len(rects) == 0:
+        rects = det(small, 1)
+    boxes = [(r.left() / s, r.top() / s, r.right() / s, r.bottom() / s) for r in rects]
+    if not boxes:
+        return [], 0
+
+    def score(b):
+        area = (b[2] - b[0]) * (b[3] - b[1])
+        if prev_box is not None:  # stay with the face being tracked
+            return _iou(b, prev_box) * 1e9 + area
+        cx, cy = (b[0] + b[2]) / 2 / w - 0.5, (b[1] + b[3]) / 2 / h - 0.5
+        return area * (1.0 - min(0.9, np.hypot(cx, cy)))  # largest, most central
+
+    return sorted(boxes, key=score, reverse=True), len(boxes)
+
+
+def _iou(a, b) -> float:
+    ix = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
+    iy = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
+    inter = ix * iy
+    u = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
+    return inter / u if u > 0 else 0.0
+
+
+def track_faces(frames: Iterable[tuple[int, np.ndarray]], n: int, progress=None) -> Track:
+    """Track one face through ``frames`` (``(k, rgb uint8)`` for ``k = 0..n-1``)."""
+    import cv2
+
+    det, sp = _models()
+    lms = np.full((n, 68, 2), np.nan)
+    faces = np.full(n, -1, np.int64)
+    detected = np.zeros(n, bool)
+    prev = None  # landmarks of the previous frame
+    rel = None  # box relative to the landmarks: (dx, dy, half size) in units of their spread
+    box = None
+    for k, img in frames:
+        grey = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
+        cur = None
+        if prev is not None and k % REDETECT != 0:
+            c, s = prev.mean(0), _spread(prev)
+            box = (c[0] + rel[0] * s - rel[2] * s, c[1] + rel[1] * s - rel[2] * s,
+                   c[0] + rel[0] * s + rel[2] * s, c[1] + rel[1] * s + rel[2] * s)
+            cand = _shape(sp, grey, box)
+            jump = np.linalg.norm(cand.mean(0) - c) / s
+            ratio = _spread(cand) / s
+            if jump < 0.25 and 0.85 < ratio < 1.18:
+                cur = cand
+        if cur is None:
+            boxes, count = _detect(det, grey, box)
+            detected[k], faces[k] = True, count
+            if boxes:
+                box = boxes[0]
+                cur = _shape(sp, grey, box)
+                c, s = cur.mean(0), _spread(cur)
+                bc = ((box[0] + box[2]) / 2, (box[1] + box[3]) / 2)
+                rel = ((bc[0] - c[0]) / s, (bc[1] - c[1]) / s, (box[2] - box[0]) / 2 / s)
+        if cur is not None:
+            lms[k] = cur
+        prev = cur
+        if progress is not None:
+            progress.update(1)
+    return Track(lms, faces, detected)
+
+
+@dataclass(frozen=True)
+class Coverage:
+    """Which frames keep a face after gap filling.
+
+    Attributes:
+        first, last: the kept range ``[first, last)`` (faceless ends are cut).
+        missing: frames without a face inside the kept range (interpolated).
+        cut: frames without a face at either end (dropped).
+    """
+
+    first: int
+    last: int
+    missing: tuple[int, ...]
+    cut: tuple[int, ...]
+
+
+def fill_gaps(lms: np.ndarray, video: str) -> tuple[np.ndarray, Coverage]:
+    """Cut faceless frames at either end, interpolate inner gaps up to ``MAX_GAP`` frames.
+
+    Raises:
+        UserError: no face anywhere, or a longer inner gap (naming its frames).
+    """
+    ok = np.all(np.isfinite(lms), axis=(1, 2))
+    if not ok.any():
+        raise UserError(f"{video}: no face found in any frame (dlib's frontal face detector; faces must be at least ~80 px and roughly frontal)")
+    idx = np.nonzero(ok)[0]
+    first, last = int(idx[0]), int(idx[-1]) + 1
+    cut = tuple(range(0, first)) + tuple(range(last, len(lms)))
+    out = lms[first:last].copy()
+    bad = ~ok[first:last]
+    missing = tuple(int(i) + first for i in np.nonzero(bad)[0])
+    if bad.any():
+        # runs of missing frames
+        edges = np.diff(np.concatenate([[0], bad.astype(np.int8), [0]]))
+        starts, ends = np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]
+        longest = int(np.argmax(ends - starts))
+        if ends[longest] - starts[longest] > MAX_GAP:
+            a, b = starts[longest] + first, ends[longest] + first - 1
+            raise UserError(f"{video}: no face in frames {a}-{b} ({(b - a + 1) / 25:.1f} s at 25 fps); "
+                            f"cut the video to the part where the face is visible")
+        good = np.nonzero(~bad)[0]
+        flat = out.reshape(len(out), -1)
+        for j in range(flat.shape[1]):
+            flat[bad, j] = np.interp(np.nonzero(bad)[0], good, flat[good, j])
+        out = flat.reshape(out.shape)
+    return out, Coverage(first, last, missing, cut)
+
+
+def smooth_landmarks(lms: np.ndarray, window: int = 5) -> np.ndarray:
+    """Savitzky-Golay smoothing along time (quadratic, ``window`` frames), which removes the
+    detector's frame-to-frame jitter but keeps the peaks of fast mouth motion that a moving
+    average would flatten. Clips shorter than the window are returned unchanged."""
+    from scipy.signal import savgol_filter
+
+    if len(lms) < window:
+        return lms.copy()
+    return savgol_filter(lms, window, 2, axis=0, mode="interp")
