@@ -1,0 +1,193 @@
+"""What made a number: the code's commit, the machine, the config hash, file hashes, the time."""
+
+from __future__ import annotations
+
+import datetime
+import hashlib
+import math
+import os
+import platform
+import subprocess
+import sys
+from collections.abc import Iterable, Mapping
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+from lmgs.config import config_hash
+from lmgs_eval import __version__
+from lmgs_eval.results.schema import SCHEMA_VERSION
+
+
+def sha256_file(path: str | os.PathLike) -> str:
+    """sha256 (hex) of a file's bytes, read in 1 MB blocks."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def compact(values: Iterable[float | None] | None, digits: int = 6) -> list[float | None] | None:
+    """Per-item values for a record: floats rounded to ``digits`` significant digits, NaN -> null."""
+    if values is None:
+        return None
+    out: list[float | None] = []
+    for v in values:
+        f = None if v is None else float(v)
+        out.append(float(f"{f:.{digits}g}") if f is not None and math.isfinite(f) else None)
+    return out
+
+
+def git_info() -> dict[str, Any]:
+    """``{version, git_commit, dirty}`` of the code that made a record (commit None outside git)."""
+    here = Path(__file__).resolve().parent
+    commit: str | None = None
+    dirty: bool | None = None
+    try:
+        r = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=10)
+        if r.returncode == 0:
+            commit = r.stdout.strip() or None
+            s = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here,
+                               capture_output=True, text=True, timeout=10)
+            dirty = bool(s.stdout.strip()) if s.returncode == 0 else None
+    except (OSError, subprocess.SubprocessError):
+        pass
+    return {"version": __version__, "git_commit": commit, "dirty": dirty}
+
+
+def _cpu_name() -> str:
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine() or "unknown"
+
+
+def machine_info() -> dict[str, Any]:
+    """Hardware fingerprint: CPU model, threads, torch version, CUDA device (if torch is loaded), platform,
+    and the instruction set torch's CPU kernels use (``cpu_kernels``: "AVX512", "AVX2", ...; training
+    and ONNX Runtime scoring round differently on different ones, so the same seed and data give
+    slightly different numbers on a CPU with AVX-512 and one without).
+
+    torch is not imported here (it is slow); its version comes from the package metadata and
+    the CUDA device is only read when the caller has already imported torch.
+    """
+    try:
+        torch_version: str | None = metadata.version("torch")
+    except metadata.PackageNotFoundError:
+        torch_version = None
+    threads = os.cpu_count()
+    cuda = kernels = None
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        threads = int(torch.get_num_threads())
+        if torch.cuda.is_available():
+            cuda = str(torch.cuda.get_device_name(0))
+        try:
+            kernels = str(torch.backends.cpu.get_cpu_capability())
+        except AttributeError:  # torch < 2.1
+            kernels = None
+    return {"cpu": _cpu_name(), "threads": threads, "torch": torch_version, "cuda_device": cuda,
+            "platform": platform.platform(), "cpu_kernels": kernels}
+
+
+def now_iso(timespec: str = "seconds") -> str:
+    """Current UTC time, ISO 8601, to the second (or ``timespec``, e.g. ``"microseconds"``)."""
+    return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec=timespec)
+
+
+EMPTY_COST: dict[str, Any] = {
+    "train_seconds": None, "fps": None, "ms_per_frame": None, "first_frame_ms": None, "realtime_factor": None,
+    "n_params": None, "n_gaussians": None, "model_mb": None, "peak_mb": None, "device": None,
+}
+
+
+def make_record(*, method: Mapping, subject: Mapping, protocol: Mapping, metrics: Mapping, seed: int,
+                config: Mapping | None = None, config_hash_: str | None = None, cost: Mapping | None = None,
+                artefacts: Mapping | None = None, notes: Iterable[str] = (), status: Mapping | None = None,
+                code: Mapping | None = None, machine: Mapping | None = None,
+                run: Mapping | None = None) -> dict[str, Any]:
+    """Assemble a record, filling ``schema_version``, ``code``, ``machine``, ``created`` and defaults.
+
+    Args:
+        method, subject, protocol, metrics: the sections of the schema (see module docstring).
+        seed: the run's seed.
+        config: the method's full config (default ``{}``).
+        config_hash_: the method's own config hash; default :func:`config_hash` of ``config``.
+        cost: cost figures; missing keys are null.
+        artefacts: ``{role: {path, sha256}}``.
+        run: the run's structured facts (``se_fraction``, ``budget``), or None.
+        notes, status, code, machine: as in the schema; ``code``/``machine`` default to
+            :func:`git_info` / :func:`machine_info`.
+
+    Returns:
+        The record (not yet validated; :func:`write_record` validates).
+    """
+    config = dict(config or {})
+    rec: dict[str, Any] = {
+        "schema_version": SCHEMA_VERSION,
+        "method": dict(method),
+        "subject": dict(subject),
+        "protocol": dict(protocol),
+        "metrics": {k: dict(v) for k, v in metrics.items()},
+        "cost": {**EMPTY_COST, **dict(cost or {})},
+        "config": config,
+        "config_hash": config_hash_ or config_hash(config),
+        "seed": int(seed),
+        "code": dict(code) if code is not None else git_info(),
+        "machine": dict(machine) if machine is not None else machine_info(),
+        "artefacts": {k: dict(v) for k, v in (artefacts or {}).items()},
+        "created": now_iso(),
+        "notes": list(notes),
+    }
+    if status is not None:
+        rec["status"] = dict(status)
+    if run:
+        rec["run"] = dict(run)
+    return rec
+
+
+_CANONICAL = {"psnr": "psnr", "ssim": "ssim", "lpips-alex": "lpips", "stlpips-alex": "lpips", "lmd": "lmd"}
+
+
+def metric_entries(result: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
+    """Schema entries from a metric result dict (:meth:`MetricResult.to_dict` of :mod:`lmgs_eval.metrics`).
+
+    ``lpips-alex`` and ``stlpips-alex`` both go under key ``lpips`` with their own name as
+    ``backend`` (so a column mixing them is flagged); ``lse`` becomes ``lse_d`` and ``lse_c``
+    (``per_item`` on ``lse_d`` only: the per-window distances at the chosen offset).
+
+    Returns:
+        ``{key: entry}``; an unavailable metric gives an entry with ``value`` null and
+        its reason in ``flags``.
+    """
+    spec = result["spec"]
+    name = spec["name"]
+    flags = list(result.get("flags", []))
+    if not result.get("available", True):
+        flags.append(f"unavailable: {result.get('reason', '')}")
+    base = {
+        "n_original": int(result["n_original"]), "n_effective": int(result["n_effective"]),
+        "unit": spec.get("unit", ""), "backend_version": str(spec.get("version", "")),
+        "weights_sha256": spec.get("weights_sha256"), "flags": flags, "standin": spec.get("standin") or None,
+    }
+    values = result.get("values", {})
+    if name == "lse":
+        return {
+            "lse_d": {**base, "value": values.get("lse_d"), "higher_is_better": False, "backend": spec["backend"],
+                      "per_item": compact(result.get("per_item")), "values": dict(values)},
+            "lse_c": {**base, "value": values.get("lse_c"), "higher_is_better": True, "backend": spec["backend"],
+                      "per_item": None},
+            # |AV offset| in frames: LSE-D/C take the best of +-15 offsets by definition, so a
+            # shifted audio track is seen here, not in them.
+            "av_offset": {**base, "value": None if values.get("offset") is None else abs(int(values["offset"])),
+                          "unit": "frames", "higher_is_better": False, "backend": spec["backend"], "per_item": None},
+        }
+    key = _CANONICAL.get(name, name)
+    backend = name if key == "lpips" else spec["backend"]
+    return {key: {**base, "value": result.get("value"), "higher_is_better": bool(spec["higher_is_better"]),
+                  "backend": backend, "per_item": compact(result.get("per_item")), "values": dict(values)}}
