@@ -34,6 +34,7 @@ _OPTIONAL: dict[str, str] = {
     "train": "lmgs_eval.commands.train",
     "bench": "lmgs_eval.commands.bench",
     "demo": "lmgs_eval.commands.demo",
+    "run": "lmgs_eval.commands.run_plan",
 }
 
 
