@@ -11,6 +11,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("plan", help="the plan file (e.g. benchmarks/paper.toml)")
     add_executor_arguments(p)
     p.add_argument("--results", default=None, help="results store (default: the plan's `results`, else ./results)")
+    p.add_argument("--data-root", help="folder of subjects (default: the plan's `data_root`, $LMGS_DATA or ~/.cache/lmgs/data)")
     p.add_argument("--dry-run", action="store_true", help="list the runs and whether each is in the store; run nothing")
 
 
@@ -29,7 +30,11 @@ def run(args: argparse.Namespace) -> int:
     from lmgs_eval.plans import expand, load_plan, make_executor, run_plan
     from lmgs_eval.plans.identity import Identities
 
+    import dataclasses
+
     plan = load_plan(args.plan)
+    if args.data_root:
+        plan = dataclasses.replace(plan, data_root=args.data_root)
     results = args.results or plan.results or "results"
     if args.dry_run:
         ids = Identities(results, plan.data_root)

@@ -90,7 +90,7 @@ def run_plan(plan: Plan, executor, results: str | Path, *, progress=log) -> Summ
             n_end = len(s.done) + len(s.failed)
             left = len(waiting) + len(running)
             eta = sum(durations) / len(durations) * left / max(1, min(executor.slots, left)) if left else 0.0
-            progress(f"[plan] {n_end}/{len(todo)} finished ({len(s.done)} ok, {len(s.failed)} failed), {len(running)} running"
+            progress(f"[plan] {n_end}/{len(todo)} finished ({len(s.done)} ok, {len(s.failed)} failed), {len(running)} in flight"
                      f"{f', about {_minutes(eta)} left' if left else ''}: {run.label} {state} in {durations[-1]:.0f} s")
     finally:
         executor.close()

@@ -73,6 +73,12 @@ class RayExecutor:
         self._pending: dict = {}
 
     def submit(self, run: Run, known: dict[str, str]) -> None:
+        nodes = [n.get("Resources", {}) for n in self.ray.nodes() if n.get("Alive")]
+        for res, need in (("CPU", run.cpus), ("GPU", run.gpus)):
+            most = max((n.get(res, 0) for n in nodes), default=0)
+            if need > most:
+                raise UserError(f"{run.label}: asks for {need:g} {res}(s) a run, and the largest node of the Ray cluster "
+                                f"has {most:g}; lower the plan's {res.lower()}s or add a bigger node")
         ref = self._remote.options(num_cpus=run.cpus, num_gpus=run.gpus, max_retries=run.retries,
                                    retry_exceptions=True, scheduling_strategy="SPREAD",
                                    name=f"lmgs-run {run.label}").remote(run, known)

@@ -9,6 +9,7 @@ would skip all of its work.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -103,14 +104,24 @@ class Identities:
                       finished=True) is not None
 
     def known_records(self, run: Run) -> dict[str, str]:
-        """The store's records of the run's subject (relative path -> JSON text): what the worker resumes from."""
+        """The store's records of the run's subject but failed ones (relative path -> JSON text): what the worker resumes from."""
         probe = {"method": {"name": "m"}, "subject": {"name": self.subject(run.subject).name},
                  "protocol": {"name": "p", "clip": "c"}, "seed": 0, "config_hash": "h"}
         folder = store.record_path(self.results, probe).parent.parent
         if not folder.is_dir():
             return {}
-        return {p.relative_to(self.results).as_posix(): p.read_text(encoding="utf-8")
-                for p in sorted(folder.rglob("*.json")) if not any(s.startswith(".") for s in p.relative_to(folder).parts)}
+        out = {}
+        for p in sorted(folder.rglob("*.json")):
+            if any(s.startswith(".") for s in p.relative_to(folder).parts):
+                continue
+            text = p.read_text(encoding="utf-8")
+            try:
+                failed = store.is_failed(json.loads(text))
+            except ValueError:
+                continue
+            if not failed:  # a failed run is redone: the protocol must not find it (some take any record as done)
+                out[p.relative_to(self.results).as_posix()] = text
+        return out
 
     def write_failed(self, run: Run, key: Key, reason: str) -> dict:
         """Record ``key`` as failed with ``reason`` (never over a finished record: callers check first)."""
