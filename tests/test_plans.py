@@ -191,3 +191,17 @@ def test_the_run_command_runs_a_plan_file_and_a_dry_run_lists_what_is_done(tmp_p
     assert rc == 0 and out.count("done  cross astronaut-64px-2s / plan-toy seed") == 2
     recs = [json.loads(p.read_text()) for p in res.rglob("*.json")]
     assert len(recs) == 4 and {r["method"]["name"] for r in recs} == {"plan-toy"}
+
+
+def test_a_stress_run_is_found_done_by_the_records_of_its_conditions(tmp_path):
+    """The keys a stress run is looked up by (its conditions, the stress config hash) are those it writes."""
+    res = tmp_path / "res"
+    plan = plan_from_dict({"name": "stress", "imports": ["plan_toys"], "stage": [
+        {"protocols": ["stress"], "subjects": [SUBJECT], "methods": ["plan-toy"], "conditions": ["silence"],
+         "long_seconds": 2, "set": {"marks": str(tmp_path / "marks")}}]})
+    s = run_plan(plan, make_executor("serial"), res, progress=_quiet)
+    assert s.failed == [] and len(s.done) == 1
+    recs, _ = load_records(res)
+    assert sorted(r["protocol"]["clip"] for r in recs) == ["clean", "silence"]
+    s = run_plan(plan, make_executor("serial"), res, progress=_quiet)
+    assert s.skipped == 1 and s.done == [] and len(plan_toys.fits(tmp_path / "marks", 0)) == 1
