@@ -58,6 +58,13 @@ def test_the_run_command_refuses_a_bad_plan_before_any_work(tmp_path):
     assert not (tmp_path / "res").exists()
     rc, _, err = run_cli("run", str(tmp_path / "none.toml"))
     assert rc == 2 and "none.toml: no such plan file" in err
+    # a method or an override the registry refuses stops the plan before its first run
+    for stage, words in (('methods = ["nope"]', "unknown method 'nope'"),
+                         ('methods = ["lmgs"]\nset = { "train.nope" = 1 }', "--set train.nope: TrainConfig has no field 'nope'")):
+        plan = _write(tmp_path, f'[[stage]]\nprotocols = ["self"]\nsubjects = ["{SUBJECT}"]\n{stage}\n')
+        rc, _, err = run_cli("run", str(plan), "--results", str(tmp_path / "res"))
+        assert rc == 2 and words in err and "Traceback" not in err
+        assert not (tmp_path / "res").exists()
 
 
 def test_without_ray_the_ray_executor_is_one_line_saying_what_to_install(tmp_path, monkeypatch):
