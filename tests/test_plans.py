@@ -212,3 +212,13 @@ def test_a_stress_run_is_found_done_by_the_records_of_its_conditions(tmp_path):
     assert sorted(r["protocol"]["clip"] for r in recs) == ["clean", "silence"]
     s = run_plan(plan, make_executor("serial"), res, progress=_quiet)
     assert s.skipped == 1 and s.done == [] and len(plan_toys.fits(tmp_path / "marks", 0)) == 1
+
+
+def test_the_time_left_counts_each_run_at_its_protocols_mean():
+    from lmgs_eval.plans.driver import _eta
+
+    took = {"self": [100.0, 200.0], "cross": [10.0]}
+    # self 150 + cross 10 + stress at the mean of every finished run (310 / 3), over 2 slots
+    assert _eta(["self", "cross", "stress"], took, 2) == pytest.approx((150 + 10 + 310 / 3) / 2)
+    assert _eta(["cross"], took, 4) == pytest.approx(10.0)  # one run left occupies one slot
+    assert _eta([], took, 2) == 0.0 and _eta(["self"], {}, 2) == 0.0

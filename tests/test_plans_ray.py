@@ -19,7 +19,7 @@ from lmgs_eval.results import is_failed, load_records
 ray = pytest.importorskip("ray")
 
 SUBJECT = "astronaut-64px-2s"
-FAST = {"train.static_steps": 40, "train.dynamic_steps": 40, "train.landmark_steps": 20, "train.densify_every": 20}
+FAST = {"train.static_steps": 20, "train.dynamic_steps": 20, "train.landmark_steps": 10, "train.densify_every": 20}
 # Fields that say what a run cost and where and when it ran; a checkpoint stores its training time,
 # so its file (path under each node's cache, and hash) is one of them.
 VARYING = ("cost", "machine", "created")

@@ -60,6 +60,7 @@ def run_plan(plan: Plan, executor, results: str | Path, *, progress=log) -> Summ
     waiting = list(todo)
     running: dict[str, float] = {}
     durations: list[float] = []
+    took: dict[str, list[float]] = {}  # protocol -> durations of its finished runs
     try:
         while waiting or running:
             for rid in list(waiting):
@@ -73,6 +74,7 @@ def run_plan(plan: Plan, executor, results: str | Path, *, progress=log) -> Summ
                 executor.submit(run, ids.known_records(run))
             run, outcome, error = executor.next()
             durations.append(time.perf_counter() - running.pop(run.id))
+            took.setdefault(run.protocol, []).append(durations[-1])
             keys = todo[run.id][1]
             if outcome is not None and outcome.error is None:
                 s.records += _write(results, outcome)
@@ -89,7 +91,7 @@ def run_plan(plan: Plan, executor, results: str | Path, *, progress=log) -> Summ
                 state = f"FAILED ({reason})"
             n_end = len(s.done) + len(s.failed)
             left = len(waiting) + len(running)
-            eta = sum(durations) / len(durations) * left / max(1, min(executor.slots, left)) if left else 0.0
+            eta = _eta([todo[r][0].protocol for r in (*waiting, *running)], took, executor.slots)
             progress(f"[plan] {n_end}/{len(todo)} finished ({len(s.done)} ok, {len(s.failed)} failed), {len(running)} in flight"
                      f"{f', about {_minutes(eta)} left' if left else ''}: {run.label} {state} in {durations[-1]:.0f} s")
     finally:
@@ -109,6 +111,16 @@ def _write(results: Path, outcome: Outcome) -> list[dict]:
         else:
             atomic_write_bytes(results / rel, data)
     return records
+
+
+def _eta(protocols: list[str], took: dict[str, list[float]], slots: int) -> float:
+    """Seconds left: each run left at the mean time of finished runs of its protocol (of all runs when none), shared over the slots."""
+    every = [d for ds in took.values() for d in ds]
+    if not protocols or not every:
+        return 0.0
+    mean = {p: sum(ds) / len(ds) for p, ds in took.items()}
+    fallback = sum(every) / len(every)
+    return sum(mean.get(p, fallback) for p in protocols) / max(1, min(slots, len(protocols)))
 
 
 def _minutes(seconds: float) -> str:
