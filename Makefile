@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml Makefile
 	# syncnet-python: the official SyncNet scoring code, an outside reference for the LSE tests
 	# (installed without its declared dependencies, which would bring a broken torchvision).
 	$(BIN)/python -m pip install -q --no-deps syncnet-python==0.2.3
-	$(BIN)/python -m pip install -q -e '.[eval,test]'
+	$(BIN)/python -m pip install -q -e '.[eval,test,cluster]'
 	touch $(STAMP)
 
 venv: $(STAMP)
@@ -29,10 +29,12 @@ test: $(STAMP)
 	$(BIN)/python -m pytest -q -m "not slow" -p no:cacheprovider
 
 # The speed benchmarks (ratios measured in one run), then the whole benchmark behind the
-# committed tables/ (every method on both bundled subjects; resumable from ./results).
+# committed tables/: the plan benchmarks/paper.toml (resumable from ./results). Serial by default;
+# on a Ray cluster: make bench BENCH_ARGS="--executor ray --address HOST:PORT" (docs/cluster.md).
+BENCH_ARGS ?=
 bench: $(STAMP)
 	$(BIN)/lmgs-eval bench all
-	$(BIN)/lmgs-eval demo --full
+	$(BIN)/lmgs-eval demo --full --plan benchmarks/paper.toml $(BENCH_ARGS)
 
 clean:
 	rm -rf $(VENV) build *.egg-info

@@ -18,6 +18,7 @@ from collections.abc import Sequence
 # or broken command module is an error of the installation, never a command silently dropped.
 COMMANDS: dict[str, str] = {
     "subjects": "lmgs_eval.commands.subjects",
+    "ingest": "lmgs_eval.commands.ingest",
     "prepare": "lmgs_eval.commands.prepare",
     "metrics": "lmgs_eval.commands.metrics",
     "score": "lmgs_eval.commands.score",
@@ -25,6 +26,7 @@ COMMANDS: dict[str, str] = {
     "weights": "lmgs_eval.commands.weights",
     "self": "lmgs_eval.commands.self_driven",
     "cross": "lmgs_eval.commands.cross",
+    "run": "lmgs_eval.commands.run_plan",
     "table": "lmgs_eval.commands.table",
     "report": "lmgs_eval.commands.report",
     "stress": "lmgs_eval.commands.stress",
@@ -32,7 +34,6 @@ COMMANDS: dict[str, str] = {
     "verify": "lmgs_eval.commands.verify",
     "bench": "lmgs_eval.commands.bench",
     "demo": "lmgs_eval.commands.demo",
-    "ingest": "lmgs_eval.commands.ingest",
 }
 
 

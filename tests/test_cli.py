@@ -18,8 +18,8 @@ from lmgs_eval.results import load_records
 SUBJECT = "astronaut-64px-2s"
 FAST = ["--set", "train.static_steps=40", "--set", "train.dynamic_steps=40", "--set", "train.landmark_steps=20",
         "--set", "train.densify_every=20"]
-EXPECTED = ("subjects", "prepare", "metrics", "score", "methods", "weights", "self", "cross", "table", "stress",
-            "capacity", "verify", "bench", "demo")
+EXPECTED = ("subjects", "ingest", "prepare", "metrics", "score", "methods", "weights", "self", "cross", "run", "table",
+            "report", "stress", "capacity", "verify", "bench", "demo")
 
 
 def command_names(parser) -> tuple[str, ...]:
@@ -70,7 +70,16 @@ def test_smoke_demo_self_cross_and_tables(demo_store):
     got = {(r["protocol"]["name"], r["protocol"]["clip"], r["method"]["name"]) for r in recs}
     assert {("self", "test", "lmgs"), ("cross", "A", "lmgs"), ("cross", "B", "lmgs")} <= got
     assert (out_dir / "table1_self.md").is_file() and (out_dir / "table2_cross.md").is_file()
-    assert "demo finished" in out
+    assert "demo finished" in out and (res / "report" / "index.html").is_file()  # the demo ends with the report
+
+
+def test_smoke_run_plan_dry_run_and_report(demo_store, tmp_path):
+    res, _, _ = demo_store
+    rc, out, err = run_cli("run", str(Path(__file__).resolve().parents[1] / "benchmarks" / "paper.toml"), "--dry-run")
+    runs = [ln for ln in out.splitlines() if ln.startswith(("todo ", "done "))]
+    assert rc == 0 and len(runs) == 123, out + err  # the committed benchmark's runs, listed, none run
+    rc, out, err = run_cli("report", "--results", str(res), "--out", str(tmp_path / "site"))
+    assert rc == 0 and (tmp_path / "site" / "index.html").is_file(), err
 
 
 def test_smoke_informational_commands(demo_store):

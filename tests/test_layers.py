@@ -30,6 +30,7 @@ RULES: dict[str, tuple[str, ...]] = {
                           "lmgs_eval.commands", "lmgs_eval.cli"),
     "lmgs_eval.runner": ("lmgs_eval.protocols", "lmgs_eval.report", "lmgs_eval.commands", "lmgs_eval.cli"),
     "lmgs_eval.protocols": ("lmgs_eval.report", "lmgs_eval.commands", "lmgs_eval.cli"),
+    "lmgs_eval.plans": ("lmgs_eval.report", "lmgs_eval.commands", "lmgs_eval.cli"),
 }
 
 

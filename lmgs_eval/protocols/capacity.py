@@ -38,23 +38,10 @@ def run_capacity(cfg: RunConfig, budgets: Sequence[int] = DEFAULT_BUDGETS) -> li
     test = subject_to_clip(subject, subject.test_ids, progress=cfg.progress)
     driving = driving_from_subject(subject, subject.test_ids, test)
     area = face_area_px(train)
-    base = dict(cfg.method_options.get("overrides", {}))
-    density = build_method(cfg, "lmgs", subject).cfg.train.budget_density
-    preset_density = build_method(cfg, "lmgs", None).cfg.train.budget_density
-    default = budget_from_face_area(area, density)
-    # Budgets that are a density of their own (the preset's, the subject's knee) are trained at
-    # exactly that density, so their configs, and trained models, are those of the other protocols.
-    preset_budget = budget_from_face_area(area, preset_density)
-    exact = {preset_budget: preset_density, default: density}
-    budgets = sorted(set(budgets) | set(exact))  # the default (and the preset's) budget is always a point
-    why = "" if density == preset_density else f", this subject's knee; the preset's {preset_density:g} gives {preset_budget}"
-    log(f"capacity on {subject.name}: face area {area:.0f} px; budgets {', '.join(map(str, budgets))} "
-        f"(default {default} = {density:g} x face area{why})")
+    points = budget_overrides(cfg, subject, area, budgets)
     records, trained = [], []
-    for n in budgets:
+    for n, over in points.items():
         for seed in cfg.seeds:
-            # the default as every other protocol builds it; any other budget at its density
-            over = {**base} if n == default else {**base, "train.budget_density": exact.get(n, round(n / area, 6))}
             method = build_method(cfg, "lmgs", subject, overrides=over)
             info = method.describe()
             clip = f"budget-{n}"
@@ -70,6 +57,25 @@ def run_capacity(cfg: RunConfig, budgets: Sequence[int] = DEFAULT_BUDGETS) -> li
                 records.append(_failed_record(cfg, info, subject, clip, seed, f"training diverged: {exc}"))
     retime_side_by_side(cfg, subject, train, driving, trained)
     return records
+
+
+def budget_overrides(cfg: RunConfig, subject, area: float, budgets: Sequence[int]) -> dict[int, dict]:
+    """The budgets a capacity run trains (those asked for, the default's, the preset's), each with its overrides."""
+    base = dict(cfg.method_options.get("overrides", {}))
+    density = build_method(cfg, "lmgs", subject).cfg.train.budget_density
+    preset_density = build_method(cfg, "lmgs", None).cfg.train.budget_density
+    default = budget_from_face_area(area, density)
+    # Budgets that are a density of their own (the preset's, the subject's knee) are trained at
+    # exactly that density, so their configs, and trained models, are those of the other protocols.
+    preset_budget = budget_from_face_area(area, preset_density)
+    exact = {preset_budget: preset_density, default: density}
+    budgets = sorted(set(budgets) | set(exact))  # the default (and the preset's) budget is always a point
+    why = "" if density == preset_density else f", this subject's knee; the preset's {preset_density:g} gives {preset_budget}"
+    log(f"capacity on {subject.name}: face area {area:.0f} px; budgets {', '.join(map(str, budgets))} "
+        f"(default {default} = {density:g} x face area{why})")
+    # the default as every other protocol builds it; any other budget at its density
+    return {n: ({**base} if n == default else {**base, "train.budget_density": exact.get(n, round(n / area, 6))})
+            for n in budgets}
 
 
 SIDE_BY_SIDE_ROUNDS = 3

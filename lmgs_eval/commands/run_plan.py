@@ -1,0 +1,59 @@
+"""``lmgs-eval run PLAN``: a benchmark plan (TOML) run serially or on a Ray cluster, resumable."""
+
+from __future__ import annotations
+
+import argparse
+
+HELP = "run a benchmark plan (TOML): every run not already in the results store, serially or on Ray; resumable"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("plan", help="the plan file (e.g. benchmarks/paper.toml)")
+    add_executor_arguments(p)
+    p.add_argument("--results", default=None, help="results store (default: the plan's `results`, else ./results)")
+    p.add_argument("--data-root", help="folder of subjects (default: the plan's `data_root`, $LMGS_DATA or ~/.cache/lmgs/data)")
+    p.add_argument("--dry-run", action="store_true", help="list the runs and whether each is in the store; run nothing")
+
+
+def add_executor_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--executor", default="serial", choices=["serial", "ray"],
+                   help="serial: one run after another in this process (default); ray: each run a Ray task "
+                        "(pip install '.[cluster]')")
+    p.add_argument("--address", default=None,
+                   help="with --executor ray: the cluster to join (`auto`, or HOST:PORT of `ray start --head`); "
+                        "default: a Ray instance on this machine")
+    p.add_argument("--max-parallel", type=int, default=None, metavar="N",
+                   help="at most N runs at once (default: as many as the cluster's CPUs allow)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from lmgs_eval.plans import expand, load_plan, make_executor, run_plan
+    from lmgs_eval.plans.identity import Identities
+
+    import dataclasses
+
+    plan = load_plan(args.plan)
+    if args.data_root:
+        plan = dataclasses.replace(plan, data_root=args.data_root)
+    results = args.results or plan.results or "results"
+    if args.dry_run:
+        ids = Identities(results, plan.data_root)
+        for r in expand(plan):
+            keys = ids.keys(r)
+            done = bool(keys) and all(ids.finished(r, k) for k in keys)
+            print(f"{'done' if done else 'todo'}  {r.label}  ({len(keys)} record(s))")
+        return 0
+    executor = make_executor(args.executor, args.address, args.max_parallel)
+    summary = run_plan(plan, executor, results)
+    return report(summary, results)
+
+
+def report(summary, results) -> int:
+    """The end of a plan's run on stdout; 1 when a run failed."""
+    print(f"plan: {summary.total} runs, {summary.skipped} already in the store, {len(summary.done)} done, "
+          f"{len(summary.failed)} failed in {summary.seconds / 60:.1f} min; results: {results}")
+    for m in summary.messages:
+        print(f"  note: {m}")
+    for f in summary.failed:
+        print(f"  failed: {f}")
+    return 1 if summary.failed else 0
