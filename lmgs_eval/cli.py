@@ -25,6 +25,7 @@ _OPTIONAL: dict[str, str] = {
     "score": "lmgs_eval.commands.score",
     "methods": "lmgs_eval.commands.methods",
     "weights": "lmgs_eval.commands.weights",
+    "sync-check": "lmgs_eval.commands.sync_check",
     "self": "lmgs_eval.commands.self_driven",
     "cross": "lmgs_eval.commands.cross",
     "table": "lmgs_eval.commands.table",

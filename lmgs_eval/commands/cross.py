@@ -9,6 +9,7 @@ HELP = "cross-driven protocol: drive trained models with other audio clips (defa
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from lmgs_eval.commands._sync import print_untrusted_records
     from lmgs_eval.commands._common import add_run_arguments
 
     p.add_argument("--audio", nargs="+", metavar="WAV", help="driving audio files (any rate, mono or stereo)")
@@ -25,5 +26,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"lmgs-eval cross: error: {e}", file=sys.stderr)
     if records:
         print_rows(records)
+        print_untrusted_records(records, "lmgs-eval cross")
     print(f"results: {cfg.results.resolve()}")
     return 2 if errors and not records else (1 if errors else 0)

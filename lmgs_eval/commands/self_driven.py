@@ -8,6 +8,7 @@ HELP = "self-driven protocol: fit each method, render the test split from its au
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from lmgs_eval.commands._sync import print_untrusted_records
     from lmgs_eval.commands._common import add_run_arguments
 
     add_run_arguments(p)
@@ -21,5 +22,6 @@ def run(args: argparse.Namespace) -> int:
     records = run_self(cfg)
     if records:
         print_rows(records)
+        print_untrusted_records(records, "lmgs-eval self")
     print(f"results: {cfg.results.resolve()}  (lmgs-eval table --results {cfg.results} makes the tables)")
     return 0

@@ -383,6 +383,32 @@ class SyncScorer:
             x = x / 255.0
         return x.astype(np.float32)
 
+    def embed_clip(self, frames, crops, audio16k, mfcc, last, detect_every=1, lms=None):
+        """Audio and video embeddings of windows ``0 .. last-1``, the still-face embedding, flags and notes."""
+        flags, notes = [], []
+        if crops is None:
+            if frames is None:
+                raise UserError(f"{self.name} scores face crops of frames; landmarks alone are not enough")
+            boxes, n_missing = face_boxes(frames, detect_every)
+            if n_missing:
+                flags.append(f"no_face: {n_missing} detection(s) without a face, box held from the nearest frame")
+            notes.append(f"crops: dlib HOG every {detect_every} frame(s), median-9 box smoothing, syncnet_python "
+                         "crop_video geometry, 224x224 BGR 0-255")
+        # crop and shape each frame once, a chunk at a time (a 5-minute clip's 224 crops alone are 4.5 GB)
+        m = last + 4  # frames the windows use
+        prepared = None
+        for s in range(0, m, PREPARE_CHUNK):
+            e = min(m, s + PREPARE_CHUNK)
+            c = crops[s:e] if crops is not None else crop_faces(frames[s:e], boxes[s:e])
+            p = self.prepare(np.asarray(c, np.float32))
+            if prepared is None:
+                prepared = np.empty((m, *p.shape[1:]), np.float32)
+            prepared[s:e] = p
+        aw = audio_windows(mfcc, last)
+        a_emb, v_emb = self.embed_frames(aw, prepared)
+        _, still = self.embed_frames(aw[:1], np.repeat(prepared[:1], 5, axis=0))
+        return a_emb, v_emb, still[0], flags, notes
+
     def embed_frames(self, audio_win: np.ndarray, frames: np.ndarray, batch: int = 16) -> tuple[np.ndarray, np.ndarray]:
         """Embeddings of window ``i`` = (``audio_win[i]``, prepared ``frames[i:i+5]``), a batch at a time.
 
@@ -438,23 +464,29 @@ def find_scorer(prefer: str | None = None) -> tuple[SyncScorer | None, str]:
     return None, "; ".join(reasons)
 
 
-def lse(frames: np.ndarray, audio16k: np.ndarray | None, fps: float = 25.0, scorer: SyncScorer | None = None,
-        crops: np.ndarray | None = None, detect_every: int = 1, audio_reason: str = "") -> MetricResult:
-    """LSE-D / LSE-C / offset of one clip (no reference needed).
+def lse(frames: np.ndarray | None, audio16k: np.ndarray | None, fps: float = 25.0, scorer=None,
+        crops: np.ndarray | None = None, detect_every: int = 1, audio_reason: str = "", lms: np.ndarray | None = None,
+        reference: bool = False) -> MetricResult:
+    """LSE-D / LSE-C / offset of one clip (no reference needed), with its self-check.
 
     Args:
-        frames: ``[T, H, W, 3]`` float RGB in [0, 1] (ignored when ``crops`` is given).
+        frames: ``[T, H, W, 3]`` float RGB in [0, 1] (the pixel scorer ignores it when ``crops`` is given).
         audio16k: 16 kHz mono float audio, or None (then unavailable with ``audio_reason``).
         fps: frame rate; SyncNet windows assume 25 fps.
-        scorer: a loaded scorer (default: :func:`find_scorer`).
-        crops: precomputed ``[T, 224, 224, 3]`` BGR 0-255 crops (skips face detection).
-        detect_every: run the face detector every k frames.
+        scorer: a loaded scorer (:class:`SyncScorer` or ``sync_landmark.LandmarkScorer``); default: the
+            selection of :mod:`sync_select` (``--sync``, ``auto`` unless set).
+        crops: precomputed ``[T, 224, 224, 3]`` BGR 0-255 crops (pixel scorers: skips face detection).
+        detect_every: run the face detector every k frames (pixel scorers).
+        lms: precomputed ``[T, 68, 2]`` landmarks (landmark scorer: skips dlib).
+        reference: the footage is known to be in sync (ground truth): the self-check also requires
+            the offset to be 0 +- 1.
+
+    ``values`` holds ``lse_d``, ``lse_c``, ``offset`` and the self-check's ``separation``,
+    ``trusted``, ``null_lse_c``, ``null_lse_c_max``, ``still_lse_c`` (:mod:`sync_check`).
     """
-    n = int(crops.shape[0] if crops is not None else frames.shape[0])
+    n = int(next(len(x) for x in (crops, frames, lms) if x is not None))
     if scorer is None:
-        scorer, why = find_scorer()
-        if scorer is None:
-            return unavailable(LSE_SPEC, f"no SyncNet weights: {why}", n)
+        return _lse_selected(frames, audio16k, fps, crops, detect_every, audio_reason, lms, reference, n)
     spec = LSE_SPEC.with_weights(scorer.sha256, backend=f"onnxruntime:{scorer.name}")
     if scorer.standin:
         spec = MetricSpec(**{**spec.to_dict(), "standin": scorer.standin})
@@ -465,45 +497,53 @@ def lse(frames: np.ndarray, audio16k: np.ndarray | None, fps: float = 25.0, scor
     flags, notes = [], []
     if is_silent(audio16k):
         flags.append("silent_audio: RMS below 1e-4, LSE is meaningless on silence")
-    if crops is None:
-        try:
-            boxes, n_missing = face_boxes(frames, detect_every)
-        except UserError as exc:
-            return unavailable(spec, str(exc), n)
-        if n_missing:
-            flags.append(f"no_face: {n_missing} detection(s) without a face, box held from the nearest frame")
-        notes.append(f"crops: dlib HOG every {detect_every} frame(s), median-9 box smoothing, syncnet_python crop_video geometry, 224x224 BGR 0-255")
     mf = mfcc_13(audio16k)
     try:
         last = n_windows(n, len(audio16k))
+        a_emb, v_emb, v_still, f2, n2 = scorer.embed_clip(frames, crops, audio16k, mf, last, detect_every, lms=lms)
     except UserError as exc:
         return unavailable(spec, str(exc), n)
+    flags += f2
+    notes += n2
     if 4 * (last - 1) + 20 > mf.shape[1]:
         flags.append("audio_tail_padded: last MFCC window zero-filled")
-    # crop and shape each frame once, a chunk at a time (a 5-minute clip's 224 crops alone are 4.5 GB)
-    m = last + 4  # frames the windows use
-    prepared = None
-    for s in range(0, m, PREPARE_CHUNK):
-        e = min(m, s + PREPARE_CHUNK)
-        c = crops[s:e] if crops is not None else crop_faces(frames[s:e], boxes[s:e])
-        p = scorer.prepare(np.asarray(c, np.float32))
-        if prepared is None:
-            prepared = np.empty((m, *p.shape[1:]), np.float32)
-        prepared[s:e] = p
-    a_emb, v_emb = scorer.embed_frames(audio_windows(mf, last), prepared)
     r = lse_from_embeddings(v_emb, a_emb)
-    values = {"lse_d": r["lse_d"], "lse_c": r["lse_c"], "offset": r["offset"]}
+    from lmgs_eval.metrics.sync_check import self_check
+
+    check, cflags = self_check(v_emb, a_emb, v_still, r["lse_c"], r["offset"], reference)
+    values = {"lse_d": r["lse_d"], "lse_c": r["lse_c"], "offset": r["offset"], **check}
+    flags += cflags
     if scorer.standin:
         notes.append("standin: " + scorer.standin)
     notes.append("mdist per offset -15..15: " + " ".join(f"{d:.3f}" for d in r["mdist"][::-1]))
     return MetricResult(spec, r["lse_d"], values, r["per_window"], max(0, n - 5), int(last), flags, notes)
 
 
+def _lse_selected(frames, audio16k, fps, crops, detect_every, audio_reason, lms, reference, n) -> MetricResult:
+    """``lse`` with the scorer(s) of the process-wide selection; ``auto`` keeps the first that passes its self-check."""
+    from lmgs_eval.metrics.sync_select import candidates, load
+
+    first, reasons = None, []
+    for name in candidates():
+        sc, why = load(name)
+        if sc is None:
+            reasons.append(why)
+            continue
+        r = lse(frames, audio16k, fps, sc, crops, detect_every, audio_reason, lms, reference)
+        if first is None:
+            first = r
+        if r.available and r.values.get("trusted") is not False:
+            if r is not first:
+                r.notes.append(f"auto: {first.spec.backend} " + ("did not pass its self-check" if first.available
+                               else f"was unavailable ({first.reason})") + f" on this clip; {r.spec.backend} did")
+            return r
+    if first is None:
+        return unavailable(LSE_SPEC, "no sync scorer: " + "; ".join(reasons), n)
+    return first
+
+
 def find_scorer_status() -> tuple[bool, str]:
-    """Which sync scorer would be used, without loading it (for ``lmgs-eval metrics``)."""
-    mp = syncnet_manifest_path()
-    if mp.is_file():
-        return True, f"syncnet-v2 ({mp})"
-    if (BUNDLED_DIR / "bundled_sync.onnx").is_file() and (BUNDLED_DIR / "bundled_sync.json").is_file():
-        return True, "bundled-sync (stand-in, trained on synthetic clips)"
-    return False, "no scorer: import syncnet_v2.model with `lmgs-eval weights import-syncnet`, bundled-sync not trained yet"
+    """Which sync scorer would be used and why, without loading it (for ``lmgs-eval metrics``)."""
+    from lmgs_eval.metrics.sync_select import status
+
+    return status()
