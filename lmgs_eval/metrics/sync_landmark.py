@@ -19,9 +19,12 @@ Audio input: ``sync.mfcc_13`` (syncnet_python's MFCC) with each coefficient norm
 zero mean and unit variance over the clip (cepstral mean and variance normalisation: the
 voice's timbre and the channel are removed, the timing stays).
 
-Windows follow syncnet_python exactly (5 frames from ``i``; 20 MFCC steps from ``4 i``), so
-the distances, LSE-D, LSE-C and the offset search of :func:`sync.lse_from_embeddings` apply
-unchanged; only the embedding networks differ. Trained by :mod:`train_sync_landmark`.
+Windows are syncnet_python's (window ``i``: frames ``i .. i+4``, MFCC steps ``4 i .. 4 i + 19``),
+widened symmetrically to ``context`` frames (and ``4 context`` MFCC steps) around the same
+centre when the manifest says so: a mouth shape alone says less than a pixel crop, a
+syllable's worth of trajectory says more. The window index, the distances, LSE-D, LSE-C and
+the offset search of :func:`sync.lse_from_embeddings` are unchanged; only the embedding
+networks differ. Trained by :mod:`train_sync_landmark`.
 """
 
 from __future__ import annotations
@@ -110,39 +113,46 @@ def audio_features(mfcc: np.ndarray) -> np.ndarray:
     return ((m - m.mean(1, keepdims=True)) / (m.std(1, keepdims=True) + 1e-3)).astype(np.float32)
 
 
-def video_windows(feat: np.ndarray, last: int) -> np.ndarray:
-    """``[last, 40, 5]``: frames ``i .. i+4`` of ``[T, 40]`` features (syncnet_python's windows)."""
-    idx = np.arange(last)[:, None] + np.arange(5)[None, :]
-    return np.ascontiguousarray(feat[idx].transpose(0, 2, 1), np.float32)
+def video_windows(feat: np.ndarray, last: int, context: int = 5) -> np.ndarray:
+    """``[last, 40, context]``: for window ``i`` the frames ``i - p .. i + 4 + p`` (``p = (context - 5) / 2``),
+    zero (the clip's mean shape) outside the clip; ``context`` 5 is syncnet_python's window exactly."""
+    p = (int(context) - 5) // 2
+    padded = np.concatenate([np.zeros((p, feat.shape[1]), np.float32), feat, np.zeros((p, feat.shape[1]), np.float32)])
+    idx = np.arange(last)[:, None] + np.arange(5 + 2 * p)[None, :]
+    return np.ascontiguousarray(padded[idx].transpose(0, 2, 1), np.float32)
 
 
-def audio_windows(mfcc_norm: np.ndarray, last: int) -> np.ndarray:
-    """``[last, 13, 20]``: 20 normalised MFCC steps from ``4 i`` (a short tail zero-filled)."""
-    a = np.zeros((last, 13, 20), np.float32)
-    for i in range(last):
-        seg = mfcc_norm[:, 4 * i:4 * i + 20]
-        a[i, :, :seg.shape[1]] = seg
-    return a
+def audio_windows(mfcc_norm: np.ndarray, last: int, context: int = 5) -> np.ndarray:
+    """``[last, 13, 4 context]``: the normalised MFCC steps ``4 (i - p) .. 4 (i + 5 + p)``, centred on the video
+    window (20 steps from ``4 i`` for ``context`` 5, syncnet_python's); zero outside the audio."""
+    p = (int(context) - 5) // 2
+    n = 20 + 8 * p
+    m = np.concatenate([np.zeros((13, 4 * p), np.float32), np.asarray(mfcc_norm, np.float32),
+                        np.zeros((13, n), np.float32)], axis=1)
+    idx = 4 * np.arange(last)[:, None] + np.arange(n)[None, :]
+    return np.ascontiguousarray(m[:, idx].transpose(1, 0, 2), np.float32)
 
 
 # ----------------------------------------------------------------------------- network
-def build_net(dim: int = 128, width: int = 128):
-    """The scorer network (torch): ``forward(audio [N,13,20], video [N,40,5]) -> (a_emb, v_emb)``.
+def build_net(dim: int = 128, width: int = 128, context: int = 5):
+    """The scorer network (torch): ``forward(audio [N,13,4c], video [N,40,c]) -> (a_emb, v_emb)``, ``c = context``.
 
     audio: Conv1d 13-w k3 p1, ReLU, Conv1d w-w k3 s2 p1, ReLU, Conv1d w-w k3 s2 p1, ReLU,
-    flatten (w x 5), Linear 256, ReLU, Linear ``dim``. video: Conv1d 40-w k3 p1, ReLU,
-    Conv1d w-w k3 p1, ReLU, flatten (w x 5), Linear 256, ReLU, Linear ``dim``.
+    flatten (w x c), Linear 256, ReLU, Linear ``dim``. video: Conv1d 40-w k3 p1, ReLU,
+    Conv1d w-w k3 p1, ReLU, flatten (w x c), Linear 256, ReLU, Linear ``dim``.
     """
     from torch import nn
+
+    c = int(context)
 
     class LandmarkSyncNet(nn.Module):
         def __init__(self):
             super().__init__()
             self.aud = nn.Sequential(nn.Conv1d(13, width, 3, 1, 1), nn.ReLU(), nn.Conv1d(width, width, 3, 2, 1), nn.ReLU(),
                                      nn.Conv1d(width, width, 3, 2, 1), nn.ReLU(), nn.Flatten(),
-                                     nn.Linear(width * 5, 256), nn.ReLU(), nn.Linear(256, dim))
+                                     nn.Linear(width * c, 256), nn.ReLU(), nn.Linear(256, dim))
             self.vid = nn.Sequential(nn.Conv1d(N_FEAT, width, 3, 1, 1), nn.ReLU(), nn.Conv1d(width, width, 3, 1, 1), nn.ReLU(),
-                                     nn.Flatten(), nn.Linear(width * 5, 256), nn.ReLU(), nn.Linear(256, dim))
+                                     nn.Flatten(), nn.Linear(width * c, 256), nn.ReLU(), nn.Linear(256, dim))
 
         def forward(self, audio, video):
             return self.aud(audio), self.vid(video)
@@ -159,10 +169,12 @@ def export(net, out_dir: Path, meta: dict) -> dict:
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    export_onnx(net.eval(), (torch.randn(2, 13, 20), torch.randn(2, N_FEAT, 5)), out_dir / ONNX_NAME,
+    c = int(meta.get("context", 5))
+    export_onnx(net.eval(), (torch.randn(2, 13, 4 * c), torch.randn(2, N_FEAT, c)), out_dir / ONNX_NAME,
                 ["audio", "video"], ["a_emb", "v_emb"],
                 {"audio": {0: "n"}, "video": {0: "n"}, "a_emb": {0: "n"}, "v_emb": {0: "n"}})
-    m = {"name": "landmark-sync", "input": "mouth_features [N,40,5] + audio_features windows [N,13,20]", **meta,
+    m = {"name": "landmark-sync", "context": c,
+         "input": f"mouth_features windows [N,40,{c}] + audio_features windows [N,13,{4 * c}]", **meta,
          "sha256": sha256_file(out_dir / ONNX_NAME)}
     atomic_write_text(out_dir / JSON_NAME, json.dumps(m, indent=2))
     return m
@@ -175,6 +187,7 @@ class LandmarkScorer:
 
     session: object
     sha256: str
+    context: int = 5
     name: str = "landmark-sync"
     standin: str = ("landmark-sync is trained by this project on synthetic clips (mouth landmarks vs MFCC); its LSE "
                     "values are not comparable with SyncNet LSE in papers")
@@ -198,20 +211,25 @@ class LandmarkScorer:
                 raise UserError("landmark-sync needs frames or landmarks, not face crops")
             from lmgs_eval.metrics.landmarks import DlibBackend, cached_landmarks
 
-            lms = cached_landmarks(DlibBackend(redetect=10), frames[:last + 4])
+            det = DlibBackend(redetect=10)
+            if frames.dtype == np.uint8:  # converted a chunk at a time (a long clip stays in memory once)
+                lms = np.concatenate([det.landmarks(frames[s:min(s + 256, last + 4)].astype(np.float32) / 255.0)
+                                      for s in range(0, last + 4, 256)])
+            else:
+                lms = cached_landmarks(det, frames[:last + 4])
             notes.append("video: dlib 68 landmarks (HOG, tracked, re-detected every 10 frames), mouth points 48-67 "
                          "pose-normalised on eye corners and nose, clip mean removed, RMS-scaled")
         lms, n_missing = fill_missing(np.asarray(lms)[:last + 4])
         if n_missing:
             flags.append(f"no_face: {n_missing} frame(s) without landmarks, interpolated from their neighbours")
         feat = mouth_features(lms)
-        aw = audio_windows(audio_features(mfcc), last)
-        a_emb, v_emb = self.embed(aw, video_windows(feat, last))
-        _, still = self.embed(aw[:1], np.zeros((1, N_FEAT, 5), np.float32))
+        aw = audio_windows(audio_features(mfcc), last, self.context)
+        a_emb, v_emb = self.embed(aw, video_windows(feat, last, self.context))
+        _, still = self.embed(aw[:1], np.zeros((1, N_FEAT, self.context), np.float32))
         return a_emb, v_emb, still[0], flags, notes
 
 
-def load(folder: Path = WEIGHTS) -> tuple[LandmarkScorer | None, str]:
+def load(folder: Path | None = None) -> tuple[LandmarkScorer | None, str]:
     """The shipped landmark scorer, or ``(None, reason)``.
 
     Raises:
@@ -219,11 +237,12 @@ def load(folder: Path = WEIGHTS) -> tuple[LandmarkScorer | None, str]:
     """
     from lmgs_eval.metrics.ort import load_session, sha256_file
 
-    p, j = Path(folder) / ONNX_NAME, Path(folder) / JSON_NAME
+    folder = Path(folder if folder is not None else WEIGHTS)
+    p, j = folder / ONNX_NAME, folder / JSON_NAME
     if not (p.is_file() and j.is_file()):
         return None, f"landmark-sync weights not present ({ONNX_NAME} + {JSON_NAME} in {folder})"
     m = json.loads(j.read_text())
     sha = sha256_file(p)
     if m.get("sha256") and sha != m["sha256"]:
         raise UserError(f"{p}: sha256 {sha[:12]}... does not match {j} (corrupt or replaced weights)")
-    return LandmarkScorer(load_session(p), sha), ""
+    return LandmarkScorer(load_session(p), sha, int(m.get("context", 5))), ""

@@ -43,25 +43,22 @@ def get_backend() -> str:
 def load(name: str):
     """``(scorer, "")`` for ``landmark``, ``pixel`` or ``syncnet-v2``, or ``(None, reason)``.
 
-    A loaded scorer is kept for the process (the official one under its manifest's path and
-    modification time, so a later import is seen); a missing one is looked for again next time.
+    A loaded scorer is kept for the process under its file's path and modification time (so a
+    later import or retraining is seen); a missing one is looked for again next time.
     """
-    from lmgs_eval.metrics.sync import find_scorer, syncnet_manifest_path
+    from lmgs_eval.metrics import sync, sync_landmark
 
     if name not in CHOICES[1:]:
         raise UserError(f"sync scorer {name!r}: unknown; choose one of {', '.join(CHOICES[1:])}")
-    key = name
-    if name == "syncnet-v2":
-        mp = syncnet_manifest_path()
-        key = f"{name}|{mp}|{mp.stat().st_mtime_ns if mp.is_file() else 0}"
+    where = {"landmark": sync_landmark.WEIGHTS / sync_landmark.ONNX_NAME, "pixel": sync.BUNDLED_DIR / "bundled_sync.onnx",
+             "syncnet-v2": sync.syncnet_manifest_path()}[name]
+    key = f"{name}|{where}|{where.stat().st_mtime_ns if where.is_file() else 0}"
     if key in _loaded:
         return _loaded[key]
     if name == "landmark":
-        from lmgs_eval.metrics.sync_landmark import load as load_landmark
-
-        got = load_landmark()
+        got = sync_landmark.load()
     else:
-        got = find_scorer("bundled-sync" if name == "pixel" else "syncnet-v2")
+        got = sync.find_scorer("bundled-sync" if name == "pixel" else "syncnet-v2")
     if got[0] is not None:
         _loaded[key] = got
     return got
@@ -96,8 +93,8 @@ def status() -> tuple[bool, str]:
         return True, f"default syncnet-v2: the official SyncNet weights are imported ({syncnet_manifest_path()})"
     if have["landmark"]:
         return True, ("default landmark-sync (stand-in): the official SyncNet weights are not imported "
-                      "(lmgs-eval weights import-syncnet syncnet_v2.model); the landmark scorer does not depend on "
-                      "who is talking and passes its self-check on held-out generated clips and real footage; "
+                      "(lmgs-eval weights import-syncnet syncnet_v2.model); the landmark scorer reads only mouth-landmark "
+                      "motion, so it does not depend on who is talking (held-out figures in landmark_sync.json); "
                       "per clip, the pixel scorer is used where only it passes the self-check")
     if have["pixel"]:
         return True, "default bundled-sync pixel scorer (stand-in): no official or landmark weights here"

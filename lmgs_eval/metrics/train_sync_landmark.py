@@ -56,7 +56,8 @@ from lmgs_eval.metrics import sync_landmark as L
 
 FACES = ("astronaut", "hopper")
 SIZES = (128, 256, 512)
-RECIPE_VERSION = "2"
+RECIPE_VERSION = "3"  # features and training
+CORPUS_VERSION = "2"  # the rendered trajectories (speech, articulation jitter, projection)
 N_VARIANTS = 3
 SHIFTS = (-10, -5, -3, 3, 5, 10)
 
@@ -127,7 +128,7 @@ def make_clip(spec: dict) -> dict:
 def _cache_key(specs: list[dict]) -> str:
     from lmgs_eval.data.bundled import GENERATOR_VERSION
 
-    return hashlib.sha256(json.dumps({"specs": specs, "gen": GENERATOR_VERSION, "recipe": RECIPE_VERSION},
+    return hashlib.sha256(json.dumps({"specs": specs, "gen": GENERATOR_VERSION, "recipe": CORPUS_VERSION},
                                      sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -212,32 +213,34 @@ def warped_mfcc(audio: np.ndarray, alpha: float) -> np.ndarray:
 
 
 def load_clip(path: Path, seed: int) -> dict | None:
-    """A corpus clip as scorer inputs: ``video [3, N, 40, 5]`` (three noise draws), ``audio [3, N, 13, 20]`` (clean
-    + two noisy copies); cached beside the clip (the draws are seeded by the seed and the clip's file name)."""
+    """A corpus clip as scorer inputs: mouth features ``feat [3, T, 40]`` (three noise draws) and normalised MFCCs
+    ``mfcc [3, 13, M]`` (clean + two augmented copies); cached beside the clip (the draws are seeded by the seed
+    and the clip's file name)."""
     path = Path(path)
-    feat = path.with_name(f"{path.stem}.feat-r{RECIPE_VERSION}-s{seed}.npz")
-    if feat.is_file():
-        with np.load(feat) as z:
-            return {"video": z["video"], "audio": z["audio"], "last": int(z["last"])}
+    cached = path.with_name(f"{path.stem}.feat-r{RECIPE_VERSION}-s{seed}.npz")
+    if cached.is_file():
+        with np.load(cached) as z:
+            return {"feat": z["feat"], "mfcc": z["mfcc"], "last": int(z["last"])}
     with np.load(path) as z:
         lms, audio = z["lms"], z["audio"]
     last = min(len(lms), len(audio) // sync.SAMPLES_PER_FRAME) - 5
     if last < 8:
         return None
     rng = np.random.default_rng([seed, int(hashlib.sha256(path.name.encode()).hexdigest()[:8], 16)])
-    vids = [L.video_windows(L.mouth_features(noisy_landmarks(lms, rng)), last) for _ in range(N_VARIANTS)]
-    auds = [L.audio_windows(L.audio_features(sync.mfcc_13(audio)), last)]
-    auds += [L.audio_windows(L.audio_features(warped_mfcc(noisy_audio(audio, rng), rng.uniform(0.85, 1.18))), last)
-             for _ in range(N_VARIANTS - 1)]
-    d = {"video": np.stack(vids), "audio": np.stack(auds), "last": last}
-    tmp = feat.with_name(f"{feat.stem}.{os.getpid()}.tmp.npz")
+    feat = np.stack([L.mouth_features(noisy_landmarks(lms, rng)) for _ in range(N_VARIANTS)])
+    mf = [L.audio_features(sync.mfcc_13(audio))]
+    mf += [L.audio_features(warped_mfcc(noisy_audio(audio, rng), rng.uniform(0.85, 1.18))) for _ in range(N_VARIANTS - 1)]
+    m = min(x.shape[1] for x in mf)
+    d = {"feat": feat, "mfcc": np.stack([x[:, :m] for x in mf]), "last": last}
+    tmp = cached.with_name(f"{cached.stem}.{os.getpid()}.tmp.npz")
     np.savez(tmp, **d)
-    tmp.replace(feat)
+    tmp.replace(cached)
     return d
 
 
 # ----------------------------------------------------------------------------- training
-def batch(clips: list[dict], rng: np.random.Generator, n_seg: int, seg_len: int, vshift: int = sync.VSHIFT):
+def batch(clips: list[dict], rng: np.random.Generator, n_seg: int, seg_len: int, context: int = 5,
+          vshift: int = sync.VSHIFT):
     """Video windows of a few clip segments, the audio windows around them, each pair's shift (10**6: other
     clip), and the mouth features in sync with each audio window (the auxiliary target)."""
     picks = rng.choice(len(clips), size=min(n_seg, len(clips)), replace=False)
@@ -247,14 +250,15 @@ def batch(clips: list[dict], rng: np.random.Generator, n_seg: int, seg_len: int,
         last = d["last"]
         n = min(seg_len, last)
         i0 = int(rng.integers(0, last - n + 1))
-        v = d["video"][rng.integers(len(d["video"]))]
-        a = d["audio"][rng.integers(len(d["audio"]))]
+        v = L.video_windows(d["feat"][rng.integers(len(d["feat"]))], last, context)
+        a = L.audio_windows(d["mfcc"][rng.integers(len(d["mfcc"]))], last, context)
         vids.append(v[i0:i0 + n])
         v_clip += [s] * n
         v_pos += list(range(i0, i0 + n))
         lo, hi = max(0, i0 - vshift), min(last, i0 + n + vshift)
         auds.append(a[lo:hi])
-        a_tgt.append(v[lo:hi])
+        c0 = (context - 5) // 2
+        a_tgt.append(v[lo:hi, :, c0:c0 + 5])
         a_clip += [s] * (hi - lo)
         a_idx += list(range(lo, hi))
     v_clip, v_pos, a_clip, a_idx = map(np.asarray, (v_clip, v_pos, a_clip, a_idx))
@@ -277,12 +281,12 @@ def loss_fn(a_emb, v_emb, shift, w_con: float, margin: float = 2.0, scale: float
     return ce + w_con * con, {"ce": float(ce.detach()), "con": float(con.detach()), "acc": acc}
 
 
-def train(clips: list[dict], steps: int, seed: int, lr: float, n_seg: int, seg_len: int, log=print):
+def train(clips: list[dict], steps: int, seed: int, lr: float, n_seg: int, seg_len: int, context: int = 5, log=print):
     import torch
 
     torch.manual_seed(seed)
     rng = np.random.default_rng([seed, 2])
-    net = L.build_net()
+    net = L.build_net(context=context)
     # auxiliary head (not exported): the audio embedding predicts the 5 frames' mouth features it is in sync with
     head = torch.nn.Linear(net.aud[-1].out_features, L.N_FEAT * 5)
     opt = torch.optim.AdamW(list(net.parameters()) + list(head.parameters()), lr=lr, weight_decay=1e-4)
@@ -290,7 +294,7 @@ def train(clips: list[dict], steps: int, seed: int, lr: float, n_seg: int, seg_l
     for step in range(steps):
         for pg in opt.param_groups:
             pg["lr"] = lr * min(1.0, (step + 1) / 100) * 0.5 * (1 + np.cos(np.pi * step / steps))
-        v, a, shift, tgt = batch(clips, rng, n_seg, seg_len)
+        v, a, shift, tgt = batch(clips, rng, n_seg, seg_len, context)
         a_emb, v_emb = net(torch.as_tensor(a), torch.as_tensor(v))
         w_con = 0.5 * min(1.0, max(0.0, (step - 0.3 * steps) / (0.2 * steps)))
         loss, parts = loss_fn(a_emb, v_emb, shift, w_con)
@@ -377,6 +381,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seg-len", type=int, default=16)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--context", type=int, default=15, help="frames per video window (odd, >= 5; centred as syncnet_python's 5)")
     ap.add_argument("--heldout", type=int, default=10, help="held-out acceptance clips (rendered, dlib landmarks)")
     args = ap.parse_args(argv)
 
@@ -393,16 +398,19 @@ def main(argv=None) -> int:
     paths = build_corpus(specs, root / _cache_key(specs[:0] + [{"seed": args.seed}]), args.workers)
     clips = [c for c in (load_clip(p, args.seed) for p in tqdm(paths, desc="features", unit="clip")) if c is not None]
     t_corpus = time.time() - t0
-    net, final = train(clips, args.steps, args.seed, args.lr, args.segments, args.seg_len, log=tqdm.write)
+    if args.context < 5 or args.context % 2 == 0:
+        ap.error(f"--context {args.context}: must be odd and at least 5")
+    net, final = train(clips, args.steps, args.seed, args.lr, args.segments, args.seg_len, args.context, log=tqdm.write)
     t_train = time.time() - t0 - t_corpus
     recipe = {
         "version": RECIPE_VERSION, "script": "python -m lmgs_eval.metrics.train_sync_landmark", "doc": "see the script's docstring",
         "faces": list(FACES), "sizes": list(SIZES), "voices": sp["train_voices"], "clips": len(clips),
         "windows": int(sum(c["last"] for c in clips)), "variants_per_clip": N_VARIANTS, "steps": args.steps,
+        "context": args.context,
         "lr": args.lr, "batch": {"segments": args.segments, "seg_len": args.seg_len}, "threads": args.threads,
         "final_train": final, "corpus_seconds": round(t_corpus, 1), "train_seconds": round(t_train, 1),
     }
-    m = L.export(net, args.out, {"recipe": recipe, "seed": args.seed})
+    m = L.export(net, args.out, {"recipe": recipe, "seed": args.seed, "context": args.context})
     if args.heldout:
         held = render_heldout(heldout_specs(args.heldout, sp), root / "heldout")
         scorer, _ = L.load(args.out)
