@@ -65,6 +65,7 @@ def test_selection_reaches_lse_and_auto_falls_back_when_a_scorer_cannot_run():
     r = sync.lse(None, audio, crops=crops)
     assert r.available and r.spec.backend == "onnxruntime:bundled-sync"
     assert any(n.startswith("auto: onnxruntime:landmark-sync was unavailable") for n in r.notes)
+    assert r.values["trusted"] is False  # random crops: the pixel scorer's number is kept, marked untrusted
 
 
 def test_weights_prints_the_cache_and_metrics_names_the_default():
@@ -91,3 +92,24 @@ def test_score_prints_one_line_when_lse_is_not_trusted(tmp_path):
     assert "NOT trusted" in out
     lines = [ln for ln in err.splitlines() if "not trusted" in ln]
     assert len(lines) == 1 and "lmgs-eval weights import-syncnet" in lines[0]
+
+
+def test_sync_check_finds_injected_delays_on_an_in_sync_clip(tmp_path):
+    """``sync-check`` on a held-out generated clip written as mp4 (held-out voice and texts)."""
+    from lmgs_eval.data.bundled import synthesize_clip
+    from lmgs_eval.data.bundled.generator import load_corpus
+    from lmgs_eval.data.io import write_video
+    from tests.conftest import write_pcm_wav
+
+    corpus = load_corpus()
+    clip = synthesize_clip("hopper", " ".join(corpus["cross-a"][2:4]), "espeak:en-us+f4", size=192, seed=11)
+    other = synthesize_clip("astronaut", " ".join(corpus["cross-b"][:2]), "espeak:en-gb-x-rp+f4", size=64, seed=12)
+    write_video(tmp_path / "clip.mp4", clip.frames, 25, clip.audio)
+    write_pcm_wav(tmp_path / "other.wav", other.audio, 16000)
+    rc, out, err = run_cli("sync-check", str(tmp_path / "clip.mp4"), "--other-audio", str(tmp_path / "other.wav"), "--json")
+    assert rc == 0, err
+    res = json.loads(out)
+    assert res["backend"] == "onnxruntime:landmark-sync"
+    assert res["own"]["offset"] == 0 and res["own"]["trusted"] is True
+    assert {int(k): v for k, v in res["shifts"].items()} == {-10: 10, -5: 5, 5: -5, 10: -10}
+    assert res["own_above_every_other"] is True

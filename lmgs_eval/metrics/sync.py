@@ -379,26 +379,32 @@ def lse(frames: np.ndarray | None, audio16k: np.ndarray | None, fps: float = 25.
 
 
 def _lse_selected(frames, audio16k, fps, crops, detect_every, audio_reason, lms, reference, n) -> MetricResult:
-    """``lse`` with the scorer(s) of the process-wide selection; ``auto`` keeps the first that passes its self-check."""
+    """``lse`` with the scorer(s) of the process-wide selection.
+
+    ``auto`` tries its candidates in order and keeps the first that is available and passes
+    its self-check; if none passes, the first available result (marked untrusted) stays.
+    """
     from lmgs_eval.metrics.sync_select import candidates, load
 
-    first, reasons = None, []
+    results, reasons = [], []
     for name in candidates():
         sc, why = load(name)
         if sc is None:
             reasons.append(why)
             continue
         r = lse(frames, audio16k, fps, sc, crops, detect_every, audio_reason, lms, reference)
-        if first is None:
-            first = r
+        results.append(r)
         if r.available and r.values.get("trusted") is not False:
-            if r is not first:
-                r.notes.append(f"auto: {first.spec.backend} " + ("did not pass its self-check" if first.available
-                               else f"was unavailable ({first.reason})") + f" on this clip; {r.spec.backend} did")
-            return r
-    if first is None:
+            break
+    if not results:
         return unavailable(LSE_SPEC, "no SyncNet weights: " + "; ".join(reasons), n)
-    return first
+    best = next((r for r in results if r.available and r.values.get("trusted") is not False), None)
+    best = best or next((r for r in results if r.available), results[0])
+    for r in results:
+        if r is not best:
+            best.notes.append(f"auto: {r.spec.backend} " + ("did not pass its self-check" if r.available
+                              else f"was unavailable ({r.reason})") + f" on this clip; kept {best.spec.backend}")
+    return best
 
 
 def find_scorer_status() -> tuple[bool, str]:

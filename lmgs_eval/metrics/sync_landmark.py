@@ -11,8 +11,9 @@ Video input, per frame (:func:`mouth_features`):
    corners' midpoints at (-0.5, 0) and (0.5, 0) (inter-ocular distance 1, eye line level),
    then refined by a least-squares similarity (Umeyama) of the rigid points (nose bridge and
    base, eye corners) onto their clip mean: scale, roll and translation of the head go away;
-3. the clip's mean mouth shape is subtracted (the speaker's own lips), and the result is
-   divided by the clip's RMS motion (at least :data:`MIN_RMS` inter-ocular distances, so
+3. the clip's mean mouth shape is subtracted (the speaker's own lips; or, with the
+   manifest's ``highpass``, a centred moving average: expression and posture drift too),
+   and the result is divided by the clip's RMS motion (at least :data:`MIN_RMS` inter-ocular distances, so
    a still face stays still rather than amplified jitter).
 
 Audio input: ``sync.mfcc_13`` (syncnet_python's MFCC) with each coefficient normalised to
@@ -99,10 +100,20 @@ def normalise_pose(lms: np.ndarray) -> np.ndarray:
     return sc[:, None, None] * np.einsum("tij,tkj->tki", r, x) + tr[:, None]
 
 
-def mouth_features(lms: np.ndarray) -> np.ndarray:
-    """``[T, 40]`` float32 mouth motion of one clip (pose-normalised, own mean removed, RMS-scaled)."""
+def mouth_features(lms: np.ndarray, highpass: int = 0) -> np.ndarray:
+    """``[T, 40]`` float32 mouth motion of one clip (pose-normalised, own mean removed, RMS-scaled).
+
+    ``highpass`` > 1: the centred moving average over that many frames is removed instead of
+    the clip mean (speech moves the lips at syllable rate, 2-8 Hz; slower motion is
+    expression and posture).
+    """
     x = normalise_pose(lms)[:, MOUTH].reshape(len(lms), N_FEAT)
-    x = x - x.mean(0)
+    if highpass > 1:
+        from scipy.ndimage import uniform_filter1d
+
+        x = x - uniform_filter1d(x, int(highpass), axis=0, mode="nearest")
+    else:
+        x = x - x.mean(0)
     rms = max(float(np.sqrt(np.mean(x * x))), MIN_RMS)
     return (x / rms).astype(np.float32)
 
@@ -173,7 +184,7 @@ def export(net, out_dir: Path, meta: dict) -> dict:
     export_onnx(net.eval(), (torch.randn(2, 13, 4 * c), torch.randn(2, N_FEAT, c)), out_dir / ONNX_NAME,
                 ["audio", "video"], ["a_emb", "v_emb"],
                 {"audio": {0: "n"}, "video": {0: "n"}, "a_emb": {0: "n"}, "v_emb": {0: "n"}})
-    m = {"name": "landmark-sync", "context": c,
+    m = {"name": "landmark-sync", "context": c, "highpass": int(meta.get("highpass", 0)),
          "input": f"mouth_features windows [N,40,{c}] + audio_features windows [N,13,{4 * c}]", **meta,
          "sha256": sha256_file(out_dir / ONNX_NAME)}
     atomic_write_text(out_dir / JSON_NAME, json.dumps(m, indent=2))
@@ -188,6 +199,7 @@ class LandmarkScorer:
     session: object
     sha256: str
     context: int = 5
+    highpass: int = 0
     name: str = "landmark-sync"
     standin: str = ("landmark-sync is trained by this project on synthetic clips (mouth landmarks vs MFCC); its LSE "
                     "values are not comparable with SyncNet LSE in papers")
@@ -222,7 +234,7 @@ class LandmarkScorer:
         lms, n_missing = fill_missing(np.asarray(lms)[:last + 4])
         if n_missing:
             flags.append(f"no_face: {n_missing} frame(s) without landmarks, interpolated from their neighbours")
-        feat = mouth_features(lms)
+        feat = mouth_features(lms, self.highpass)
         aw = audio_windows(audio_features(mfcc), last, self.context)
         a_emb, v_emb = self.embed(aw, video_windows(feat, last, self.context))
         _, still = self.embed(aw[:1], np.zeros((1, N_FEAT, self.context), np.float32))
@@ -245,4 +257,4 @@ def load(folder: Path | None = None) -> tuple[LandmarkScorer | None, str]:
     sha = sha256_file(p)
     if m.get("sha256") and sha != m["sha256"]:
         raise UserError(f"{p}: sha256 {sha[:12]}... does not match {j} (corrupt or replaced weights)")
-    return LandmarkScorer(load_session(p), sha, int(m.get("context", 5))), ""
+    return LandmarkScorer(load_session(p), sha, int(m.get("context", 5)), int(m.get("highpass", 0))), ""

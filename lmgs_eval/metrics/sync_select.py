@@ -8,7 +8,7 @@
   crops, trained on the two bundled faces.
 * ``auto`` (default): ``syncnet-v2`` when imported; else ``landmark``, and on a clip where the
   landmark scorer fails its self-check (:mod:`sync_check`) the pixel scorer is tried and kept
-  only if it passes; otherwise the landmark result stays, marked untrusted. The record names
+  only if it passes; otherwise the first available result stays, marked untrusted. The record names
   the scorer used and, for a fallback, why.
 
 The choice is process-wide (:func:`set_backend`, set by the CLI) so protocol code that calls

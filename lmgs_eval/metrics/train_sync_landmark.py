@@ -212,12 +212,12 @@ def warped_mfcc(audio: np.ndarray, alpha: float) -> np.ndarray:
     return np.asarray(python_speech_features.mfcc(x, sr, winlen=400 / sr, winstep=160 / sr), np.float64).T
 
 
-def load_clip(path: Path, seed: int) -> dict | None:
+def load_clip(path: Path, seed: int, highpass: int = 0) -> dict | None:
     """A corpus clip as scorer inputs: mouth features ``feat [3, T, 40]`` (three noise draws) and normalised MFCCs
     ``mfcc [3, 13, M]`` (clean + two augmented copies); cached beside the clip (the draws are seeded by the seed
     and the clip's file name)."""
     path = Path(path)
-    cached = path.with_name(f"{path.stem}.feat-r{RECIPE_VERSION}-s{seed}.npz")
+    cached = path.with_name(f"{path.stem}.feat-r{RECIPE_VERSION}-s{seed}-hp{highpass}.npz")
     if cached.is_file():
         with np.load(cached) as z:
             return {"feat": z["feat"], "mfcc": z["mfcc"], "last": int(z["last"])}
@@ -227,7 +227,7 @@ def load_clip(path: Path, seed: int) -> dict | None:
     if last < 8:
         return None
     rng = np.random.default_rng([seed, int(hashlib.sha256(path.name.encode()).hexdigest()[:8], 16)])
-    feat = np.stack([L.mouth_features(noisy_landmarks(lms, rng)) for _ in range(N_VARIANTS)])
+    feat = np.stack([L.mouth_features(noisy_landmarks(lms, rng), highpass) for _ in range(N_VARIANTS)])
     mf = [L.audio_features(sync.mfcc_13(audio))]
     mf += [L.audio_features(warped_mfcc(noisy_audio(audio, rng), rng.uniform(0.85, 1.18))) for _ in range(N_VARIANTS - 1)]
     m = min(x.shape[1] for x in mf)
@@ -382,6 +382,8 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--context", type=int, default=15, help="frames per video window (odd, >= 5; centred as syncnet_python's 5)")
+    ap.add_argument("--highpass", type=int, default=25,
+                    help="frames of the moving average removed from the mouth features (0: the clip mean only)")
     ap.add_argument("--heldout", type=int, default=10, help="held-out acceptance clips (rendered, dlib landmarks)")
     args = ap.parse_args(argv)
 
@@ -396,7 +398,7 @@ def main(argv=None) -> int:
     specs = clip_specs(args.clips, args.seed, sp)
     root = cache_root() / "sync_landmark_train"
     paths = build_corpus(specs, root / _cache_key(specs[:0] + [{"seed": args.seed}]), args.workers)
-    clips = [c for c in (load_clip(p, args.seed) for p in tqdm(paths, desc="features", unit="clip")) if c is not None]
+    clips = [c for c in (load_clip(p, args.seed, args.highpass) for p in tqdm(paths, desc="features", unit="clip")) if c is not None]
     t_corpus = time.time() - t0
     if args.context < 5 or args.context % 2 == 0:
         ap.error(f"--context {args.context}: must be odd and at least 5")
@@ -406,11 +408,11 @@ def main(argv=None) -> int:
         "version": RECIPE_VERSION, "script": "python -m lmgs_eval.metrics.train_sync_landmark", "doc": "see the script's docstring",
         "faces": list(FACES), "sizes": list(SIZES), "voices": sp["train_voices"], "clips": len(clips),
         "windows": int(sum(c["last"] for c in clips)), "variants_per_clip": N_VARIANTS, "steps": args.steps,
-        "context": args.context,
+        "context": args.context, "highpass": args.highpass,
         "lr": args.lr, "batch": {"segments": args.segments, "seg_len": args.seg_len}, "threads": args.threads,
         "final_train": final, "corpus_seconds": round(t_corpus, 1), "train_seconds": round(t_train, 1),
     }
-    m = L.export(net, args.out, {"recipe": recipe, "seed": args.seed, "context": args.context})
+    m = L.export(net, args.out, {"recipe": recipe, "seed": args.seed, "context": args.context, "highpass": args.highpass})
     if args.heldout:
         held = render_heldout(heldout_specs(args.heldout, sp), root / "heldout")
         scorer, _ = L.load(args.out)
