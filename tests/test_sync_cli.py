@@ -19,7 +19,10 @@ def _args(cmd: str, *extra: str) -> list[str]:
 
 
 @pytest.fixture(autouse=True)
-def _auto_again():
+def _auto_without_official(monkeypatch, tmp_path):
+    # other test modules import a random-weight SyncNet into the session's cache; these tests are about
+    # the machine without the official weights
+    monkeypatch.setattr(sync, "syncnet_manifest_path", lambda: tmp_path / "weights" / "syncnet_v2.json")
     yield
     sync_select.set_backend("auto")
 
@@ -47,7 +50,7 @@ def test_set_backend_rejects_unknown_names():
 
 
 def test_auto_is_the_landmark_scorer_without_official_weights():
-    assert not sync.syncnet_manifest_path().is_file()  # the tests' cache is empty
+    assert not sync.syncnet_manifest_path().is_file()
     assert sync_select.candidates("auto") == ["landmark", "pixel"]
     assert sync_select.candidates("pixel") == ["pixel"]
     ok, why = sync_select.status()
