@@ -9,7 +9,6 @@ HELP = "cross-driven protocol: drive trained models with other audio clips (defa
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from lmgs_eval.commands._sync import print_untrusted_records
     from lmgs_eval.commands._common import add_run_arguments
 
     p.add_argument("--audio", nargs="+", metavar="WAV", help="driving audio files (any rate, mono or stereo)")
@@ -18,6 +17,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from lmgs_eval.commands._common import print_rows, run_config
+    from lmgs_eval.commands._sync import print_untrusted_records
     from lmgs_eval.protocols import run_cross
 
     cfg = run_config(args)

@@ -8,7 +8,6 @@ HELP = "self-driven protocol: fit each method, render the test split from its au
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from lmgs_eval.commands._sync import print_untrusted_records
     from lmgs_eval.commands._common import add_run_arguments
 
     add_run_arguments(p)
@@ -16,6 +15,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from lmgs_eval.commands._common import print_rows, run_config
+    from lmgs_eval.commands._sync import print_untrusted_records
     from lmgs_eval.protocols import run_self
 
     cfg = run_config(args)
