@@ -24,6 +24,7 @@ COMMANDS: dict[str, str] = {
     "score": "lmgs_eval.commands.score",
     "methods": "lmgs_eval.commands.methods",
     "weights": "lmgs_eval.commands.weights",
+    "sync-check": "lmgs_eval.commands.sync_check",
     "self": "lmgs_eval.commands.self_driven",
     "cross": "lmgs_eval.commands.cross",
     "run": "lmgs_eval.commands.run_plan",

@@ -108,7 +108,7 @@ def test_manifest_records_input_and_files(truth, ingested):
 def test_lmgs_initialises_from_an_ingested_subject(ingested):
     from lmgs.init import init_face, init_mouth
     from lmgs_eval.data.layout import read_subject
-    from lmgs_eval.methods import subject_to_clip
+    from lmgs_eval.convert import subject_to_clip
 
     s = read_subject(ingested[0])
     clip = subject_to_clip(s, s.train_ids[:4])
@@ -319,7 +319,7 @@ def test_plain_folder_is_completed_outside_itself(truth, tmp_path):
     from lmgs.init import init_face, init_mouth
     from lmgs_eval.data.ingest.compare import geometry_error
     from lmgs_eval.data.layout import read_subject
-    from lmgs_eval.methods import subject_to_clip
+    from lmgs_eval.convert import subject_to_clip
 
     plain = tmp_path / "plain"
     shutil.copytree(truth, plain, ignore=shutil.ignore_patterns(*PLAIN_DROP))

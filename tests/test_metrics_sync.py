@@ -131,8 +131,11 @@ def test_windows_follow_syncnet_indexing():
 
 
 def _no_weights(monkeypatch, tmp_path):
+    from lmgs_eval.metrics import sync_landmark
+
     monkeypatch.setattr(S, "syncnet_manifest_path", lambda: tmp_path / "none.json")
     monkeypatch.setattr(S, "BUNDLED_DIR", tmp_path / "bundled")
+    monkeypatch.setattr(sync_landmark, "WEIGHTS", tmp_path / "landmark")
 
 
 def test_no_weights_is_unavailable_with_reason(monkeypatch, tmp_path):

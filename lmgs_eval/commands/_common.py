@@ -22,13 +22,19 @@ def add_run_arguments(p: argparse.ArgumentParser, default_methods: tuple[str, ..
                         "the config hash changes with it")
     p.add_argument("--force", action="store_true", help="redo runs already in the results store")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    from lmgs_eval.commands._sync import add_sync_argument
+
+    add_sync_argument(p)
     p.set_defaults(_default_methods=default_methods)
 
 
 def run_config(args: argparse.Namespace):
     from baselines.protocol import list_methods
     from lmgs.device import choose_device
+    from lmgs_eval.commands._sync import apply
     from lmgs_eval.runner import RunConfig
+
+    apply(args)  # --sync: the scorer every LSE of this run uses
 
     methods = tuple(args.methods or args._default_methods)
     known = list_methods()

@@ -17,6 +17,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from lmgs_eval.commands._common import print_rows, run_config
+    from lmgs_eval.commands._sync import print_untrusted_records
     from lmgs_eval.protocols.cross import run_cross
 
     cfg = run_config(args)
@@ -25,5 +26,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"lmgs-eval cross: error: {e}", file=sys.stderr)
     if records:
         print_rows(records)
+        print_untrusted_records(records, "lmgs-eval cross")
     print(f"results: {cfg.results.resolve()}")
     return 2 if errors and not records else (1 if errors else 0)

@@ -18,15 +18,26 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lpips", choices=["lpips-alex", "stlpips-alex"], help="force one LPIPS network")
     p.add_argument("--landmarks", default="dlib", choices=["dlib", "fan"], help="LMD landmark backend")
     p.add_argument("--metrics", help="comma-separated subset: psnr,ssim,lpips,lmd,lse")
+    p.add_argument("--reference", action="store_true",
+                   help="the pred is real footage known to be in sync (ground truth): LSE's self-check also "
+                        "requires the AV offset to be 0 +- 1")
+    from lmgs_eval.commands._sync import add_sync_argument
+
+    add_sync_argument(p)
 
 
 def run(args: argparse.Namespace) -> int:
+    from lmgs_eval.commands._sync import apply, print_untrusted, untrusted
     from lmgs_eval.metrics.suite import format_record, score
 
+    apply(args)
     rec = score(args.pred, args.gt, args.audio, truncate=args.truncate, alexnet=args.alexnet, lpips=args.lpips,
-                landmarks=args.landmarks, metrics=args.metrics.split(",") if args.metrics else None)
+                landmarks=args.landmarks, metrics=args.metrics.split(",") if args.metrics else None,
+                reference=args.reference)
     if args.json:
         print(json.dumps(rec, indent=2))
     else:
         print(format_record(rec))
+    lse = rec["results"].get("lse") or {}
+    print_untrusted(untrusted([(str(args.pred), lse.get("values"))]), "lmgs-eval score")
     return 0

@@ -24,6 +24,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from lmgs_eval.commands._common import run_config
+    from lmgs_eval.commands._sync import print_untrusted_records
     from lmgs_eval.protocols.stress import run_stress
 
     cfg = run_config(args)
@@ -46,6 +47,7 @@ def run(args: argparse.Namespace) -> int:
                   f"{v('lse_c', '{:.3f}'):>7} {v('lmd', '{:.2f}'):>6} {v('jitter', '{:.3f}'):>7} {v('silence_open', '{:.2f}'):>8} "
                   f"{(r.get('cost') or {}).get('fps') or 0:>6.1f}  {st}")
         n_fail = sum(1 for r in records if r.get("status", {}).get("state") == "failed")
+        print_untrusted_records(records, "lmgs-eval stress")
         print(f"{len(records)} condition runs, {n_fail} failed, {wall / 60:.1f} min wall (jobs {args.jobs}); "
               "`lmgs-eval table` writes the stability tables and heat-maps")
     print(f"results: {cfg.results.resolve()}")

@@ -1,15 +1,16 @@
-"""``lmgs-eval weights``: import metric weights supplied by the user (nothing is downloaded)."""
+"""``lmgs-eval weights``: where metric weights live, and importing those supplied by the user (nothing is downloaded)."""
 
 from __future__ import annotations
 
 import argparse
 import json
 
-HELP = "import metric weights you have (e.g. the official SyncNet syncnet_v2.model) into the cache as ONNX"
+HELP = ("show where metric weights are kept; import weights you have (e.g. the official SyncNet syncnet_v2.model) "
+        "into the cache as ONNX")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    sub = p.add_subparsers(dest="action", metavar="ACTION", required=True)
+    sub = p.add_subparsers(dest="action", metavar="ACTION")
     s = sub.add_parser("import-syncnet", help="convert syncnet_python's syncnet_v2.model state dict to ONNX")
     s.add_argument("path", help="syncnet_v2.model (a torch state dict of SyncNetModel S)")
 
@@ -21,4 +22,18 @@ def run(args: argparse.Namespace) -> int:
         from lmgs_eval.metrics.sync import import_syncnet
 
         print(json.dumps(import_syncnet(Path(args.path)), indent=2))
+        return 0
+    from lmgs_eval.metrics.ort import onnx_cache_dir
+    from lmgs_eval.metrics.sync import BUNDLED_DIR, syncnet_manifest_path
+    from lmgs_eval.metrics.sync_landmark import JSON_NAME, ONNX_NAME, WEIGHTS
+    from lmgs_eval.metrics.sync_select import status
+
+    mp = syncnet_manifest_path()
+    print(f"weights cache: {mp.parent}  (imported weights' manifests; ONNX graphs in {onnx_cache_dir()})")
+    print(f"  syncnet-v2: {'imported, ' + str(mp) if mp.is_file() else 'not imported (lmgs-eval weights import-syncnet syncnet_v2.model)'}")
+    print(f"bundled weights: {BUNDLED_DIR}")
+    print(f"  landmark-sync: {WEIGHTS / ONNX_NAME} {'(present)' if (WEIGHTS / JSON_NAME).is_file() else '(missing)'}")
+    print(f"  bundled-sync (pixel): {BUNDLED_DIR / 'bundled_sync.onnx'} "
+          f"{'(present)' if (BUNDLED_DIR / 'bundled_sync.json').is_file() else '(missing)'}")
+    print(f"sync scorer here: {status()[1]}")
     return 0

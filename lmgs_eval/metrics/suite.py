@@ -50,7 +50,7 @@ def git_hash() -> str | None:
 
 def score(pred: str | Path, gt: str | Path | None = None, audio: str | Path | None = None, truncate: bool = False,
           alexnet: str | None = None, lpips: str | None = None, landmarks: str = "dlib",
-          metrics: list[str] | None = None) -> dict:
+          metrics: list[str] | None = None, reference: bool = False) -> dict:
     """Score ``pred`` (against ``gt`` when given) with every available metric; the result record.
 
     Args:
@@ -62,6 +62,7 @@ def score(pred: str | Path, gt: str | Path | None = None, audio: str | Path | No
         lpips: force ``"lpips-alex"`` or ``"stlpips-alex"``.
         landmarks: LMD backend name.
         metrics: subset of names to run (default all).
+        reference: ``pred`` is footage known to be in sync: LSE's self-check also requires offset 0 +- 1.
     """
     want = set(metrics or METRIC_NAMES)
     unknown = sorted(want - set(METRIC_NAMES))
@@ -111,7 +112,7 @@ def score(pred: str | Path, gt: str | Path | None = None, audio: str | Path | No
             notes += anotes
         else:
             reason = f"{pred} has no audio track and --audio was not given"
-        results["lse"] = lse(p_frames[:n], a16, fps=fps, audio_reason=reason)
+        results["lse"] = lse(p_frames[:n], a16, fps=fps, audio_reason=reason, reference=reference)
     return {
         "schema": RECORD_SCHEMA,
         "pred": str(pred),
@@ -143,4 +144,7 @@ def format_record(rec: dict) -> str:
             lines.append(f"{'':<16}flag: {f}")
         if r["spec"].get("standin"):
             lines.append(f"{'':<16}STAND-IN: {r['spec']['standin']}")
+        if r["values"].get("trusted") is not None:
+            lines.append(f"{'':<16}self-check: separation {r['values']['separation']:.2f}, "
+                         f"{'trusted' if r['values']['trusted'] else 'NOT trusted'}")
     return "\n".join(lines)

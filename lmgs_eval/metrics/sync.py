@@ -1,7 +1,7 @@
 """LSE-D / LSE-C and the AV offset: the syncnet_python procedure, scorer networks in ONNX Runtime.
 
 Procedure (joonson/syncnet_python ``SyncNetInstance.evaluate``, as used by Wav2Lip's
-``evaluation/scores_LSE``; REFERENCE.md section 2):
+``evaluation/scores_LSE``; the repository's docs/field.md, "Metric definitions"):
 
 * audio: 16 kHz mono at int16 scale, ``python_speech_features.mfcc`` defaults -> 13 x 100 Hz;
 * video: 25 fps face crops, windows of 5 frames; audio windows of 20 MFCC steps at ``4 * i``;
@@ -34,11 +34,18 @@ import numpy as np
 
 from lmgs_eval.errors import UserError
 from lmgs_eval.metrics.base import MetricResult, MetricSpec, unavailable
+from lmgs_eval.metrics.sync_nets import (  # noqa: F401  (the networks live there; their names stay importable here)
+    CROP_SIZE,
+    _export_sync,
+    export_bundled,
+    import_syncnet,
+    nets,
+    syncnet_manifest_path,
+)
 
 VSHIFT = 15
 SAMPLES_PER_FRAME = 640  # 16 kHz / 25 fps
 PREPARE_CHUNK = 256  # frames cropped and shaped at a time
-CROP_SIZE = 224
 CROP_SCALE = 0.4
 PAD_VALUE = 110
 SMOOTH_KERNEL = 9
@@ -204,154 +211,6 @@ def crop_faces(frames: np.ndarray, boxes: np.ndarray, size: int = CROP_SIZE) -> 
     return out
 
 
-# ----------------------------------------------------------------------------- networks
-def _build_nets():
-    import torch
-    from torch import nn
-
-    class SyncNetS(nn.Module):
-        """syncnet_python's ``S`` (REFERENCE.md section 2), state-dict compatible.
-
-        ``forward(audio [N,1,13,20], video [N,3,5,224,224]) -> (a_emb, v_emb)`` (1024-d each).
-        """
-
-        def __init__(self):
-            super().__init__()
-            bn2, bn3 = nn.BatchNorm2d, nn.BatchNorm3d
-            self.netcnnaud = nn.Sequential(
-                nn.Conv2d(1, 64, 3, 1, 1), bn2(64), nn.ReLU(), nn.MaxPool2d(1, 1),
-                nn.Conv2d(64, 192, 3, 1, 1), bn2(192), nn.ReLU(), nn.MaxPool2d(3, (1, 2)),
-                nn.Conv2d(192, 384, 3, padding=1), bn2(384), nn.ReLU(),
-                nn.Conv2d(384, 256, 3, padding=1), bn2(256), nn.ReLU(),
-                nn.Conv2d(256, 256, 3, padding=1), bn2(256), nn.ReLU(), nn.MaxPool2d(3, 2),
-                nn.Conv2d(256, 512, (5, 4)), bn2(512), nn.ReLU(),
-            )
-            self.netfcaud = nn.Sequential(nn.Linear(512, 512), nn.BatchNorm1d(512), nn.ReLU(), nn.Linear(512, 1024))
-            self.netfclip = nn.Sequential(nn.Linear(512, 512), nn.BatchNorm1d(512), nn.ReLU(), nn.Linear(512, 1024))
-            self.netcnnlip = nn.Sequential(
-                nn.Conv3d(3, 96, (5, 7, 7), (1, 2, 2), 0), bn3(96), nn.ReLU(), nn.MaxPool3d((1, 3, 3), (1, 2, 2)),
-                nn.Conv3d(96, 256, (1, 5, 5), (1, 2, 2), (0, 1, 1)), bn3(256), nn.ReLU(),
-                nn.MaxPool3d((1, 3, 3), (1, 2, 2), (0, 1, 1)),
-                nn.Conv3d(256, 256, (1, 3, 3), padding=(0, 1, 1)), bn3(256), nn.ReLU(),
-                nn.Conv3d(256, 256, (1, 3, 3), padding=(0, 1, 1)), bn3(256), nn.ReLU(),
-                nn.Conv3d(256, 256, (1, 3, 3), padding=(0, 1, 1)), bn3(256), nn.ReLU(),
-                nn.MaxPool3d((1, 3, 3), (1, 2, 2)),
-                nn.Conv3d(256, 512, (1, 6, 6)), bn3(512), nn.ReLU(),
-            )
-
-        def forward(self, audio, video):
-            a = self.netfcaud(self.netcnnaud(audio).flatten(1))
-            v = self.netfclip(self.netcnnlip(video).flatten(1))
-            return a, v
-
-    class BundledSyncNet(nn.Module):
-        """A small SyncNet-style scorer for the bundled subjects (same interface, fewer FLOPs).
-
-        audio ``[N,1,13,20]``: 3 conv-BN-ReLU (32, 64, 128; strides 1, (1,2), 2), global mean, Linear 128.
-        video ``[N,3,5,H,W]`` (lower half of the face crop, 0..1): Conv3d 3-32 k(5,5,5) s(1,2,2) p(0,2,2)
-        collapsing time, then 3 conv-BN-ReLU (64, 128, 128; stride 2), global mean, Linear 128.
-        The embeddings are compared by L2 distance exactly as SyncNet's.
-        """
-
-        def __init__(self, dim: int = 128):
-            super().__init__()
-
-            def cbr(i, o, s):
-                return [nn.Conv2d(i, o, 3, s, 1), nn.BatchNorm2d(o), nn.ReLU()]
-
-            self.aud = nn.Sequential(*cbr(1, 32, 1), *cbr(32, 64, (1, 2)), *cbr(64, 128, 2))
-            self.aud_fc = nn.Linear(128, dim)
-            self.lip3d = nn.Sequential(nn.Conv3d(3, 32, (5, 5, 5), (1, 2, 2), (0, 2, 2)), nn.BatchNorm3d(32), nn.ReLU())
-            self.lip = nn.Sequential(*cbr(32, 64, 2), *cbr(64, 128, 2), *cbr(128, 128, 2))
-            self.lip_fc = nn.Linear(128, dim)
-
-        def forward(self, audio, video):
-            a = self.aud_fc(self.aud(audio).mean(dim=(2, 3)))
-            v = self.lip(self.lip3d(video)[:, :, 0])
-            v = self.lip_fc(v.mean(dim=(2, 3)))
-            return a, v
-
-    return SyncNetS, BundledSyncNet
-
-
-_NETS = None
-
-
-def nets():
-    """``(SyncNetS, BundledSyncNet)`` torch classes (built on first use)."""
-    global _NETS
-    if _NETS is None:
-        _NETS = _build_nets()
-    return _NETS
-
-
-def _export_sync(net, path: Path, hw: tuple[int, int]) -> None:
-    import torch
-
-    from lmgs_eval.metrics.ort import export_onnx
-
-    a = torch.randn(2, 1, 13, 20)
-    v = torch.rand(2, 3, 5, *hw)
-    export_onnx(net.eval(), (a, v), path, ["audio", "video"], ["a_emb", "v_emb"],
-                {"audio": {0: "n"}, "video": {0: "n"}, "a_emb": {0: "n"}, "v_emb": {0: "n"}})
-
-
-def syncnet_manifest_path() -> Path:
-    from lmgs_eval.paths import cache_root
-
-    return cache_root() / "weights" / "syncnet_v2.json"
-
-
-def import_syncnet(state_dict_path: Path) -> dict:
-    """Convert the official ``syncnet_v2.model`` state dict to ONNX in the cache; return the manifest.
-
-    Raises:
-        UserError: unreadable file, or keys/shapes not those of syncnet_python's ``S``.
-    """
-    from lmgs_eval.metrics.ort import load_torch_state, onnx_cache_dir, sha256_file
-    from lmgs_eval.paths import atomic_write_text
-
-    src = Path(state_dict_path)
-    sd = load_torch_state(src, "SyncNet state dict")
-    S, _ = nets()
-    net = S()
-    own = net.state_dict()
-    missing = [k for k in own if k not in sd]
-    if missing:
-        raise UserError(f"{src}: not syncnet_python's S layout, missing {len(missing)} key(s) e.g. {missing[0]!r}")
-    for k, v in own.items():
-        if tuple(sd[k].shape) != tuple(v.shape):
-            raise UserError(f"{src}: key {k!r} has shape {tuple(sd[k].shape)}, expected {tuple(v.shape)}")
-    net.load_state_dict({k: sd[k] for k in own})
-    sha = sha256_file(src)
-    out = onnx_cache_dir() / f"{sha}-syncnet-v2.onnx"
-    _export_sync(net, out, (CROP_SIZE, CROP_SIZE))
-    manifest = {"name": "syncnet-v2", "source": str(src), "source_sha256": sha, "onnx": str(out),
-                "onnx_sha256": sha256_file(out), "input_hw": [CROP_SIZE, CROP_SIZE], "region": "full",
-                "pixel": "bgr_0_255"}
-    atomic_write_text(syncnet_manifest_path(), json.dumps(manifest, indent=2))
-    return manifest
-
-
-def export_bundled(net, out_dir: Path, meta: dict) -> dict:
-    """Write a trained :class:`BundledSyncNet` as ``bundled_sync.onnx`` + ``bundled_sync.json``.
-
-    ``meta`` must hold the training ``recipe`` and ``seed``; the sha256 of the graph is
-    added. For the engineer training the bundled scorer.
-    """
-    from lmgs_eval.metrics.ort import sha256_file
-    from lmgs_eval.paths import atomic_write_text
-
-    for k in ("recipe", "seed"):
-        if k not in meta:
-            raise UserError(f"bundled sync meta must include {k!r}")
-    out_dir = Path(out_dir)
-    hw = tuple(meta.get("input_hw", (48, 96)))
-    _export_sync(net, out_dir / "bundled_sync.onnx", hw)
-    m = {"name": "bundled-sync", "input_hw": list(hw), "region": meta.get("region", "lower_half"),
-         "pixel": meta.get("pixel", "bgr_0_1"), **meta, "sha256": sha256_file(out_dir / "bundled_sync.onnx")}
-    atomic_write_text(out_dir / "bundled_sync.json", json.dumps(m, indent=2))
-    return m
 
 
 # ----------------------------------------------------------------------------- scorer
@@ -382,6 +241,32 @@ class SyncScorer:
         if self.pixel == "bgr_0_1":
             x = x / 255.0
         return x.astype(np.float32)
+
+    def embed_clip(self, frames, crops, audio16k, mfcc, last, detect_every=1, lms=None):
+        """Audio and video embeddings of windows ``0 .. last-1``, the still-face embedding, flags and notes."""
+        flags, notes = [], []
+        if crops is None:
+            if frames is None:
+                raise UserError(f"{self.name} scores face crops of frames; landmarks alone are not enough")
+            boxes, n_missing = face_boxes(frames, detect_every)
+            if n_missing:
+                flags.append(f"no_face: {n_missing} detection(s) without a face, box held from the nearest frame")
+            notes.append(f"crops: dlib HOG every {detect_every} frame(s), median-9 box smoothing, syncnet_python "
+                         "crop_video geometry, 224x224 BGR 0-255")
+        # crop and shape each frame once, a chunk at a time (a 5-minute clip's 224 crops alone are 4.5 GB)
+        m = last + 4  # frames the windows use
+        prepared = None
+        for s in range(0, m, PREPARE_CHUNK):
+            e = min(m, s + PREPARE_CHUNK)
+            c = crops[s:e] if crops is not None else crop_faces(frames[s:e], boxes[s:e])
+            p = self.prepare(np.asarray(c, np.float32))
+            if prepared is None:
+                prepared = np.empty((m, *p.shape[1:]), np.float32)
+            prepared[s:e] = p
+        aw = audio_windows(mfcc, last)
+        a_emb, v_emb = self.embed_frames(aw, prepared)
+        _, still = self.embed_frames(aw[:1], np.repeat(prepared[:1], 5, axis=0))
+        return a_emb, v_emb, still[0], flags, notes
 
     def embed_frames(self, audio_win: np.ndarray, frames: np.ndarray, batch: int = 16) -> tuple[np.ndarray, np.ndarray]:
         """Embeddings of window ``i`` = (``audio_win[i]``, prepared ``frames[i:i+5]``), a batch at a time.
@@ -438,23 +323,29 @@ def find_scorer(prefer: str | None = None) -> tuple[SyncScorer | None, str]:
     return None, "; ".join(reasons)
 
 
-def lse(frames: np.ndarray, audio16k: np.ndarray | None, fps: float = 25.0, scorer: SyncScorer | None = None,
-        crops: np.ndarray | None = None, detect_every: int = 1, audio_reason: str = "") -> MetricResult:
-    """LSE-D / LSE-C / offset of one clip (no reference needed).
+def lse(frames: np.ndarray | None, audio16k: np.ndarray | None, fps: float = 25.0, scorer=None,
+        crops: np.ndarray | None = None, detect_every: int = 1, audio_reason: str = "", lms: np.ndarray | None = None,
+        reference: bool = False) -> MetricResult:
+    """LSE-D / LSE-C / offset of one clip (no reference needed), with its self-check.
 
     Args:
-        frames: ``[T, H, W, 3]`` float RGB in [0, 1] (ignored when ``crops`` is given).
+        frames: ``[T, H, W, 3]`` float RGB in [0, 1] (the pixel scorer ignores it when ``crops`` is given).
         audio16k: 16 kHz mono float audio, or None (then unavailable with ``audio_reason``).
         fps: frame rate; SyncNet windows assume 25 fps.
-        scorer: a loaded scorer (default: :func:`find_scorer`).
-        crops: precomputed ``[T, 224, 224, 3]`` BGR 0-255 crops (skips face detection).
-        detect_every: run the face detector every k frames.
+        scorer: a loaded scorer (:class:`SyncScorer` or ``sync_landmark.LandmarkScorer``); default: the
+            selection of :mod:`sync_select` (``--sync``, ``auto`` unless set).
+        crops: precomputed ``[T, 224, 224, 3]`` BGR 0-255 crops (pixel scorers: skips face detection).
+        detect_every: run the face detector every k frames (pixel scorers).
+        lms: precomputed ``[T, 68, 2]`` landmarks (landmark scorer: skips dlib).
+        reference: the footage is known to be in sync (ground truth): the self-check also requires
+            the offset to be 0 +- 1.
+
+    ``values`` holds ``lse_d``, ``lse_c``, ``offset`` and the self-check's ``separation``,
+    ``trusted``, ``null_lse_c``, ``null_lse_c_max``, ``still_lse_c`` (:mod:`sync_check`).
     """
-    n = int(crops.shape[0] if crops is not None else frames.shape[0])
+    n = int(next(len(x) for x in (crops, frames, lms) if x is not None))
     if scorer is None:
-        scorer, why = find_scorer()
-        if scorer is None:
-            return unavailable(LSE_SPEC, f"no SyncNet weights: {why}", n)
+        return _lse_selected(frames, audio16k, fps, crops, detect_every, audio_reason, lms, reference, n)
     spec = LSE_SPEC.with_weights(scorer.sha256, backend=f"onnxruntime:{scorer.name}")
     if scorer.standin:
         spec = MetricSpec(**{**spec.to_dict(), "standin": scorer.standin})
@@ -465,45 +356,59 @@ def lse(frames: np.ndarray, audio16k: np.ndarray | None, fps: float = 25.0, scor
     flags, notes = [], []
     if is_silent(audio16k):
         flags.append("silent_audio: RMS below 1e-4, LSE is meaningless on silence")
-    if crops is None:
-        try:
-            boxes, n_missing = face_boxes(frames, detect_every)
-        except UserError as exc:
-            return unavailable(spec, str(exc), n)
-        if n_missing:
-            flags.append(f"no_face: {n_missing} detection(s) without a face, box held from the nearest frame")
-        notes.append(f"crops: dlib HOG every {detect_every} frame(s), median-9 box smoothing, syncnet_python crop_video geometry, 224x224 BGR 0-255")
     mf = mfcc_13(audio16k)
     try:
         last = n_windows(n, len(audio16k))
+        a_emb, v_emb, v_still, f2, n2 = scorer.embed_clip(frames, crops, audio16k, mf, last, detect_every, lms=lms)
     except UserError as exc:
         return unavailable(spec, str(exc), n)
+    flags += f2
+    notes += n2
     if 4 * (last - 1) + 20 > mf.shape[1]:
         flags.append("audio_tail_padded: last MFCC window zero-filled")
-    # crop and shape each frame once, a chunk at a time (a 5-minute clip's 224 crops alone are 4.5 GB)
-    m = last + 4  # frames the windows use
-    prepared = None
-    for s in range(0, m, PREPARE_CHUNK):
-        e = min(m, s + PREPARE_CHUNK)
-        c = crops[s:e] if crops is not None else crop_faces(frames[s:e], boxes[s:e])
-        p = scorer.prepare(np.asarray(c, np.float32))
-        if prepared is None:
-            prepared = np.empty((m, *p.shape[1:]), np.float32)
-        prepared[s:e] = p
-    a_emb, v_emb = scorer.embed_frames(audio_windows(mf, last), prepared)
     r = lse_from_embeddings(v_emb, a_emb)
-    values = {"lse_d": r["lse_d"], "lse_c": r["lse_c"], "offset": r["offset"]}
+    from lmgs_eval.metrics.sync_check import self_check
+
+    check, cflags = self_check(v_emb, a_emb, v_still, r["lse_c"], r["offset"], reference)
+    values = {"lse_d": r["lse_d"], "lse_c": r["lse_c"], "offset": r["offset"], **check}
+    flags += cflags
     if scorer.standin:
         notes.append("standin: " + scorer.standin)
     notes.append("mdist per offset -15..15: " + " ".join(f"{d:.3f}" for d in r["mdist"][::-1]))
     return MetricResult(spec, r["lse_d"], values, r["per_window"], max(0, n - 5), int(last), flags, notes)
 
 
+def _lse_selected(frames, audio16k, fps, crops, detect_every, audio_reason, lms, reference, n) -> MetricResult:
+    """``lse`` with the scorer(s) of the process-wide selection.
+
+    ``auto`` tries its candidates in order and keeps the first that is available and passes
+    its self-check; if none passes, the first available result (marked untrusted) stays.
+    """
+    from lmgs_eval.metrics.sync_select import candidates, load
+
+    results, reasons = [], []
+    for name in candidates():
+        sc, why = load(name)
+        if sc is None:
+            reasons.append(why)
+            continue
+        r = lse(frames, audio16k, fps, sc, crops, detect_every, audio_reason, lms, reference)
+        results.append(r)
+        if r.available and r.values.get("trusted") is not False:
+            break
+    if not results:
+        return unavailable(LSE_SPEC, "no SyncNet weights: " + "; ".join(reasons), n)
+    best = next((r for r in results if r.available and r.values.get("trusted") is not False), None)
+    best = best or next((r for r in results if r.available), results[0])
+    for r in results:
+        if r is not best:
+            best.notes.append(f"auto: {r.spec.backend} " + ("did not pass its self-check" if r.available
+                              else f"was unavailable ({r.reason})") + f" on this clip; kept {best.spec.backend}")
+    return best
+
+
 def find_scorer_status() -> tuple[bool, str]:
-    """Which sync scorer would be used, without loading it (for ``lmgs-eval metrics``)."""
-    mp = syncnet_manifest_path()
-    if mp.is_file():
-        return True, f"syncnet-v2 ({mp})"
-    if (BUNDLED_DIR / "bundled_sync.onnx").is_file() and (BUNDLED_DIR / "bundled_sync.json").is_file():
-        return True, "bundled-sync (stand-in, trained on synthetic clips)"
-    return False, "no scorer: import syncnet_v2.model with `lmgs-eval weights import-syncnet`, bundled-sync not trained yet"
+    """Which sync scorer would be used and why, without loading it (for ``lmgs-eval metrics``)."""
+    from lmgs_eval.metrics.sync_select import status
+
+    return status()

@@ -1,0 +1,60 @@
+"""``lmgs-eval sync-check``: probe the sync scorer on footage you know is in sync."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+HELP = ("check the LSE scorer on an in-sync clip: offset, injected audio shifts, other speech "
+        "(tells whether its LSE can be believed on footage like yours)")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    from lmgs_eval.commands._sync import add_sync_argument
+
+    p.add_argument("video", help="a video with its own audio track, in sync (25 fps)")
+    p.add_argument("--audio", help="the clip's audio, when the video has no track")
+    p.add_argument("--other-audio", help="other speech (any wav): the clip's LSE-C must stay clearly above it")
+    p.add_argument("--json", action="store_true", help="print the figures as JSON")
+    add_sync_argument(p)
+
+
+def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from lmgs_eval.commands._sync import apply
+    from lmgs_eval.data.io import load_audio, to_mono_16k
+    from lmgs_eval.errors import UserError
+    from lmgs_eval.metrics.suite import load_frames
+    from lmgs_eval.metrics.sync_probe import probe
+
+    apply(args)
+    frames, fps, audio, sr, _ = load_frames(args.video)
+    if fps is not None and abs(fps - 25.0) > 0.01:
+        raise UserError(f"{args.video}: {fps:g} fps; the sync scorers read 25 fps")
+    if args.audio:
+        a16, _ = load_audio(Path(args.audio))
+    elif audio is not None:
+        a16, _ = to_mono_16k(audio, sr, f"{args.video} audio track")
+    else:
+        raise UserError(f"{args.video}: no audio track; give --audio")
+    other = load_audio(Path(args.other_audio))[0] if args.other_audio else None
+    out = probe(frames, a16, other)
+    if args.json:
+        print(json.dumps(out, indent=2, default=str))
+        return 0
+    if not out["available"]:
+        print(f"LSE unavailable: {out['reason']}")
+        return 0
+    o = out["own"]
+    print(f"scorer: {out['backend']}")
+    print(f"own audio: offset {o['offset']:+d}, LSE-C {o['lse_c']:.3f}, LSE-D {o['lse_d']:.3f}, separation "
+          + (f"{o['separation']:.2f}" if o["separation"] is not None else "n/a") + f", trusted {o['trusted']}")
+    print("injected delays: " + ", ".join(f"{k:+d} -> offset {v:+d}" for k, v in out["shifts"].items())
+          + f" ({out['shifts_within_1']}/{len(out['shifts'])} within 1 frame of -k)")
+    if "other_lse_c" in out:
+        print("other speech LSE-C: " + ", ".join(f"{c:.3f}" for c in out["other_lse_c"])
+              + f" (own above every one: {out['own_above_every_other']})")
+    for f in out["flags"]:
+        print(f"flag: {f}")
+    return 0

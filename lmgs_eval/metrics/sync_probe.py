@@ -1,0 +1,56 @@
+"""Probe a sync scorer on footage known to be in sync: offset, injected shifts, audio from elsewhere.
+
+What the scorer should do on an in-sync clip, measured on the clip itself:
+
+* its own audio: offset 0 (+-1) and a trusted self-check;
+* its audio delayed by ``k`` frames (frames and audio trimmed to the overlap): offset ``-k``
+  (syncnet_python's sign convention);
+* other speech of the same length (another file, cut at several starts): LSE-C clearly below
+  the clip's own.
+
+``lmgs-eval sync-check VIDEO --other-audio WAV`` prints these figures for any clip.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lmgs_eval.metrics.sync import SAMPLES_PER_FRAME, lse
+
+SHIFTS = (-10, -5, 5, 10)
+
+
+def shifted(x: np.ndarray, audio: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame ``x`` with the audio delayed by ``k`` frames (``k < 0``: advanced), both trimmed to the overlap."""
+    spf, t = SAMPLES_PER_FRAME, len(x)
+    if k > 0:
+        return x[k:], audio[:(t - k) * spf]
+    if k < 0:
+        return x[:t + k], audio[-k * spf:t * spf]
+    return x, audio
+
+
+def probe(frames: np.ndarray, audio: np.ndarray, other: np.ndarray | None = None, shifts=SHIFTS, scorer=None,
+          n_other: int = 6) -> dict:
+    """The figures of the module doc for one clip (``frames`` ``[T, H, W, 3]`` float, 16 kHz audio)."""
+    own = lse(frames, audio, scorer=scorer, reference=True)
+    if not own.available:
+        return {"available": False, "reason": own.reason}
+    out = {"available": True, "backend": own.spec.backend,
+           "own": {k: own.values.get(k) for k in ("offset", "lse_c", "lse_d", "separation", "trusted")},
+           "flags": own.flags, "shifts": {}}
+    for k in shifts:
+        f, a = shifted(frames, audio, k)
+        out["shifts"][k] = lse(f, a, scorer=scorer).values.get("offset")
+    out["shifts_within_1"] = sum(v is not None and abs(v + k) <= 1 for k, v in out["shifts"].items())
+    if other is not None:
+        n = len(audio)
+        starts = [0] if len(other) <= n else np.linspace(0, len(other) - n, n_other).astype(int).tolist()
+        cs = []
+        for s in starts:
+            seg = np.resize(other[s:s + n], n)  # a shorter file is looped to the clip's length
+            r = lse(frames, seg, scorer=scorer)
+            cs.append(r.values.get("lse_c"))
+        out["other_lse_c"] = cs
+        out["own_above_every_other"] = bool(all(c is not None and own.values["lse_c"] > c for c in cs))
+    return out
