@@ -18,7 +18,7 @@ def _build_nets():
     from torch import nn
 
     class SyncNetS(nn.Module):
-        """syncnet_python's ``S`` (REFERENCE.md section 2), state-dict compatible.
+        """syncnet_python's ``S`` (docs/field.md, "SyncNet S, the network LSE is defined with"), state-dict compatible.
 
         ``forward(audio [N,1,13,20], video [N,3,5,224,224]) -> (a_emb, v_emb)`` (1024-d each).
         """
