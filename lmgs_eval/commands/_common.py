@@ -32,6 +32,7 @@ def run_config(args: argparse.Namespace):
     from baselines.protocol import list_methods
     from lmgs.device import choose_device
     from lmgs_eval.commands._sync import apply
+    from lmgs_eval.metrics.metric_suite import MetricSuite
     from lmgs_eval.runner import RunConfig
 
     apply(args)  # --sync: the scorer every LSE of this run uses
@@ -58,6 +59,7 @@ def run_config(args: argparse.Namespace):
         progress=not args.no_progress,
         renders=args.renders,
         force=args.force,
+        suite=MetricSuite(sync=getattr(args, "sync", None) or "auto"),
     )
 
 

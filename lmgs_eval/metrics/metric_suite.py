@@ -16,7 +16,8 @@ from lmgs_eval.errors import UserError
 from lmgs_eval.metrics.base import MetricResult
 from lmgs_eval.metrics.lpips import find_alexnet
 from lmgs_eval.metrics.registry import create_metric
-from lmgs_eval.metrics.sync import find_scorer, lse
+from lmgs_eval.metrics.sync import lse
+from lmgs_eval.metrics.sync_select import set_backend
 
 
 class MetricSuite:
@@ -25,15 +26,17 @@ class MetricSuite:
     Args:
         alexnet: an AlexNet trunk checkpoint for the official LPIPS (else found in the torch hub
             caches; without one, ST-LPIPS, a named stand-in, is used).
+        sync: the LSE scorer (``--sync``: ``auto``, ``landmark``, ``pixel``, ``syncnet-v2``); its
+            networks are loaded once per process by :mod:`lmgs_eval.metrics.sync_select`.
     """
 
-    def __init__(self, alexnet: str | None = None):
+    def __init__(self, alexnet: str | None = None, sync: str = "auto"):
         self.alexnet = alexnet
+        self.sync = sync
         self._metrics: dict[str, Any] = {}
-        self._scorer: tuple[Any, str] | None = None
 
     def __getstate__(self) -> dict:
-        return {"alexnet": self.alexnet, "_metrics": {}, "_scorer": None}
+        return {"alexnet": self.alexnet, "sync": self.sync, "_metrics": {}}
 
     @property
     def lpips_name(self) -> str:
@@ -51,15 +54,18 @@ class MetricSuite:
         return m.compute(m.update(pred, gt))
 
     def lse(self, frames: np.ndarray, audio16k: np.ndarray | None, **kw) -> MetricResult:
-        """LSE-D / LSE-C / offset with the run's sync scorer (found once)."""
-        if self._scorer is None:
-            self._scorer = find_scorer()
-        scorer, _ = self._scorer
-        return lse(frames, audio16k, fps=25.0, scorer=scorer, **kw)
+        """LSE-D / LSE-C / offset and its self-check, with the run's sync scorer (``in_sync``: see :meth:`score`)."""
+        set_backend(self.sync)  # this process's selection (a worker process gets the run's too)
+        in_sync = kw.pop("in_sync", False)
+        return lse(frames, audio16k, fps=25.0, reference=in_sync, **kw)
 
     def score(self, pred: np.ndarray, gt: np.ndarray | None, audio16k: np.ndarray | None, *, reference: bool = True,
-              lmd: bool = True) -> dict[str, MetricResult]:
-        """Every applicable metric of uint8 frames ``pred`` (against ``gt``); ``{name: MetricResult}``."""
+              lmd: bool = True, in_sync: bool = False) -> dict[str, MetricResult]:
+        """Every applicable metric of uint8 frames ``pred`` (against ``gt``); ``{name: MetricResult}``.
+
+        ``in_sync``: the frames and audio are known to be in sync (the ground truth), so the LSE
+        self-check also requires an AV offset of 0 +- 1 frame.
+        """
         pf = pred.astype(np.float32) / 255.0
         out = {}
         if gt is not None and (reference or lmd):
@@ -71,5 +77,5 @@ class MetricSuite:
                 names.append("lmd")
             for name in names:
                 out[name] = self.paired(name, pf, gf)
-        out["lse"] = self.lse(pf, audio16k, audio_reason="" if audio16k is not None else "no audio")
+        out["lse"] = self.lse(pf, audio16k, audio_reason="" if audio16k is not None else "no audio", in_sync=in_sync)
         return out

@@ -47,7 +47,7 @@ def run_plate_reference(cfg: RunConfig, subject, test) -> list[dict]:
         log(f"no head masks (parsing/) in {subject.name}: no 'GT head on plate' reference row")
         return []
     log("scoring the ground truth's head on the plate (reference row)")
-    res = cfg.suite.score(frames, test.frames, test.audio)
+    res = cfg.suite.score(frames, test.frames, test.audio, in_sync=True)
     art = {"render": write_render(cfg.results, f"renders/{subject.name}/plate-reference.mp4", frames, test.audio)}
     rec = build_record(info=info, subject=subject, protocol="self", clip="test", split="test", n_frames=len(frames),
                        seed=0, metrics=metrics_block(res), cost={}, artefacts=art, notes=list(subject.notes))

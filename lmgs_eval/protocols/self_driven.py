@@ -37,7 +37,7 @@ def run_self(cfg: RunConfig) -> list[dict]:
     gt_info = MethodInfo("ground-truth", "Ground Truth", "ground-truth", "the test split's own frames and audio", config={}, config_hash="gt")
     if cfg.force or stored(cfg.results, subject, "ground-truth", "self", "test", 0, "gt") is None:
         log("scoring the ground truth")
-        res = cfg.suite.score(gt, gt, test.audio)
+        res = cfg.suite.score(gt, gt, test.audio, in_sync=True)
         art = {"render": write_render(cfg.results, f"{renders_dir}/ground-truth.mp4", gt, test.audio)}
         rec = build_record(info=gt_info, subject=subject, protocol="self", clip="test", split="test", n_frames=len(gt), seed=0,
                            metrics=metrics_block(res), cost={}, artefacts=art, notes=list(subject.notes))
