@@ -514,3 +514,21 @@ def test_render_sheet_shows_each_methods_video_and_leaves_out_those_not_here(tmp
     n_methods = len({r["method"]["name"] for r in recs})
     assert n_methods > 3  # so some rows are missing: the fixture's other methods have no video here
     assert C.render_sheets([r for r in recs if r["method"]["name"] == "ernerf"], tmp_path, tmp_path / "none") == []
+
+
+def test_an_lse_that_failed_its_self_check_is_marked_and_never_ranked():
+    """Table I: lmgs is the best on LSE-D and LSE-C in the fixture; when its scorer's self-check failed on
+    its clips, its figures stay (marked ¶) and the ranking goes to the methods whose LSE can be trusted."""
+    recs = copy.deepcopy(fixture_records())
+    md = T.table_self(recs).markdown()
+    assert "¶" not in md
+    for r in recs:
+        if r["method"]["name"] == "lmgs" and r["protocol"]["name"] == "self":
+            r["metrics"]["lse_d"]["values"] = {"trusted": False, "separation": 0.4}
+    md = T.table_self(recs).markdown()
+    row = _row(md, "Ours (lmgs)")
+    assert row[4].endswith("¶") and row[5].endswith("¶") and "**" not in row[4] + row[5]
+    assert row[1].startswith("**")  # PSNR is not an LSE figure: still ranked
+    assert "¶ LSE-D: the sync scorer did not pass its self-check on Ours (lmgs)" in md
+    assert "lmgs-eval weights import-syncnet" in md
+    assert any(_row(md, name)[4].startswith(("**", "<u>")) for name in ("TalkingGaussian", "ER-NeRF"))

@@ -13,8 +13,8 @@ from typing import Any
 import numpy as np
 
 from lmgs_eval.report.stats import ALPHA, PairedTest, bootstrap_ci_seeds, mean_over_seeds, paired_test, seed_test
-from lmgs_eval.report.table_model import (BUSY, BUSY_SHARE, FAMILY_ORDER, METRICS, MIXED, OURS, SLOW_HOST, TIE, Cell, Column,
-                                          Record, Row, Section, column_backends)
+from lmgs_eval.report.table_model import (BUSY, BUSY_SHARE, FAMILY_ORDER, METRICS, MIXED, OURS, SLOW_HOST, TIE, UNTRUSTED,
+                                          Cell, Column, Record, Row, Section, column_backends)
 from lmgs_eval.results import budget_note
 
 
@@ -34,9 +34,14 @@ def components_of(rec: Record) -> dict[str, Any] | None:
     return rec["method"].get("components")
 
 
+SYNC_KEYS = ("lse_d", "lse_c", "av_offset")  # the figures of one LSE, whose self-check is in lse_d's values
+
+
 def metric_cell(records: Sequence[Record], key: str) -> Cell:
     """Aggregate metric ``key`` over the seeds of one row (see :class:`Cell`)."""
     vals, items, backends = [], [], set()
+    untrusted = key in SYNC_KEYS and any(
+        ((r["metrics"].get("lse_d") or {}).get("values") or {}).get("trusted") is False for r in records)
     for r in records:
         m = r["metrics"].get(key)
         if m is None or m["value"] is None:
@@ -56,6 +61,8 @@ def metric_cell(records: Sequence[Record], key: str) -> Cell:
         paired=mean_over_seeds(items) if per_item_ok else None,
         values=vals,
         backends=backends,
+        untrusted=untrusted,
+        flag=UNTRUSTED if untrusted else "",
     )
 
 
@@ -160,6 +167,13 @@ def rank_section(sec: Section, columns: Sequence[Column], alpha: float = ALPHA) 
         if col.kind != "metric" or not col.rank:
             continue
         rows = [r for r in sec.rows if r.ranked and r.cells.get(col.id) and r.cells[col.id].mean is not None]
+        doubted = [r.label for r in rows if r.cells[col.id].untrusted]
+        if doubted:
+            rows = [r for r in rows if not r.cells[col.id].untrusted]
+            sec.notes.append(f"{UNTRUSTED} {col.group + ' ' if col.group else ''}{col.label}: the sync scorer did not pass "
+                             f"its self-check on {', '.join(doubted)} (the clip's own audio not separated from controls "
+                             "of the same clip), so these figures are not ranked; import the official SyncNet weights "
+                             "(lmgs-eval weights import-syncnet) to score this footage.")
         if len(column_backends(sec, col)) > 1:
             for r in sec.rows:
                 cell = r.cells.get(col.id)

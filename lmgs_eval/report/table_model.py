@@ -29,6 +29,8 @@ UNRANKED = ("ground-truth", "reference")
 """Table I's rows above the rule: the ground truth and the protocol's reference composite."""
 TIE = "†"
 MIXED = "‡"
+UNTRUSTED = "¶"
+"""An LSE whose scorer failed its self-check on that clip: shown, never ranked."""
 BUSY = "§"
 BUSY_SHARE = 0.10
 """FPS timed while other processes took more of the host's CPU than this (``cost.others_cpu_share``) are marked."""
@@ -80,7 +82,9 @@ class Cell:
         backends: ``backend vVERSION`` strings of the values.
         mark: ``best``, ``second``, ``tie`` or ``""``.
         text: a text cell (✓ / ✗, failure notes) instead of a number.
-        flag: an extra mark shown after the value (``‡``, ``✗``).
+        flag: an extra mark shown after the value (``‡``, ``✗``, ``¶``).
+        untrusted: an LSE figure whose sync scorer did not separate the clip's own audio from
+            controls of the same clip (its self-check): kept out of the ranking.
     """
 
     mean: float | None = None
@@ -93,6 +97,7 @@ class Cell:
     mark: str = ""
     text: str | None = None
     flag: str = ""
+    untrusted: bool = False
 
 
 @dataclass
