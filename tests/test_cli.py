@@ -18,8 +18,8 @@ from lmgs_eval.results import load_records
 SUBJECT = "astronaut-64px-2s"
 FAST = ["--set", "train.static_steps=40", "--set", "train.dynamic_steps=40", "--set", "train.landmark_steps=20",
         "--set", "train.densify_every=20"]
-EXPECTED = ("subjects", "ingest", "prepare", "metrics", "score", "methods", "weights", "self", "cross", "run", "table",
-            "report", "stress", "capacity", "verify", "bench", "demo")
+EXPECTED = ("subjects", "ingest", "prepare", "metrics", "score", "methods", "weights", "sync-check", "self", "cross", "run",
+            "table", "report", "stress", "capacity", "verify", "bench", "demo")
 
 
 def command_names(parser) -> tuple[str, ...]:
