@@ -11,7 +11,7 @@ Recipe (deterministic for a seed and thread count; recorded in ``landmark_sync.j
   the head model's deformation and camera (``HeadModel.deform``, ``HeadModel.c2w``)
   projected like ``HeadModel.render``: the ground-truth 68 landmarks of each frame. Both
   faces, frame sizes 128-512. Voices: every espeak-ng voice except the held-out ones
-  (``train_sync.heldout_voices`` minus piper's ``joe``) plus piper's ``joe`` on training
+  (``train_sync_data.heldout_voices`` minus piper's ``joe``) plus piper's ``joe`` on training
   texts only: it is the only neural voice here, the closest to real speech.
 * **Pose and articulation jitter** per clip: head yaw, pitch, roll and translation x1-4 of
   the generator's, mouth articulation (jaw, width, rounding) x0.6-1.5.
@@ -65,7 +65,7 @@ SHIFTS = (-10, -5, -3, 3, 5, 10)
 
 def split() -> dict:
     """Training and held-out voices and texts; piper's joe speaks training texts only."""
-    from lmgs_eval.metrics.train_sync import split as pixel_split
+    from lmgs_eval.metrics.train_sync_data import split as pixel_split
 
     sp = pixel_split()
     joe = [v for v in sp["heldout_voices"] if v.startswith("piper:")]
@@ -86,7 +86,7 @@ def clip_specs(n: int, seed: int, sp: dict) -> list[dict]:
 
 
 def heldout_specs(n: int, sp: dict) -> list[dict]:
-    from lmgs_eval.metrics.train_sync import heldout_specs as pixel_heldout
+    from lmgs_eval.metrics.train_sync_data import heldout_specs as pixel_heldout
 
     return pixel_heldout(n, sp)
 

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from lmgs_eval.report.cells import is_ok, is_variant
-from lmgs_eval.report.table_model import BUSY, METRICS, MIXED, TIE, Cell, Column, Table
+from lmgs_eval.report.table_model import BUSY, METRICS, MIXED, TIE, UNTRUSTED, Cell, Column, Table
 
 Record = dict[str, Any]
 
@@ -195,10 +195,12 @@ def _heat(t: Table, rows: Sequence[HtmlRow]) -> None:
             r.cells[i].style = f"background: rgba({rgb},{0.12 + 0.5 * abs(v) / lim:.2f})"
 
 
-MARKS_LEGEND = (f"bold: best, significantly better than the runner-up (paired bootstrap and Wilcoxon over the same "
-                f"items, p < 0.05); underlined: runner-up; {TIE}: not significantly different from the best (no winner); "
-                f"{MIXED}: the column mixes metric backends and is not ranked; {BUSY}: timed on a busy or slowed host; "
-                "[lo, hi]: bootstrap 95% CI over items and seeds; S on a column: its scorer is a stand-in, "
+MARKS_LEGEND = (f"bold: best, significantly better than the runner-up (p < 0.05: Welch's t over the seeds' means where both "
+                f"rows have two seeds or more, else a circular block bootstrap over the same frames; each table's notes name "
+                f"the test); underlined: runner-up; {TIE}: not significantly different from the best (no winner); "
+                f"{MIXED}: the column mixes metric backends and is not ranked; {UNTRUSTED}: the sync scorer failed its "
+                f"self-check on that clip, not ranked; {BUSY}: timed on a busy or slowed host; "
+                "[lo, hi]: block-bootstrap 95% CI over frames and seeds; S on a column: its scorer is a stand-in, "
                 "stand-in on a row: the method has parts that stand in for the paper's (hover either for what).")
 
 
