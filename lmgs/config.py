@@ -244,7 +244,7 @@ class GuidanceConfig:
             lowered below :math:`\\theta`); 0.2 by default, the share the paper reports at
             :math:`\\theta` = 0.6 ("about 20 %"). Here :math:`\\theta` = 0.6 alone selected 17-79 %
             of the face points depending on the trained model (61-79 % on astronaut), and lmgs with
-            that uncapped SE did worse than without SE on astronaut (issue 5); 0 leaves
+            that uncapped SE did worse than without SE on astronaut; 0 leaves
             :math:`\\theta` alone (variant ``lmgs-uncapped``, the records made before the cap).
             An :func:`added_option`.
     """

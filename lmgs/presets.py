@@ -37,7 +37,7 @@ class TrainConfig:
             trains its renderer on tracked landmarks and drives it with predicted ones). At k >= 2
             they are out-of-fold predictions of k predictors, each fitted without one contiguous
             block (:func:`lmgs.landmarks.cross_fit_landmarks`), as wrong as at test time. Measured on
-            the bundled subjects (5 seeds, issue 5): out of fold costs hopper its ST-LPIPS gain over
+            the bundled subjects (5 seeds): out of fold costs hopper its ST-LPIPS gain over
             TalkingGaussian; the toolkit's variant ``lmgs-oof`` is k = 5. An
             :func:`~lmgs.config.added_option`.
         lr_means, lr_scales, lr_quats, lr_opacity, lr_colors: Adam rates of the Gaussians.
@@ -57,7 +57,7 @@ class TrainConfig:
             full weight from the first dynamic step, that step's loss is ~70x the static
             stage's (the summed normal term against the static stage's unregularised normals):
             on bundled hopper (generator 2) training collapsed at step 859 (PSNR 35.9 -> 21.9
-            dB); with the 400-step ramp it trains (issue 5's note). Not in the paper, which
+            dB); with the 400-step ramp it trains. Not in the paper, which
             gives no schedule for the regularizer; its weights and summed term are kept.
         lambda_mouth: weight keeping the face transparent inside the mouth mask.
         lambda_lips: weight of an extra L1 term on the box around the lips (landmarks 48-67),

@@ -112,7 +112,7 @@ def test_ground_truth_confidence_above_wrong_audio(scorer, clips):
 
 
 def test_calibration_controls_separate_on_held_out_clips(scorer, clips):
-    """The self protocol's negative controls (issue 9): shifted audio is caught by the AV
+    """The self protocol's negative controls: shifted audio is caught by the AV
     offset (LSE-D/C take the best of +-15 offsets by definition), other audio and a still
     frame by LSE-C."""
     from lmgs_eval.protocols.calibration import control_clips

@@ -76,7 +76,7 @@ class BundledSpec:
 # face area = 10,000, the exact density of that run, so its models are this subject's models.
 # Only the built size and length it was measured at: the knee of a 64-pixel variant is unknown.
 # Measured on generator-1 data (the head over the photo); on generator 2 lmgs and TalkingGaussian
-# at this density beat their v1 figures on every metric (issue 5's note); the capacity sweep
+# at this density beat their v1 figures on every metric; the capacity sweep
 # re-checks it (`make bench`).
 KNEE_DENSITY = {BundledSpec("hopper"): 0.548559}
 

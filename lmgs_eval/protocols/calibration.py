@@ -29,7 +29,7 @@ def shift_audio(audio: np.ndarray, frames: int, fps: int = 25, sr: int = 16000) 
 
 
 def control_clips(gt: np.ndarray, audio: np.ndarray, other_audio: np.ndarray) -> list[tuple[str, str, dict, np.ndarray, np.ndarray]]:
-    """The negative controls of issue 9: ``(name, display, control, frames, audio)``.
+    """The negative controls: ``(name, display, control, frames, audio)``.
 
     * ground truth with its audio shifted by -10, -5, +5, +10 frames: LSE-D/LSE-C take the
       best of +-15 offsets by definition, so these target the AV offset;

@@ -1,4 +1,4 @@
-"""The fixed, versioned set of perturbed driving audio of the stability suite (issue 8).
+"""The fixed, versioned set of perturbed driving audio of the stability suite.
 
 Each condition is made from the subject's clean test audio (16 kHz mono float32) and, for
 "another voice", a bundled cross-driven clip. The set is deterministic: the same input,

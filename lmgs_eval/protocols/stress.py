@@ -1,4 +1,4 @@
-"""The stability suite (issue 8): drive trained models with perturbed audio, record where they break.
+"""The stability suite: drive trained models with perturbed audio, record where they break.
 
 For each method and each condition of :mod:`lmgs_eval.protocols.perturb` (made from the subject's
 clean test audio and, for "another voice", the bundled cross-driven clip A), the driving

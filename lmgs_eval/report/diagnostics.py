@@ -26,7 +26,7 @@ def _separates(gt: Cell, ctl: Cell, hib: bool) -> bool:
 
 def table_calibration(records: Sequence[Record],
                       metrics: Sequence[str] = ("psnr", "lpips", "lmd", "lse_d", "lse_c", "av_offset")) -> Table:
-    """Calibration (issue 9): the ground truth against its negative controls, per subject.
+    """Calibration: the ground truth against its negative controls, per subject.
 
     A metric *separates* when, for every control that targets it (``method.control.targets``;
     all metrics when absent), the ground truth is better and their bootstrap CIs do not
@@ -78,7 +78,7 @@ def table_calibration(records: Sequence[Record],
 
 
 def table_stability(records: Sequence[Record], metric: str = "lse_c", clean: str = "clean") -> Table:
-    """Stability (issue 8): per method x stress condition, the change of ``metric`` from the clean run.
+    """Stability: per method x stress condition, the change of ``metric`` from the clean run.
 
     Cells show ``value - clean`` (mean over seeds); failed runs are counted per cell, and the
     last column is the suite's cost: the wall time of the row's stress runs (render, scoring and
