@@ -144,8 +144,9 @@ def test_stress_lse_of_uint8_frames_equals_lse_of_float_frames(monkeypatch):
     import cv2
     from skimage import data
 
-    from lmgs_eval.protocols import stress
+    from lmgs_eval.metrics.metric_suite import MetricSuite
     from lmgs_eval.metrics.sync import lse
+    from lmgs_eval.protocols import stress
 
     face = cv2.resize(data.astronaut(), (256, 256), interpolation=cv2.INTER_AREA)
     frames = np.stack([np.roll(face, (i % 3, (i // 2) % 3), axis=(0, 1)) for i in range(24)]).astype(np.uint8)
@@ -153,13 +154,15 @@ def test_stress_lse_of_uint8_frames_equals_lse_of_float_frames(monkeypatch):
     audio = (0.3 * np.sin(2 * np.pi * 180 * t) * (0.6 + 0.4 * np.sin(2 * np.pi * 3 * t))).astype(np.float32)
     want = lse(frames.astype(np.float32) / 255.0, audio)
     assert want.available
-    got = stress.lse_u8(frames, audio)
+    got = stress.lse_u8(MetricSuite(), frames, audio)
     assert got.values == want.values and got.flags == want.flags
     monkeypatch.setattr(stress, "LONG_CLIP_FRAMES", 10)
-    long_got = stress.lse_u8(frames, audio)
+    long_got = stress.lse_u8(MetricSuite(), frames, audio)
     long_want = lse(frames.astype(np.float32) / 255.0, audio, detect_every=5)
     assert long_got.values == long_want.values
     assert any("every 5th frame" in n for n in long_got.notes)
+    # the run's --sync choice travels with its suite (stress workers are other processes)
+    assert stress.lse_u8(MetricSuite(sync="pixel"), frames, audio).spec.backend == "onnxruntime:bundled-sync"
 
 
 def test_jobs_run_the_suites_in_worker_processes_with_the_same_results(monkeypatch, tmp_path):

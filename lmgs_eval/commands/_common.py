@@ -31,11 +31,9 @@ def add_run_arguments(p: argparse.ArgumentParser, default_methods: tuple[str, ..
 def run_config(args: argparse.Namespace):
     from baselines.protocol import list_methods
     from lmgs.device import choose_device
-    from lmgs_eval.commands._sync import apply
     from lmgs_eval.metrics.metric_suite import MetricSuite
     from lmgs_eval.runner import RunConfig
 
-    apply(args)  # --sync: the scorer every LSE of this run uses
 
     methods = tuple(args.methods or args._default_methods)
     known = list_methods()

@@ -53,10 +53,9 @@ class MetricSuite:
         m = self.metric(name)
         return m.compute(m.update(pred, gt))
 
-    def lse(self, frames: np.ndarray, audio16k: np.ndarray | None, **kw) -> MetricResult:
+    def lse(self, frames: np.ndarray, audio16k: np.ndarray | None, *, in_sync: bool = False, **kw) -> MetricResult:
         """LSE-D / LSE-C / offset and its self-check, with the run's sync scorer (``in_sync``: see :meth:`score`)."""
         set_backend(self.sync)  # this process's selection (a worker process gets the run's too)
-        in_sync = kw.pop("in_sync", False)
         return lse(frames, audio16k, fps=25.0, reference=in_sync, **kw)
 
     def score(self, pred: np.ndarray, gt: np.ndarray | None, audio16k: np.ndarray | None, *, reference: bool = True,

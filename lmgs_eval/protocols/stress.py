@@ -41,7 +41,7 @@ from lmgs_eval.data.registry import find_subject
 from lmgs_eval.errors import UserError
 from lmgs_eval.metrics.base import MetricResult, MetricSpec
 from lmgs_eval.metrics.landmarks import DlibBackend, lmd_result
-from lmgs_eval.metrics.sync import lse
+from lmgs_eval.metrics.metric_suite import MetricSuite
 from lmgs_eval.protocols.cross import bundled_cross_clips
 from lmgs_eval.protocols.perturb import VERSION as PERTURB_VERSION
 from lmgs_eval.protocols.perturb import SR, Condition, make_conditions
@@ -97,12 +97,12 @@ def landmarks_u8(backend, frames: np.ndarray, chunk: int = 256) -> np.ndarray:
                            for i in range(0, len(frames), chunk)])
 
 
-def lse_u8(frames: np.ndarray, audio: np.ndarray):
-    """LSE of uint8 frames (cropped a chunk at a time by ``lse``, no float copy of the clip);
-    a long clip detects faces every 5 frames (the boxes are median-smoothed anyway)."""
+def lse_u8(suite: MetricSuite, frames: np.ndarray, audio: np.ndarray):
+    """LSE of uint8 frames with the run's sync scorer (cropped a chunk at a time by ``lse``, no float
+    copy of the clip); a long clip detects faces every 5 frames (the boxes are median-smoothed anyway)."""
     if len(frames) <= LONG_CLIP_FRAMES:
-        return lse(frames, audio)
-    r = lse(frames, audio, detect_every=5)
+        return suite.lse(frames, audio)
+    r = suite.lse(frames, audio, detect_every=5)
     r.notes.append(f"long clip ({len(frames)} frames): faces detected every 5th frame")
     return r
 
@@ -347,7 +347,7 @@ def _stress_one(cfg: RunConfig, ctx: dict, conds, name: str, seed: int, max_minu
             if why is None:
                 lms = landmarks_u8(backend, frames)
                 res = {"jitter": jitter_result(lms)}
-                res["lse"] = lse_u8(frames, audio)
+                res["lse"] = lse_u8(cfg.suite, frames, audio)
                 so = silence_open_result(lms, cond.silent_spans)
                 if so is not None:
                     res["silence_open"] = so
