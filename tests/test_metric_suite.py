@@ -38,3 +38,86 @@ def test_a_ground_truth_of_another_shape_is_one_line():
 
     with pytest.raises(InputError, match=r"rendered frames \(3, 64, 64, 3\) and ground truth \(3, 32, 32, 3\) differ"):
         MS.MetricSuite().score(_clip(1), _clip(0)[:, :32, :32], None)
+
+
+# ----------------------------------------------------------------------------- the ground truth's side, once
+def _face_clip(n: int = 24, size: int = 96, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    import cv2
+    from skimage import data
+
+    face = cv2.resize(data.astronaut()[0:280, 90:370], (size, size), interpolation=cv2.INTER_AREA)  # the head
+    rng = np.random.default_rng(seed)
+    gt = np.stack([np.roll(face, (i % 5) - 2, axis=1) for i in range(n)])
+    pred = np.clip(gt.astype(np.int16) + rng.integers(-12, 13, gt.shape), 0, 255).astype(np.uint8)
+    return gt, pred
+
+
+class _Counting:
+    """Wraps an LPIPS metric's ``features`` and counts the frames it is run on."""
+
+    def __init__(self, metric, monkeypatch):
+        self.frames = 0
+        real = metric.features
+
+        def counted(x):
+            self.frames += len(x)
+            return real(x)
+
+        monkeypatch.setattr(metric, "features", counted)
+
+
+def test_lpips_ground_truth_features_are_computed_once_and_give_the_same_distances(monkeypatch):
+    from lmgs_eval.metrics.lpips import LPIPS
+
+    gt, pred = _face_clip(10, 64)
+    gf, pf = gt.astype(np.float32) / 255, pred.astype(np.float32) / 255
+    plain = LPIPS("stlpips-alex", batch=4).distances(pf, gf)  # no key: nothing kept
+    m = LPIPS("stlpips-alex", batch=4)
+    count = _Counting(m, monkeypatch)
+    assert np.all(m.distances(gf, gf, gt_key="k", same=True) == 0.0)  # the ground truth row
+    assert count.frames == 10  # its features once, not twice
+    cached = m.distances(pf, gf, gt_key="k")
+    assert count.frames == 20  # then only the prediction's frames
+    np.testing.assert_allclose(cached, plain, rtol=1e-5, atol=1e-7)
+    assert plain.min() > 0.0
+    other = m.distances(pf, pf, gt_key="other")  # another key: computed afresh, not the cached features
+    assert count.frames == 40 and np.all(np.abs(other) < 1e-6)
+
+
+def test_lpips_features_over_the_budget_are_not_kept_and_say_so(monkeypatch):
+    from lmgs_eval.metrics.lpips import LPIPS
+
+    gt, pred = _face_clip(8, 64)
+    gf, pf = gt.astype(np.float32) / 255, pred.astype(np.float32) / 255
+    m = LPIPS("stlpips-alex", batch=4, cache_bytes=1000)
+    count = _Counting(m, monkeypatch)
+    a = m.distances(pf, gf, gt_key="k")
+    b = m.distances(pf, gf, gt_key="k")
+    assert count.frames == 32  # both clips' frames, both calls
+    np.testing.assert_array_equal(a, b)
+    assert "not cached" in m.cache_note and "LMGS_GT_CACHE_GB" in m.cache_note
+
+
+def test_the_suite_scores_the_ground_truth_side_once_and_lse_reads_lmds_landmarks(monkeypatch):
+    from lmgs_eval.metrics import landmarks as L
+    from lmgs_eval.metrics.sync import lse
+    from lmgs_eval.metrics.sync_select import load
+
+    gt, pred = _face_clip(40, 128)
+    audio = (0.1 * np.random.default_rng(3).standard_normal(40 * 640)).astype(np.float32)
+    suite = MS.MetricSuite(sync="landmark")
+    suite.score(gt, gt, audio, in_sync=True)
+    lp = suite.metric(suite.lpips_name)
+    count = _Counting(lp, monkeypatch)
+    calls = []
+    real = L.DlibBackend.landmarks
+    monkeypatch.setattr(L.DlibBackend, "landmarks", lambda self, f: calls.append(len(f)) or real(self, f))
+    res = suite.score(pred, gt, audio)
+    assert count.frames == 40  # the prediction only: the ground truth's features were kept
+    assert calls == [40]  # one landmark pass (LMD's on the prediction), reused by LSE; the ground truth's from cache
+    assert set(suite.timings) >= {"psnr", "ssim", suite.lpips_name, "lmd", "lse", "total"}
+    sc, _ = load("landmark")
+    alone = lse(pred.astype(np.float32) / 255, audio, scorer=sc)  # LSE finding its own landmarks
+    assert res["lse"].values["lse_d"] == pytest.approx(alone.values["lse_d"], abs=1e-9)
+    assert res["lse"].values["offset"] == alone.values["offset"]
+    assert "given with the clip" in " ".join(res["lse"].notes)

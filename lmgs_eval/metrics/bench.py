@@ -1,7 +1,10 @@
-"""``lmgs-eval bench metrics``: frames/s per metric at 256 and 512, ONNX Runtime vs eager torch LPIPS.
+"""``lmgs-eval bench metrics``: frames/s per metric at 256 and 512, ONNX Runtime vs eager torch LPIPS,
+and (``--suite``) the whole metric suite on one method's clip against a ground truth already scored.
 
 All figures are measured in this run on this machine; the ORT/eager ratio compares the
-same network (same weights) on the same frames.
+same network (same weights) on the same frames. The official LPIPS network's cost is timed
+with random weights of its shape when torchvision's trunk is absent (the same convolutions,
+so the same cost); its values are never reported.
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ import torch
 
 from lmgs_eval.metrics.image import psnr_per_frame, ssim_per_frame
 from lmgs_eval.metrics.landmarks import DlibBackend
-from lmgs_eval.metrics.lpips import LPIPS, build_stlpips_torch, export_lpips
+from lmgs_eval.metrics.lpips import LPIPS, LPIPS_ALEX_SPEC, backend_of, build_stlpips_torch
 from lmgs_eval.metrics.lpips_nets import AlexTrunk, LPIPSNet
 from lmgs_eval.metrics.ort import load_session, n_threads
 from lmgs_eval.metrics.sync import find_scorer, lse
@@ -25,8 +28,13 @@ HELP = "frames/s per metric (256, 512) and LPIPS ONNX Runtime vs eager torch, sa
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--frames", type=int, default=8, help="frames per measurement")
-    p.add_argument("--sizes", default="256,512", help="comma-separated square sizes")
+    p.add_argument("--frames", type=int, default=8, help="frames per measurement (with --suite: the clip's length, "
+                   "default 500)")
+    p.add_argument("--sizes", default="256,512", help="comma-separated square sizes (with --suite: the first, "
+                   "default 512)")
+    p.add_argument("--suite", action="store_true",
+                   help="time the whole metric suite (PSNR, SSIM, LPIPS, LMD, LSE) on one method's clip against a "
+                        "ground truth scored before it, with the official LPIPS network's shape and with ST-LPIPS")
 
 
 LSE_FRAMES = 50
@@ -54,12 +62,14 @@ def _best(fn, reps: int = 2) -> float:
 
 def run(args: argparse.Namespace) -> dict:
     torch.set_num_threads(n_threads())
+    if getattr(args, "suite", False):
+        return run_suite(args)
     n = int(args.frames)
     rows = []
     lp = LPIPS(batch=4)
     plain, _ = build_stlpips_torch(fold=False)
     dl = DlibBackend()
-    alex_timing = _alex_timing_session() if lp.spec.name != "lpips-alex" else None
+    alex_timing = alex_timing_lpips() if lp.spec.name != "lpips-alex" else None
     scorer, scorer_reason = find_scorer()
     per_frame_512 = {}
     for size in [int(s) for s in str(args.sizes).split(",")]:
@@ -82,12 +92,8 @@ def run(args: argparse.Namespace) -> dict:
             "lmd landmarks (dlib, pred+gt)": _best(lambda: (dl.landmarks(pred), dl.landmarks(gt)), 1),
         }
         if alex_timing is not None:
-            def alex_run():
-                for s in range(0, n, 4):
-                    alex_timing.run(["dist"], {"pred": tp[s:s + 4].numpy(), "gt": tg[s:s + 4].numpy()})
-
-            alex_run()  # warm-up
-            timings[ALEX_TIMING] = _best(alex_run)
+            alex_timing.distances(pred[:2], gt[:2])  # warm-up
+            timings[ALEX_TIMING] = _best(lambda: alex_timing.distances(pred, gt))
         ort_t = timings[f"{lp.spec.name} onnxruntime"]
         for name, t in timings.items():
             rows.append({"size": size, "metric": name, "frames_per_s": n / t, "ms_per_frame": 1000 * t / n,
@@ -129,15 +135,64 @@ def run(args: argparse.Namespace) -> dict:
 ALEX_TIMING = "lpips-alex onnxruntime (timing only: same network, random weights; official trunk not here)"
 
 
-def _alex_timing_session():
-    """The official LPIPS-alex graph with random weights, exported to a temporary file.
+def alex_timing_lpips() -> LPIPS:
+    """The official LPIPS-alex network with random weights, as an :class:`LPIPS` metric (exported to a temp file).
 
     Only for timing: the network (and so its cost) is the official metric's; its values
     mean nothing and are never reported. Used when the torchvision trunk file is absent.
     """
     torch.manual_seed(0)
     net = LPIPSNet(AlexTrunk()).eval()
-    with tempfile.TemporaryDirectory() as d:
-        path = Path(d) / "lpips_alex_timing.onnx"
-        export_lpips(net, path)
-        return load_session(path)
+    with torch.no_grad():
+        for lin in net.lins:
+            lin.weight.abs_()  # the published heads are non-negative
+    spec = LPIPS_ALEX_SPEC.with_weights(None)
+    with tempfile.TemporaryDirectory() as d:  # the session keeps the graph in memory
+        backend = backend_of(net, spec, "lpips-alex-timing", None, path=Path(d) / "lpips_alex_timing.onnx")
+    return LPIPS(backend=backend)
+
+
+def _talking_clip(n: int, size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A ``n``-frame uint8 ground truth (the astronaut photo, drifting), a noisy prediction and 16 kHz audio."""
+    import cv2
+    from skimage import data
+
+    face = cv2.resize(data.astronaut(), (size, size), interpolation=cv2.INTER_AREA)
+    rng = np.random.default_rng(0)
+    gt = np.empty((n, size, size, 3), np.uint8)
+    pred = np.empty_like(gt)
+    for i in range(n):
+        gt[i] = np.roll(face, (i % 8) - 4, axis=1)
+        pred[i] = np.clip(gt[i].astype(np.int16) + rng.integers(-8, 9, gt[i].shape), 0, 255)
+    audio = (0.1 * rng.standard_normal(n * 640)).astype(np.float32)
+    return gt, pred, audio
+
+
+def run_suite(args: argparse.Namespace) -> dict:
+    """The metric suite on one method's clip against a ground truth already scored, both LPIPS networks.
+
+    For each network: the ground truth is scored first (the protocols' "Ground Truth" row; it
+    fills the ground-truth caches), then the method's clip is scored and timed metric by metric.
+    """
+    from lmgs_eval.metrics.metric_suite import MetricSuite
+
+    n = int(args.frames) if args.frames != 8 else 500
+    size = int(str(args.sizes).split(",")[0]) if args.sizes != "256,512" else 512
+    gt, pred, audio = _talking_clip(n, size)
+    rows, totals = [], {}
+    for label, make in (("lpips-alex (official shape, random weights)", alex_timing_lpips),
+                        ("stlpips-alex", lambda: LPIPS("stlpips-alex"))):
+        suite = MetricSuite()
+        suite.use_lpips(make())
+        t = time.perf_counter()
+        suite.score(gt, gt, audio, in_sync=True)
+        gt_s = time.perf_counter() - t
+        res = suite.score(pred, gt, audio)
+        for metric, sec in suite.timings.items():
+            rows.append({"lpips_network": label, "metric": metric, "seconds": round(sec, 2),
+                         "ms_per_frame": round(1000 * sec / n, 2)})
+        totals[label] = {"ground_truth_pass_s": round(gt_s, 1), "method_pass_s": round(suite.timings["total"], 1),
+                         "lpips_notes": [x for x in res[suite.lpips_name].notes if "cache" in x]}
+        del suite
+    return {"threads": n_threads(), "frames": n, "size": size, "totals": totals, "rows": rows,
+            "goal": "method pass <= 60 s with the official LPIPS network, <= 150 s with ST-LPIPS (500 frames, 512x512)"}

@@ -322,8 +322,12 @@ class LMD:
         self.gt_backend = gt_backend or self.backend
         self.spec = LMD_SPEC.with_weights(None, backend=f"{self.backend.version}|gt:{self.gt_backend.version}")
 
-    def update(self, pred: np.ndarray, gt: np.ndarray) -> dict[str, np.ndarray]:
-        return {"pred_lms": self.backend.landmarks(pred), "gt_lms": cached_landmarks(self.gt_backend, gt)}
+    def update(self, pred: np.ndarray, gt: np.ndarray, same: bool = False) -> dict[str, np.ndarray]:
+        """Landmarks of both clips (``same``: ``pred`` is ``gt``, detected once when one backend reads both)."""
+        gt_lms = cached_landmarks(self.gt_backend, gt)
+        if same and self.gt_backend is self.backend:
+            return {"pred_lms": gt_lms, "gt_lms": gt_lms}
+        return {"pred_lms": self.backend.landmarks(pred), "gt_lms": gt_lms}
 
     def compute(self, stats: dict[str, np.ndarray]) -> MetricResult:
         return lmd_result(stats["pred_lms"], stats["gt_lms"], self.spec)

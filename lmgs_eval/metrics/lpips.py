@@ -39,10 +39,10 @@ from lmgs_eval.errors import UserError
 import torch
 
 from lmgs_eval.metrics.base import MetricResult, MetricSpec, check_pair, mean_result
-from lmgs_eval.metrics.lpips_nets import AlexTrunk, LPIPSNet, STAlexTrunk
+from lmgs_eval.metrics.lpips_nets import AlexTrunk, FeatureGraph, LPIPSNet, STAlexTrunk
 from lmgs_eval.metrics.ort import export_onnx, load_session, load_torch_state, onnx_cache_dir, sha256_file
 
-EXPORT_VERSION = "1"
+EXPORT_VERSION = "2"  # 2: the graph is the feature half; distances are computed outside it
 ALEXNET_CKPT = "alexnet-owt-7be5be79.pth"
 MIN_SIDE = 32
 
@@ -163,15 +163,16 @@ def onnx_path(name: str, sha: str) -> Path:
 
 
 def export_lpips(net, path: Path) -> None:
-    dummy = torch.rand(1, 3, 64, 64)
+    """Export the feature half of ``net`` (:class:`FeatureGraph`): ``x -> f1..f5``, dynamic batch and size."""
+    dummy = torch.rand(2, 3, 64, 64)
     axes = {0: "n", 2: "h", 3: "w"}
-    export_onnx(net, (dummy, dummy.clone()), path, ["pred", "gt"], ["dist"],
-                {"pred": axes, "gt": axes, "dist": {0: "n"}})
+    outs = [f"f{i}" for i in range(1, 6)]
+    export_onnx(FeatureGraph(net).eval(), (dummy,), path, ["x"], outs, {"x": axes, **{o: axes for o in outs}})
 
 
-def lpips_session(net, name: str, sha: str, threads: int | None = None):
-    """Load (or export once, then load) the cached ONNX graph of ``net``."""
-    path = onnx_path(name, sha)
+def lpips_session(net, name: str, sha: str, threads: int | None = None, path: Path | None = None):
+    """Load (or export once, then load) the cached ONNX feature graph of ``net`` (at ``path`` when given)."""
+    path = path or onnx_path(name, sha)
     if not path.is_file():
         export_lpips(net, path)
     try:
@@ -216,44 +217,118 @@ def resolve_lpips(name: str | None = None, alexnet: str | os.PathLike | None = N
         spec = STLPIPS_ALEX_SPEC
     else:
         raise UserError(f"unknown LPIPS network {name!r}")
-    sess, path = lpips_session(net, name, sha, threads) if use_onnx else (None, None)
+    return backend_of(net, spec, name, sha, use_onnx, threads)
+
+
+def backend_of(net, spec: MetricSpec, name: str, sha: str | None, use_onnx: bool = True, threads: int | None = None,
+               path: Path | None = None) -> LPIPSBackend:
+    """An :class:`LPIPSBackend` for a built network (exports and loads its feature graph when ``use_onnx``)."""
+    sess, path = lpips_session(net, name, sha, threads, path) if use_onnx else (None, None)
     return LPIPSBackend(spec.with_weights(sha, "onnxruntime" if use_onnx else "torch"), net, sess, path)
+
+
+def default_cache_budget() -> int:
+    """Bytes the ground-truth feature cache may hold: ``$LMGS_GT_CACHE_GB``, else 40 % of free memory, at most 8 GiB."""
+    env = os.environ.get("LMGS_GT_CACHE_GB")
+    if env:
+        try:
+            return int(float(env) * 2**30)
+        except ValueError:
+            raise UserError(f"LMGS_GT_CACHE_GB={env!r}: expected a number of GiB") from None
+    try:
+        free = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        free = 4 * 2**30
+    return int(min(8 * 2**30, 0.4 * free))
 
 
 class LPIPS:
     """LPIPS metric over frames, batched through ONNX Runtime (or eager torch).
 
+    The network runs as its feature half (trunk and channel normalisation, :func:`export_lpips`);
+    the distance, a weighted sum of squared feature differences averaged over each layer's pixels,
+    is computed here in float32. So a ground truth's features can be kept and reused: with
+    ``gt_key`` (a digest of the ground-truth frames) they are computed once and held while they
+    fit in ``cache_bytes`` (about 10 MB per 512x512 frame for the official network, 45 MB for
+    ST-LPIPS); a clip whose features do not fit is recomputed per call and says so in its notes.
+
     Args:
         name: see :func:`resolve_lpips`.
-        batch: frame pairs per run (bounds memory: about 0.25 GB per pair at 512x512 for ST).
+        batch: frames per run (bounds the working memory).
+        cache_bytes: the ground-truth cache's budget (default :func:`default_cache_budget`).
     """
 
     def __init__(self, name: str | None = None, alexnet=None, use_onnx: bool = True, batch: int = 4,
-                 threads: int | None = None):
-        self.backend = resolve_lpips(name, alexnet, use_onnx, threads)
+                 threads: int | None = None, cache_bytes: int | None = None, backend: LPIPSBackend | None = None):
+        self.backend = backend or resolve_lpips(name, alexnet, use_onnx, threads)
         self.spec = self.backend.spec
         self.batch = int(batch)
+        self.cache_bytes = default_cache_budget() if cache_bytes is None else int(cache_bytes)
+        self._heads = [w.numpy().astype(np.float32) for w in self.backend.net.head_weights()]
+        self._gt_key: str | None = None
+        self._gt_feats: list | None = None
+        self.cache_note = ""
 
-    def distances(self, pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
-        """Per-frame distances of ``[T, H, W, 3]`` float frames in [0, 1]."""
+    def features(self, x: np.ndarray) -> list[np.ndarray]:
+        """Normalised features of ``[N, H, W, 3]`` float frames in [0, 1]: five ``[N, C, h, w]`` float32 arrays."""
+        x = np.ascontiguousarray(x.transpose(0, 3, 1, 2), np.float32)
+        if self.backend.session is not None:
+            return self.backend.session.run(None, {"x": x})
+        with torch.no_grad():
+            return [f.numpy() for f in self.backend.net.features(torch.from_numpy(x))]
+
+    def distance(self, fp: list[np.ndarray], fg: list[np.ndarray]) -> np.ndarray:
+        """Per-image LPIPS of two feature lists (``fg`` of batch 1 broadcasts)."""
+        total = np.zeros(fp[0].shape[0], np.float64)
+        for w, a, b in zip(self._heads, fp, fg):
+            d = a - b
+            d *= d
+            total += np.tensordot(d, w, axes=([1], [0])).mean(axis=(1, 2), dtype=np.float64)
+        return total
+
+    def distances(self, pred: np.ndarray, gt: np.ndarray, gt_key: str | None = None, same: bool = False) -> np.ndarray:
+        """Per-frame distances of ``[T, H, W, 3]`` float frames in [0, 1].
+
+        Args:
+            gt_key: a digest of ``gt`` (content, not identity): its features are kept for the next call with the
+                same key while they fit the cache budget.
+            same: ``pred`` is ``gt`` (the ground truth scored as a method): distances are 0 and only the
+                ground truth's features are computed (to fill the cache).
+        """
         pred, gt = check_pair(pred, gt)
         t, h, w, _ = pred.shape
         if h < MIN_SIDE or w < MIN_SIDE:
             raise UserError(f"{self.spec.name}: frames must be at least {MIN_SIDE}x{MIN_SIDE}, got {h}x{w}")
+        cached = self._gt_feats if (gt_key is not None and gt_key == self._gt_key) else None
+        keep: list | None = [] if (gt_key is not None and cached is None) else None
         out = np.empty(t, np.float64)
-        for s in range(0, t, self.batch):
-            p = np.ascontiguousarray(pred[s:s + self.batch].transpose(0, 3, 1, 2), np.float32)
-            g = np.ascontiguousarray(gt[s:s + self.batch].transpose(0, 3, 1, 2), np.float32)
-            if self.backend.session is not None:
-                d = self.backend.session.run(["dist"], {"pred": p, "gt": g})[0]
+        held = 0
+        for k, s in enumerate(range(0, t, self.batch)):
+            e = min(t, s + self.batch)
+            if cached is not None:
+                fg = cached[k]
+                fp = None if same else self.features(pred[s:e])
+            elif same:
+                fg, fp = self.features(gt[s:e]), None
             else:
-                with torch.no_grad():
-                    d = self.backend.net(torch.from_numpy(p), torch.from_numpy(g)).numpy()
-            out[s:s + p.shape[0]] = d
+                both = self.features(np.concatenate([pred[s:e], gt[s:e]]))
+                fp, fg = [f[:e - s] for f in both], [np.ascontiguousarray(f[e - s:]) for f in both]
+            out[s:e] = 0.0 if same else self.distance(fp, fg)
+            if keep is not None:
+                held += sum(f.nbytes for f in fg)
+                if held * t / e > self.cache_bytes:  # the whole clip's features would not fit
+                    keep = None
+                    need = held * t / e / 2**30
+                    self.cache_note = (f"ground-truth features not cached: {need:.1f} GiB for {t} frames exceed the "
+                                       f"budget of {self.cache_bytes / 2**30:.1f} GiB (LMGS_GT_CACHE_GB)")
+                else:
+                    keep.append(fg)
+        if keep is not None:
+            self._gt_key, self._gt_feats, self.cache_note = gt_key, keep, ""
         return out
 
-    def update(self, pred: np.ndarray, gt: np.ndarray) -> dict[str, np.ndarray]:
-        return {"per_item": self.distances(pred, gt)}
+    def update(self, pred: np.ndarray, gt: np.ndarray, gt_key: str | None = None, same: bool = False) -> dict[str, np.ndarray]:
+        return {"per_item": self.distances(pred, gt, gt_key, same)}
 
     def compute(self, stats: dict[str, np.ndarray]) -> MetricResult:
         r = mean_result(self.spec, stats["per_item"], [])

@@ -181,14 +181,36 @@ class LPIPSNet(nn.Module):
                 raise UserError(f"LPIPS heads: missing key {key!r}")
             lin.weight.data.copy_(sd[key].reshape(lin.weight.shape))
 
+    def features(self, x):
+        """The five channel-normalised feature maps of [0, 1] images ``[N, 3, H, W]``."""
+        x = (x * 2.0 - 1.0 - self.shift) / self.scale
+        return tuple(f / (torch.sqrt(torch.sum(f * f, dim=1, keepdim=True)) + 1e-10) for f in self.trunk(x))
+
+    def head_weights(self) -> list:
+        """The linear heads' channel weights, one ``[C_l]`` tensor per layer."""
+        return [lin.weight.detach().reshape(-1) for lin in self.lins]
+
     def forward(self, pred, gt):
         n = pred.shape[0]
-        x = torch.cat([pred, gt], dim=0) * 2.0 - 1.0  # one trunk pass for both images
-        x = (x - self.shift) / self.scale
+        feats = self.features(torch.cat([pred, gt], dim=0))  # one trunk pass for both images
         total = None
-        for lin, f in zip(self.lins, self.trunk(x)):
-            f = f / (torch.sqrt(torch.sum(f * f, dim=1, keepdim=True)) + 1e-10)
+        for lin, f in zip(self.lins, feats):
             d = (f[:n] - f[n:]) ** 2
             v = lin(d).mean(dim=(2, 3))[:, 0]
             total = v if total is None else total + v
         return total
+
+
+class FeatureGraph(nn.Module):
+    """``forward(x) -> (f1..f5)``: the exported half of LPIPS (its trunk and normalisation).
+
+    The distance itself (a weighted sum of squared differences) is computed outside the graph,
+    so one image's features can be reused against many others (a ground truth scored once).
+    """
+
+    def __init__(self, net: LPIPSNet):
+        super().__init__()
+        self.net = net
+
+    def forward(self, x):
+        return self.net.features(x)

@@ -231,6 +231,10 @@ class LandmarkScorer:
                 lms = cached_landmarks(det, frames[:last + 4])
             notes.append("video: dlib 68 landmarks (HOG, tracked, re-detected every 10 frames), mouth points 48-67 "
                          "pose-normalised on eye corners and nose, clip mean removed, RMS-scaled")
+        else:
+            notes.append("video: the 68 landmarks given with the clip (the metric suite passes LMD's, found by the "
+                         "same dlib tracker), mouth points 48-67 pose-normalised on eye corners and nose, clip mean "
+                         "removed, RMS-scaled")
         lms, n_missing = fill_missing(np.asarray(lms)[:last + 4])
         if n_missing:
             flags.append(f"no_face: {n_missing} frame(s) without landmarks, interpolated from their neighbours")
