@@ -150,3 +150,13 @@ def test_smoke_bench_metrics(demo_store):
     rc, out, err = run_cli("bench", "metrics", "--frames", "2", "--sizes", "64", "--json")
     assert rc == 0, err
     assert json.loads(out)
+
+
+def test_smoke_bench_metrics_suite():
+    rc, out, err = run_cli("bench", "metrics", "--suite", "--frames", "12", "--sizes", "128", "--json")
+    assert rc == 0, err
+    res = json.loads(out)
+    assert res["frames"] == 12 and res["size"] == 128
+    timed = {(r["lpips_network"], r["metric"]) for r in res["rows"]}
+    for net in res["totals"]:
+        assert {(net, m) for m in ("psnr", "ssim", "lmd", "lse", "total")} <= timed

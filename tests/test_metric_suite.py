@@ -84,18 +84,23 @@ def test_lpips_ground_truth_features_are_computed_once_and_give_the_same_distanc
     assert count.frames == 40 and np.all(np.abs(other) < 1e-6)
 
 
-def test_lpips_features_over_the_budget_are_not_kept_and_say_so(monkeypatch):
+def test_lpips_features_over_the_budget_are_kept_in_part_and_say_so(monkeypatch):
     from lmgs_eval.metrics.lpips import LPIPS
 
     gt, pred = _face_clip(8, 64)
     gf, pf = gt.astype(np.float32) / 255, pred.astype(np.float32) / 255
-    m = LPIPS("stlpips-alex", batch=4, cache_bytes=1000)
+    m = LPIPS("stlpips-alex", batch=4)
+    per_batch = sum(f.nbytes for f in m.features(gf[:4]))
+    m.cache_bytes = per_batch + 1  # room for the first batch of 4 frames only
     count = _Counting(m, monkeypatch)
     a = m.distances(pf, gf, gt_key="k")
+    assert count.frames == 16 and "cached for 4 of 8 frames" in m.cache_note
     b = m.distances(pf, gf, gt_key="k")
-    assert count.frames == 32  # both clips' frames, both calls
-    np.testing.assert_array_equal(a, b)
-    assert "not cached" in m.cache_note and "LMGS_GT_CACHE_GB" in m.cache_note
+    assert count.frames == 16 + 4 + 8  # the first batch's ground truth from the cache, the second recomputed
+    np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
+    m.cache_bytes = 0
+    m.distances(pf, gf, gt_key="k2")
+    assert "cached for 0 of 8 frames" in m.cache_note and "LMGS_GT_CACHE_GB" in m.cache_note
 
 
 def test_the_suite_scores_the_ground_truth_side_once_and_lse_reads_lmds_landmarks(monkeypatch):

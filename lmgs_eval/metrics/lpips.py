@@ -248,9 +248,9 @@ class LPIPS:
     The network runs as its feature half (trunk and channel normalisation, :func:`export_lpips`);
     the distance, a weighted sum of squared feature differences averaged over each layer's pixels,
     is computed here in float32. So a ground truth's features can be kept and reused: with
-    ``gt_key`` (a digest of the ground-truth frames) they are computed once and held while they
-    fit in ``cache_bytes`` (about 10 MB per 512x512 frame for the official network, 45 MB for
-    ST-LPIPS); a clip whose features do not fit is recomputed per call and says so in its notes.
+    ``gt_key`` (a digest of the ground-truth frames) they are computed once and held, as many
+    frames as fit in ``cache_bytes`` (about 10 MB per 512x512 frame for the official network,
+    45 MB for ST-LPIPS); frames beyond the budget are recomputed per call, and the result says so.
 
     Args:
         name: see :func:`resolve_lpips`.
@@ -299,13 +299,14 @@ class LPIPS:
         t, h, w, _ = pred.shape
         if h < MIN_SIDE or w < MIN_SIDE:
             raise UserError(f"{self.spec.name}: frames must be at least {MIN_SIDE}x{MIN_SIDE}, got {h}x{w}")
-        cached = self._gt_feats if (gt_key is not None and gt_key == self._gt_key) else None
-        keep: list | None = [] if (gt_key is not None and cached is None) else None
-        out = np.empty(t, np.float64)
+        cached = self._gt_feats if (gt_key is not None and gt_key == self._gt_key) else []
+        building = gt_key is not None and gt_key != self._gt_key
+        keep: list = []
         held = 0
+        out = np.empty(t, np.float64)
         for k, s in enumerate(range(0, t, self.batch)):
             e = min(t, s + self.batch)
-            if cached is not None:
+            if k < len(cached):
                 fg = cached[k]
                 fp = None if same else self.features(pred[s:e])
             elif same:
@@ -314,17 +315,17 @@ class LPIPS:
                 both = self.features(np.concatenate([pred[s:e], gt[s:e]]))
                 fp, fg = [f[:e - s] for f in both], [np.ascontiguousarray(f[e - s:]) for f in both]
             out[s:e] = 0.0 if same else self.distance(fp, fg)
-            if keep is not None:
-                held += sum(f.nbytes for f in fg)
-                if held * t / e > self.cache_bytes:  # the whole clip's features would not fit
-                    keep = None
-                    need = held * t / e / 2**30
-                    self.cache_note = (f"ground-truth features not cached: {need:.1f} GiB for {t} frames exceed the "
-                                       f"budget of {self.cache_bytes / 2**30:.1f} GiB (LMGS_GT_CACHE_GB)")
-                else:
+            if building and len(keep) == k:  # a prefix of the clip, as much as the budget holds
+                size = sum(f.nbytes for f in fg)
+                if held + size <= self.cache_bytes:
                     keep.append(fg)
-        if keep is not None:
-            self._gt_key, self._gt_feats, self.cache_note = gt_key, keep, ""
+                    held += size
+        if building:
+            self._gt_key, self._gt_feats = gt_key, keep
+            kept = min(t, len(keep) * self.batch)
+            self.cache_note = "" if kept == t else (
+                f"ground-truth features cached for {kept} of {t} frames (the rest are recomputed for every clip "
+                f"scored against them): the budget is {self.cache_bytes / 2**30:.1f} GiB (LMGS_GT_CACHE_GB)")
         return out
 
     def update(self, pred: np.ndarray, gt: np.ndarray, gt_key: str | None = None, same: bool = False) -> dict[str, np.ndarray]:
