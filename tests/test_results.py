@@ -447,3 +447,18 @@ def test_verify_of_imported_records_excuses_only_their_renders_and_checkpoints(t
     assert f"render {here / 'renders' / 'b.mp4'}: missing" in out
     assert out.count(f"weights:sync {weights}: changed") == 3
     assert "4 of 4 records" in out
+
+
+def test_input_artefacts_name_the_sync_scorer_that_made_the_lse(tmp_path):
+    from types import SimpleNamespace
+
+    from lmgs_eval.metrics import sync_landmark
+    from lmgs_eval.results.records import input_artefacts
+
+    subject = SimpleNamespace(root=tmp_path)
+    for backend, weights in (("onnxruntime:landmark-sync", sync_landmark.WEIGHTS / sync_landmark.ONNX_NAME),
+                             ("onnxruntime:bundled-sync", sync_landmark.WEIGHTS / "bundled_sync.onnx")):
+        got = input_artefacts({"lse_d": {"backend": backend, "value": 1.0}}, subject)
+        assert got["weights:sync"] == {"path": str(weights.resolve()), "sha256": R.sha256_file(weights)}
+    assert "weights:sync" not in input_artefacts({"lse_d": {"backend": "onnxruntime:landmark-sync", "value": None}},
+                                                  subject)

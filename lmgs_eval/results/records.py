@@ -112,6 +112,10 @@ def input_artefacts(metrics: dict, subject) -> dict:
     if (metrics.get("lse_d") or {}).get("value") is not None:
         if sb.endswith("bundled-sync"):
             files["weights:sync"] = S.BUNDLED_DIR / "bundled_sync.onnx"
+        elif sb.endswith("landmark-sync"):
+            from lmgs_eval.metrics import sync_landmark
+
+            files["weights:sync"] = sync_landmark.WEIGHTS / sync_landmark.ONNX_NAME
         elif sb.endswith("syncnet-v2") and S.syncnet_manifest_path().is_file():
             files["weights:sync"] = Path(json.loads(S.syncnet_manifest_path().read_text())["onnx"])
     if (metrics.get("lmd") or {}).get("value") is not None:
