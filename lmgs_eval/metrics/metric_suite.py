@@ -14,7 +14,7 @@ import numpy as np
 
 from lmgs_eval.errors import UserError
 from lmgs_eval.metrics.base import MetricResult
-from lmgs_eval.metrics.lpips import find_alexnet
+from lmgs_eval.metrics.lpips import ALEX_NAMES, find_alexnet
 from lmgs_eval.metrics.registry import create_metric
 from lmgs_eval.metrics.sync import lse
 from lmgs_eval.metrics.sync_select import set_backend
@@ -40,16 +40,19 @@ class MetricSuite:
 
     @property
     def lpips_name(self) -> str:
+        """The LPIPS network asked for: ``lpips-alex`` when a trunk is found (its result is named
+        ``lpips-alex-custom`` when the trunk is not torchvision's), else ``stlpips-alex``."""
         return "lpips-alex" if find_alexnet(self.alexnet) else "stlpips-alex"
 
     def metric(self, name: str):
         """The paired metric ``name`` (``psnr``, ``ssim``, ``lpips-alex``, ``stlpips-alex``, ``lmd``), built once."""
         if name not in self._metrics:
-            self._metrics[name] = create_metric(name, **({"alexnet": self.alexnet} if name == "lpips-alex" else {}))
+            self._metrics[name] = create_metric(name, **({"alexnet": self.alexnet} if name in ALEX_NAMES else {}))
         return self._metrics[name]
 
     def paired(self, name: str, pred: np.ndarray, gt: np.ndarray) -> MetricResult:
-        """One paired metric of float frames in [0, 1]."""
+        """One paired metric of float frames in [0, 1] (its result's ``spec.name`` may differ from ``name``:
+        ``lpips-alex`` scores as ``lpips-alex-custom`` with a trunk that is not torchvision's)."""
         m = self.metric(name)
         return m.compute(m.update(pred, gt))
 
@@ -75,6 +78,7 @@ class MetricSuite:
             if lmd:
                 names.append("lmd")
             for name in names:
-                out[name] = self.paired(name, pf, gf)
+                r = self.paired(name, pf, gf)
+                out[r.spec.name] = r
         out["lse"] = self.lse(pf, audio16k, audio_reason="" if audio16k is not None else "no audio", in_sync=in_sync)
         return out
