@@ -38,6 +38,24 @@ def write_pcm_wav(path: Path, x: np.ndarray, sr: int) -> None:
         w.writeframes(pcm.tobytes())
 
 
+ALEXNET_SHAPES = {"features.0": (64, 3, 11, 11), "features.3": (192, 64, 5, 5), "features.6": (384, 192, 3, 3),
+                  "features.8": (256, 384, 3, 3), "features.10": (256, 256, 3, 3)}
+
+
+def random_alexnet_state(seed: int = 0) -> dict:
+    """A random state dict in torchvision's alexnet key layout (the real trunk is not on this machine)."""
+    import torch
+
+    g = torch.Generator().manual_seed(seed)
+    sd = {}
+    for k, s in ALEXNET_SHAPES.items():
+        fan = s[1] * s[2] * s[3]
+        sd[f"{k}.weight"] = torch.randn(s, generator=g) * (2.0 / fan) ** 0.5
+        sd[f"{k}.bias"] = torch.zeros(s[0])
+    sd["classifier.1.weight"] = torch.zeros(4, 4)  # the classifier is not used: any shape is accepted
+    return sd
+
+
 def make_ernerf_folder(root: Path, n: int = 12, size: int = 32, seed: int = 0) -> dict:
     """Write a tiny subject exactly as ER-NeRF's process.py lays it out; return what was written."""
     import cv2

@@ -73,6 +73,46 @@ def test_a_non_checkpoint_file_given_as_weights(world):
     assert snap() == before
 
 
+def _edit_trunk(kind: str, sd: dict) -> None:
+    import torch
+
+    if kind == "shape":
+        sd["features.3.weight"] = torch.zeros(192, 64, 3, 3)
+    elif kind == "missing":
+        del sd["features.0.weight"]
+    else:  # a DataParallel-style prefix: every key renamed
+        for k in [k for k in sd if k.startswith("features.")]:
+            sd["module." + k] = sd.pop(k)
+
+
+@pytest.mark.parametrize("kind, words", [
+    ("shape", ["features.3.weight: expected shape (192, 64, 5, 5), got (192, 64, 3, 3)"]),
+    ("missing", ["missing 'features.0.weight'"]),
+    ("renamed", ["missing 'features.0.weight', 'features.0.bias'", "and 6 more", "unexpected 'module.features.0.bias'"]),
+])
+def test_an_alexnet_checkpoint_out_of_torchvisions_layout(world, kind, words):
+    import torch
+
+    from conftest import random_alexnet_state
+    from lmgs_eval.metrics.lpips import lpips_heads_path
+
+    if lpips_heads_path() is None:
+        pytest.skip("lpips wheel not installed")
+    tmp, res, snap = world
+    ck = tmp / "alexnet-owt-7be5be79.pth"
+    sd = random_alexnet_state()
+    _edit_trunk(kind, sd)
+    torch.save(sd, ck)
+    write_frames(tmp / "pred", range(3), size=40)
+    before = snap()
+    rc, out, err = run_cli("score", "--pred", str(tmp / "pred"), "--gt", str(tmp / "pred"), "--alexnet", str(ck),
+                           "--metrics", "lpips")
+    line = one_line_error(rc, out, err, str(ck), *words)
+    assert " c1." not in line and " c2." not in line  # torchvision's key, not the port's layer name
+    assert len(err.strip().splitlines()) == 1, err
+    assert snap() == before
+
+
 @pytest.mark.parametrize("seed", ["-1", str(2 ** 32)])
 def test_a_seed_out_of_range(world, seed):
     tmp, res, snap = world

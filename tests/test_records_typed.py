@@ -83,3 +83,39 @@ def test_the_committed_tables_are_made_again_byte_for_byte(committed):
             path = ROOT / "tables" / f"{t.name}.{ext}"
             if path.exists():
                 assert path.read_text(encoding="utf-8") == text, path
+
+
+def test_a_metric_entry_carries_each_weights_file_and_old_entries_still_read(tmp_path):
+    """``weights_files`` (LPIPS alex: the trunk and the heads, path and sha256) beside ``weights_sha256``: optional,
+    so the committed records (without it) read and re-encode as they were (the test above)."""
+    import types
+
+    import torch
+
+    from conftest import random_alexnet_state
+    from lmgs_eval.metrics import lpips as L
+    from lmgs_eval.results.records import input_artefacts, metrics_block
+    from test_results import record
+
+    if L.lpips_heads_path() is None:
+        pytest.skip("lpips wheel not installed")
+    ck = tmp_path / L.ALEXNET_CKPT
+    torch.save(random_alexnet_state(), ck)
+    m = L.LPIPS("lpips-alex", alexnet=ck, use_onnx=False)
+    frames = torch.rand(2, 40, 40, 3).numpy()
+    block = metrics_block({"lpips": m.compute(m.update(frames, frames[::-1].copy()))})
+    assert list(block) == ["lpips_custom"]
+    rec = record("lmgs", "Ours", "3DGS", 0, block)
+    assert validate(rec) == []
+    typed = Record.from_dict(rec)
+    trunk = typed.metrics["lpips_custom"].weights_files["alexnet"]
+    assert trunk.path == str(ck.resolve()) and trunk.sha256 == L.sha256_file(ck)
+    assert typed.to_dict()["metrics"] == json.loads(json.dumps(rec["metrics"]))
+    # lmgs-eval verify re-hashes the files the number was made with (the trunk given, not the hub cache's)
+    arts = input_artefacts(block, types.SimpleNamespace(root=tmp_path))
+    assert arts["weights:alexnet"] == {"path": str(ck.resolve()), "sha256": trunk.sha256}
+    assert arts["weights:lpips_heads"]["sha256"] == L.LPIPS_HEADS_SHA256
+    bad = json.loads(json.dumps(rec))
+    bad["metrics"]["lpips_custom"]["weights_files"]["alexnet"]["sha256"] = "7be5be79"
+    assert validate(bad) == ["record.metrics.lpips_custom.weights_files.alexnet.sha256: '7be5be79' does not match "
+                             "^[0-9a-f]{64}$"]

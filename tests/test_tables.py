@@ -77,6 +77,25 @@ def test_mixed_backends_are_flagged_and_not_ranked():
     assert _row(md, "Ours (lmgs)")[1].startswith("**")
 
 
+def test_a_custom_alexnet_trunk_has_its_own_column_never_the_lpips_one():
+    recs = fixture_records()
+    custom = "an AlexNet-shaped trunk that is not torchvision's published alexnet-owt-7be5be79.pth"
+    for r in recs:
+        if r["method"]["name"] == "ernerf" and r["protocol"]["name"] == "self":
+            e = r["metrics"].pop("lpips")
+            r["metrics"]["lpips_custom"] = {**e, "backend": "lpips-alex-custom(1234abcd)", "backend_version": "0.1",
+                                            "standin": custom}
+    md = T.table_self(recs).markdown()
+    assert _row(md, "Method")[1:5] == ["PSNR↑", "LPIPS↓", "LPIPS (custom trunk)↓", "LMD↓"]
+    er, ours, tg = _row(md, "ER-NeRF"), _row(md, "Ours (lmgs)"), _row(md, "TalkingGaussian")
+    assert er[2] == "N/A" and er[3].startswith("0.086")  # the custom number is not in the LPIPS column
+    assert ours[3] == tg[3] == "N/A"
+    assert "‡" not in md and ours[2].startswith("**0.0128")  # the LPIPS column is still one backend, ranked
+    assert f"LPIPS (custom trunk) made by lpips-alex-custom(1234abcd) v0.1; STAND-IN: {custom}." in md
+    assert "LPIPS made by stlpips-alex v1;" in md
+    assert "custom trunk" not in T.table_self(fixture_records()).markdown()  # shown only when a record has one
+
+
 def test_fps_timed_on_a_busy_host_is_marked():
     recs = fixture_records()
     quiet = T.table_self(recs).markdown()

@@ -77,6 +77,8 @@ def print_rows(records: list[dict]) -> None:
 
     cols = [("psnr", "PSNR↑", "{:.2f}"), ("lpips", "LPIPS↓", "{:.4f}"), ("lmd", "LMD↓", "{:.2f}"),
             ("lse_d", "LSE-D↓", "{:.3f}"), ("lse_c", "LSE-C↑", "{:.3f}")]
+    if any("lpips_custom" in r["metrics"] for r in records):  # a trunk that is not torchvision's: its own column
+        cols.insert(2, ("lpips_custom", "LPIPS*↓", "{:.4f}"))
     head = f"{'method':<26} {'clip':<6} {'seed':>4} " + " ".join(f"{h:>8}" for _, h, _ in cols) + f" {'FPS':>7} {'train s':>8} {'Gauss.':>7} {'MB':>6}"
     print(head)
     for r in records:
@@ -101,7 +103,7 @@ def print_rows(records: list[dict]) -> None:
         print(f"  {BUSY} train s: trained while other processes took more than {BUSY_SHARE:.0%} of the host's CPU "
               "(cost.train_others_cpu_share): a quiet host trains faster")
     backends = sorted({f"{k}: {v['backend']}" + (f" (stand-in: {v['standin']})" if v.get("standin") else "")
-                       for r in records for k, v in r["metrics"].items() if k in ("lpips", "lse_d", "lmd")})
+                       for r in records for k, v in r["metrics"].items() if k in ("lpips", "lpips_custom", "lse_d", "lmd")})
     for b in backends:
         print(f"  {b}")
 

@@ -14,7 +14,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--audio", help="driving audio (default: the pred video's audio track)")
     p.add_argument("--json", action="store_true", help="print the result record as JSON on stdout")
     p.add_argument("--truncate", action="store_true", help="score the common prefix when lengths differ (recorded)")
-    p.add_argument("--alexnet", help="torchvision alexnet-owt-7be5be79.pth: enables the official LPIPS")
+    p.add_argument("--alexnet", help="torchvision's alexnet-owt-7be5be79.pth: enables the official LPIPS (a trunk "
+                                     "whose sha256 does not start with 7be5be79 scores as lpips-alex-custom)")
     p.add_argument("--lpips", choices=["lpips-alex", "stlpips-alex"], help="force one LPIPS network")
     p.add_argument("--landmarks", default="dlib", choices=["dlib", "fan"], help="LMD landmark backend")
     p.add_argument("--metrics", help="comma-separated subset: psnr,ssim,lpips,lmd,lse")
@@ -27,13 +28,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import sys
+
     from lmgs_eval.commands._sync import apply, print_untrusted, untrusted
+    from lmgs_eval.metrics.lpips import custom_trunk_line
     from lmgs_eval.metrics.suite import format_record, score
 
     apply(args)
     rec = score(args.pred, args.gt, args.audio, truncate=args.truncate, alexnet=args.alexnet, lpips=args.lpips,
                 landmarks=args.landmarks, metrics=args.metrics.split(",") if args.metrics else None,
                 reference=args.reference)
+    custom = rec["results"].get("lpips-alex-custom")
+    if custom:
+        trunk = custom["spec"]["weights_files"]["alexnet"]
+        print(f"lmgs-eval score: {custom_trunk_line(trunk['path'], trunk['sha256'])}", file=sys.stderr)
     if args.json:
         print(json.dumps(rec, indent=2))
     else:

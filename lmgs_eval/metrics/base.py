@@ -43,6 +43,9 @@ class MetricSpec:
         standin: non-empty when the metric is a clearly labelled stand-in for the metric
             papers report (e.g. ST-LPIPS instead of LPIPS when the AlexNet trunk is absent).
         per: ``"frame"`` or ``"window"`` (what one entry of ``per_item`` is).
+        weights_files: ``(role, path, sha256)`` of each weights file the value depends on
+            (LPIPS alex: ``alexnet`` and ``lpips_heads``), when ``weights_sha256`` is a hash
+            over several files; empty otherwise.
     """
 
     name: str
@@ -55,12 +58,23 @@ class MetricSpec:
     weights_sha256: str | None = None
     standin: str = ""
     per: str = "frame"
+    weights_files: tuple[tuple[str, str, str], ...] = ()
 
-    def with_weights(self, sha256: str | None, backend: str | None = None) -> "MetricSpec":
-        return dataclasses.replace(self, weights_sha256=sha256, backend=backend or self.backend)
+    def with_weights(self, sha256: str | None, backend: str | None = None,
+                     files: tuple[tuple[str, str, str], ...] = ()) -> "MetricSpec":
+        return dataclasses.replace(self, weights_sha256=sha256, backend=backend or self.backend,
+                                   weights_files=tuple(tuple(f) for f in files))
+
+    def files(self) -> dict[str, dict[str, str]]:
+        """``weights_files`` as ``{role: {"path", "sha256"}}``."""
+        return {role: {"path": path, "sha256": sha} for role, path, sha in self.weights_files}
 
     def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
+        d = dataclasses.asdict(self)
+        d.pop("weights_files")
+        if self.weights_files:
+            d["weights_files"] = self.files()
+        return d
 
 
 @dataclass

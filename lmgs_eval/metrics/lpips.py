@@ -44,9 +44,16 @@ from lmgs_eval.metrics.ort import export_onnx, load_session, load_torch_state, o
 
 EXPORT_VERSION = "2"  # 2: the graph is the feature half; distances are computed outside it
 ALEXNET_CKPT = "alexnet-owt-7be5be79.pth"
+ALEXNET_SHA256_PREFIX = "7be5be79"
+"""torchvision's published AlexNet trunk: its sha256 starts with these 8 hex digits, which torch hub
+puts in the file name and checks on download (``torch.hub.download_url_to_file(..., hash_prefix=...)``).
+A trunk whose sha256 does not start with them scores as ``lpips-alex-custom``, whatever its name."""
+LPIPS_HEADS_SHA256 = "df73285e35b22355a2df87cdb6b70b343713b667eddbda73e1977e0c860835c0"
+"""sha256 of ``lpips/weights/v0.1/alex.pth``, the LPIPS v0.1 linear heads (the same file in the lpips
+0.1.2, 0.1.3 and 0.1.4 wheels on PyPI)."""
 MIN_SIDE = 32
-
-
+ALEX_NAMES = ("lpips-alex", "lpips-alex-custom")
+"""The LPIPS v0.1 alex network: official with torchvision's trunk, custom with any other AlexNet-shaped one."""
 
 
 LPIPS_ALEX_SPEC = MetricSpec(
@@ -61,6 +68,24 @@ LPIPS_ALEX_SPEC = MetricSpec(
         "a graph the project exports from the weights on disk."
     ),
     reference="Zhang et al. CVPR 2018; lpips 0.1 (richzhang/PerceptualSimilarity)",
+)
+
+LPIPS_ALEX_CUSTOM_SPEC = MetricSpec(
+    name="lpips-alex-custom",
+    higher_is_better=False,
+    unit="",
+    backend="onnxruntime",
+    version="0.1",
+    definition=(
+        "The LPIPS v0.1 alex network (the lpips v0.1 linear heads, inputs and averaging as lpips-alex) on an "
+        "AlexNet-shaped trunk that is not torchvision's published one: the trunk file's sha256 does not start "
+        f"with {ALEXNET_SHA256_PREFIX}. The trunk's path and sha256 are recorded with the value."
+    ),
+    reference="Zhang et al. CVPR 2018; lpips 0.1 (richzhang/PerceptualSimilarity), with a trunk of the user's",
+    standin=(
+        "an AlexNet-shaped trunk that is not torchvision's published alexnet-owt-7be5be79.pth (its sha256 does "
+        f"not start with {ALEXNET_SHA256_PREFIX}); values are not comparable with published LPIPS."
+    ),
 )
 
 STLPIPS_ALEX_SPEC = MetricSpec(
@@ -144,17 +169,78 @@ def build_stlpips_torch(weights: Path | None = None, fold: bool = True):
     return net.eval(), sha256_file(weights)
 
 
-def build_lpips_alex_torch(alexnet: Path, heads: Path | None = None):
-    """Official LPIPS v0.1 alex in eager torch, and a sha256 over both weight files."""
+def is_official_alexnet(sha256: str) -> bool:
+    """Whether a trunk file of this sha256 is torchvision's published AlexNet (:data:`ALEXNET_SHA256_PREFIX`)."""
+    return sha256.startswith(ALEXNET_SHA256_PREFIX)
+
+
+def check_heads(heads: Path) -> str:
+    """The sha256 of the LPIPS heads file, which must be the published v0.1 heads.
+
+    Raises:
+        UserError: any other file (one line, both hashes).
+    """
+    sha = sha256_file(heads)
+    if sha != LPIPS_HEADS_SHA256:
+        raise UserError(f"{heads}: sha256 {sha[:16]}... is not the lpips v0.1 alex heads' ({LPIPS_HEADS_SHA256[:16]}...); "
+                        "reinstall the lpips wheel: pip install --force-reinstall --no-deps lpips")
+    return sha
+
+
+@dataclass(frozen=True)
+class AlexWeights:
+    """The two files of LPIPS alex, their hashes, and the name their numbers go under."""
+
+    trunk: Path
+    trunk_sha256: str
+    heads: Path
+    heads_sha256: str
+
+    @property
+    def official(self) -> bool:
+        return is_official_alexnet(self.trunk_sha256)
+
+    @property
+    def name(self) -> str:
+        """``lpips-alex`` for torchvision's published trunk, else ``lpips-alex-custom``."""
+        return "lpips-alex" if self.official else "lpips-alex-custom"
+
+    @property
+    def sha256(self) -> str:
+        """The hash over both files (the ``weights_sha256`` of the result)."""
+        return hashlib.sha256((self.trunk_sha256 + self.heads_sha256).encode()).hexdigest()
+
+    @property
+    def files(self) -> tuple[tuple[str, str, str], ...]:
+        return (("alexnet", str(self.trunk.resolve()), self.trunk_sha256),
+                ("lpips_heads", str(self.heads.resolve()), self.heads_sha256))
+
+
+def alex_weights(alexnet: Path, heads: Path | None = None) -> AlexWeights:
+    """Hash the trunk and the heads (the heads must be the published v0.1 file)."""
     heads = heads or lpips_heads_path()
     if heads is None:
         raise UserError("the lpips wheel (its weights/v0.1/alex.pth) is not installed: pip install --no-deps lpips")
+    alexnet = Path(alexnet)
+    if not alexnet.is_file():
+        raise UserError(f"{alexnet}: AlexNet checkpoint not found")
+    return AlexWeights(alexnet, sha256_file(alexnet), Path(heads), check_heads(Path(heads)))
+
+
+def custom_trunk_line(path: str | os.PathLike, sha256: str) -> str:
+    """One line saying that LPIPS on this trunk (not torchvision's) is scored as ``lpips-alex-custom``."""
+    return (f"{path}: sha256 {sha256[:8]}... is not torchvision's published AlexNet ({ALEXNET_SHA256_PREFIX}...): "
+            "LPIPS scored as lpips-alex-custom, not comparable with published LPIPS")
+
+
+def build_lpips_alex_torch(alexnet: Path, heads: Path | None = None, weights: AlexWeights | None = None):
+    """LPIPS v0.1 alex in eager torch, and its :class:`AlexWeights` (hashes, official or custom)."""
+    w = weights or alex_weights(alexnet, heads)
     Alex, Net = AlexTrunk, LPIPSNet
     net = Net(Alex())
-    net.trunk.load_torchvision(load_torch_state(alexnet, "AlexNet checkpoint"))
-    net.load_heads(load_torch_state(heads, "LPIPS heads"))
-    sha = hashlib.sha256((sha256_file(alexnet) + sha256_file(heads)).encode()).hexdigest()
-    return net.eval(), sha
+    net.trunk.load_torchvision(load_torch_state(w.trunk, "AlexNet checkpoint"), f"{w.trunk}")
+    net.load_heads(load_torch_state(w.heads, "LPIPS heads"))
+    return net.eval(), w
 
 
 # ----------------------------------------------------------------------------- ONNX
@@ -196,35 +282,42 @@ class LPIPSBackend:
 
 def resolve_lpips(name: str | None = None, alexnet: str | os.PathLike | None = None,
                   use_onnx: bool = True, threads: int | None = None) -> LPIPSBackend:
-    """Pick the LPIPS network: official ``lpips-alex`` when the trunk is present, else ST-LPIPS.
+    """Pick the LPIPS network: LPIPS alex when a trunk is present, else ST-LPIPS.
+
+    The alex network's name is decided by the trunk's sha256, not by what was asked for or by the
+    file's name: ``lpips-alex`` when it is torchvision's published trunk (:func:`is_official_alexnet`),
+    else ``lpips-alex-custom`` (its own spec, a labelled stand-in).
 
     Args:
-        name: ``"lpips-alex"``, ``"stlpips-alex"`` or ``None`` (official when available).
-        alexnet: explicit path of ``alexnet-owt-7be5be79.pth``.
+        name: ``"lpips-alex"``, ``"lpips-alex-custom"``, ``"stlpips-alex"`` or ``None`` (alex when a
+            trunk is found).
+        alexnet: explicit path of the AlexNet trunk (torchvision's ``alexnet-owt-7be5be79.pth``).
         use_onnx: build the ONNX Runtime session (else eager torch only).
         threads: intra-op threads (default: all cores of this process).
     """
     trunk = find_alexnet(alexnet)
     if name is None:
         name = "lpips-alex" if trunk is not None else "stlpips-alex"
-    if name == "lpips-alex":
+    files: tuple = ()
+    if name in ALEX_NAMES:
         if trunk is None:
-            raise UserError(f"lpips-alex needs torchvision's {ALEXNET_CKPT} in the torch hub cache or --alexnet PATH")
-        net, sha = build_lpips_alex_torch(trunk)
-        spec = LPIPS_ALEX_SPEC
+            raise UserError(f"{name} needs torchvision's {ALEXNET_CKPT} in the torch hub cache or --alexnet PATH")
+        net, w = build_lpips_alex_torch(trunk)
+        spec = LPIPS_ALEX_SPEC if w.official else LPIPS_ALEX_CUSTOM_SPEC
+        sha, files = w.sha256, w.files
     elif name == "stlpips-alex":
         net, sha = build_stlpips_torch()
         spec = STLPIPS_ALEX_SPEC
     else:
         raise UserError(f"unknown LPIPS network {name!r}")
-    return backend_of(net, spec, name, sha, use_onnx, threads)
+    return backend_of(net, spec, spec.name, sha, use_onnx, threads, files=files)
 
 
 def backend_of(net, spec: MetricSpec, name: str, sha: str | None, use_onnx: bool = True, threads: int | None = None,
-               path: Path | None = None) -> LPIPSBackend:
+               path: Path | None = None, files: tuple = ()) -> LPIPSBackend:
     """An :class:`LPIPSBackend` for a built network (exports and loads its feature graph when ``use_onnx``)."""
     sess, path = lpips_session(net, name, sha, threads, path) if use_onnx else (None, None)
-    return LPIPSBackend(spec.with_weights(sha, "onnxruntime" if use_onnx else "torch"), net, sess, path)
+    return LPIPSBackend(spec.with_weights(sha, "onnxruntime" if use_onnx else "torch", files), net, sess, path)
 
 
 def default_cache_budget() -> int:

@@ -33,15 +33,34 @@ class AlexTrunk(nn.Module):
         self.c4 = nn.Conv2d(384, 256, 3, padding=1)
         self.c5 = nn.Conv2d(256, 256, 3, padding=1)
 
-    def load_torchvision(self, sd: dict) -> None:
-        mapping = {"c1": "features.0", "c2": "features.3", "c3": "features.6", "c4": "features.8", "c5": "features.10"}
-        own = {}
-        for mine, theirs in mapping.items():
-            for p in ("weight", "bias"):
-                key = f"{theirs}.{p}"
-                if key not in sd:
-                    raise UserError(f"AlexNet checkpoint: missing key {key!r} (expected torchvision's alexnet layout)")
-                own[f"{mine}.{p}"] = sd[key]
+    MAPPING = {"c1": "features.0", "c2": "features.3", "c3": "features.6", "c4": "features.8", "c5": "features.10"}
+    CLASSIFIER = ("classifier.1", "classifier.4", "classifier.6")
+    """torchvision's AlexNet classifier layers: in its checkpoint, unused by LPIPS (any shape, or absent)."""
+
+    def torchvision_shapes(self) -> dict[str, tuple[int, ...]]:
+        """The trunk's keys in torchvision's layout and the shape each must have."""
+        return {f"{theirs}.{p}": tuple(getattr(getattr(self, mine), p).shape)
+                for mine, theirs in self.MAPPING.items() for p in ("weight", "bias")}
+
+    def load_torchvision(self, sd: dict, source: str = "AlexNet checkpoint") -> None:
+        """Load ``features.*`` of a torchvision AlexNet state dict.
+
+        Raises:
+            UserError: one line naming ``source`` and the first torchvision key at fault: keys
+                missing, keys that are not torchvision's AlexNet's, or a tensor of the wrong shape.
+        """
+        want = self.torchvision_shapes()
+        allowed = set(want) | {f"{k}.{p}" for k in self.CLASSIFIER for p in ("weight", "bias")}
+        missing = [k for k in want if k not in sd]
+        extra = sorted(k for k in sd if k not in allowed)
+        if missing or extra:
+            parts = ([f"missing {_keys(missing)}"] if missing else []) + ([f"unexpected {_keys(extra)}"] if extra else [])
+            raise UserError(f"{source}: not torchvision's alexnet layout: {'; '.join(parts)}")
+        for key, shape in want.items():
+            got = tuple(sd[key].shape)
+            if got != shape:
+                raise UserError(f"{source}: {key}: expected shape {shape}, got {got}")
+        own = {f"{mine}.{p}": sd[f"{theirs}.{p}"] for mine, theirs in self.MAPPING.items() for p in ("weight", "bias")}
         self.load_state_dict(own)
 
     def forward(self, x):
@@ -51,6 +70,13 @@ class AlexTrunk(nn.Module):
         h4 = F.relu(self.c4(h3))
         h5 = F.relu(self.c5(h4))
         return h1, h2, h3, h4, h5
+
+
+def _keys(keys: list[str], show: int = 4) -> str:
+    """``'a', 'b' and 3 more``: a key list short enough for one line."""
+    head = ", ".join(repr(k) for k in keys[:show])
+    return head + (f" and {len(keys) - show} more" if len(keys) > show else "")
+
 
 class STAlexTrunk(nn.Module):
     """The shift-tolerant AlexNet trunk of ST-LPIPS (``variant='shift_tolerant'``).
@@ -179,6 +205,9 @@ class LPIPSNet(nn.Module):
             key = f"{prefix}lin{i}.model.1.weight"
             if key not in sd:
                 raise UserError(f"LPIPS heads: missing key {key!r}")
+            if sd[key].numel() != lin.weight.numel():
+                raise UserError(f"LPIPS heads: {key}: expected {lin.weight.numel()} values "
+                                f"(shape {tuple(lin.weight.shape)}), got shape {tuple(sd[key].shape)}")
             lin.weight.data.copy_(sd[key].reshape(lin.weight.shape))
 
     def features(self, x):

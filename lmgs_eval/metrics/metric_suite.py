@@ -16,7 +16,7 @@ import numpy as np
 
 from lmgs_eval.errors import UserError
 from lmgs_eval.metrics.base import MetricResult
-from lmgs_eval.metrics.lpips import find_alexnet
+from lmgs_eval.metrics.lpips import ALEX_NAMES, find_alexnet
 from lmgs_eval.metrics.registry import create_metric
 from lmgs_eval.metrics.sync import lse
 from lmgs_eval.metrics.sync_select import set_backend
@@ -44,6 +44,8 @@ class MetricSuite:
 
     @property
     def lpips_name(self) -> str:
+        """The LPIPS network asked for: ``lpips-alex`` when a trunk is found (its result is named
+        ``lpips-alex-custom`` when the trunk is not torchvision's), else ``stlpips-alex``."""
         if self._lpips_name:
             return self._lpips_name
         return "lpips-alex" if find_alexnet(self.alexnet) else "stlpips-alex"
@@ -56,11 +58,12 @@ class MetricSuite:
     def metric(self, name: str):
         """The paired metric ``name`` (``psnr``, ``ssim``, ``lpips-alex``, ``stlpips-alex``, ``lmd``), built once."""
         if name not in self._metrics:
-            self._metrics[name] = create_metric(name, **({"alexnet": self.alexnet} if name == "lpips-alex" else {}))
+            self._metrics[name] = create_metric(name, **({"alexnet": self.alexnet} if name in ALEX_NAMES else {}))
         return self._metrics[name]
 
     def paired(self, name: str, pred: np.ndarray, gt: np.ndarray) -> MetricResult:
-        """One paired metric of float frames in [0, 1]."""
+        """One paired metric of float frames in [0, 1] (its result's ``spec.name`` may differ from ``name``:
+        ``lpips-alex`` scores as ``lpips-alex-custom`` with a trunk that is not torchvision's)."""
         m = self.metric(name)
         return m.compute(m.update(pred, gt))
 
@@ -98,12 +101,13 @@ class MetricSuite:
                 t = clock()
                 m = self.metric(name)
                 if name == self.lpips_name:
-                    out[name] = m.compute(m.update(pf, gf, gt_key=gt_key, same=same))
+                    r = m.compute(m.update(pf, gf, gt_key=gt_key, same=same))
                     if m.cache_note:
-                        out[name].notes.append(m.cache_note)
+                        r.notes.append(m.cache_note)
                 else:
-                    out[name] = m.compute(m.update(pf, gf))
-                self.timings[name] = clock() - t
+                    r = m.compute(m.update(pf, gf))
+                out[r.spec.name] = r  # an official trunk's result is lpips-alex, another's lpips-alex-custom
+                self.timings[r.spec.name] = clock() - t
             if lmd:
                 t = clock()
                 m = self.metric("lmd")

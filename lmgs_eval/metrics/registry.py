@@ -7,12 +7,16 @@ import importlib.util
 from lmgs_eval.metrics.base import MetricSpec, Registry
 from lmgs_eval.metrics.image import PSNR, PSNR_SPEC, SSIM, SSIM_SPEC
 from lmgs_eval.metrics.landmarks import LMD, LMD_SPEC, available_backends, create_backend
+from lmgs_eval.errors import UserError
 from lmgs_eval.metrics.lpips import (
+    ALEXNET_CKPT,
     LPIPS,
+    LPIPS_ALEX_CUSTOM_SPEC,
     LPIPS_ALEX_SPEC,
     STLPIPS_ALEX_SPEC,
+    alex_weights,
+    custom_trunk_line,
     find_alexnet,
-    lpips_heads_path,
     stlpips_weights_path,
 )
 from lmgs_eval.metrics.sync import LSE_SPEC, find_scorer_status
@@ -29,6 +33,7 @@ def _ssim(**kw):
 
 
 def _lpips_alex(alexnet=None, **kw):
+    """LPIPS alex; named ``lpips-alex`` or ``lpips-alex-custom`` by the trunk's sha256, not by the name asked for."""
     return LPIPS("lpips-alex", alexnet=alexnet, **kw)
 
 
@@ -45,6 +50,7 @@ def _lmd(backend="dlib", **kw):
 METRICS.register("psnr", _psnr)
 METRICS.register("ssim", _ssim)
 METRICS.register("lpips-alex", _lpips_alex)
+METRICS.register("lpips-alex-custom", _lpips_alex)
 METRICS.register("stlpips-alex", _stlpips_alex)
 METRICS.register("lmd", _lmd)
 
@@ -58,19 +64,36 @@ def create_metric(name: str, **kw):
 
 
 def specs() -> dict[str, MetricSpec]:
-    return {s.name: s for s in (PSNR_SPEC, SSIM_SPEC, LPIPS_ALEX_SPEC, STLPIPS_ALEX_SPEC, LMD_SPEC, LSE_SPEC)}
+    return {s.name: s for s in (PSNR_SPEC, SSIM_SPEC, LPIPS_ALEX_SPEC, LPIPS_ALEX_CUSTOM_SPEC, STLPIPS_ALEX_SPEC,
+                                LMD_SPEC, LSE_SPEC)}
+
+
+def alex_status(alexnet=None) -> dict[str, tuple[bool, str]]:
+    """Whether ``lpips-alex`` and ``lpips-alex-custom`` can run here, and why (the trunk's sha256 decides which)."""
+    trunk = find_alexnet(alexnet)
+    if trunk is None:
+        why = f"AlexNet trunk {ALEXNET_CKPT} not found (--alexnet PATH)"
+        return {"lpips-alex": (False, why), "lpips-alex-custom": (False, why)}
+    try:
+        w = alex_weights(trunk)
+    except UserError as exc:
+        return {"lpips-alex": (False, str(exc)), "lpips-alex-custom": (False, str(exc))}
+    if w.official:
+        return {"lpips-alex": (True, f"trunk {trunk}"),
+                "lpips-alex-custom": (False, f"the trunk {trunk} is torchvision's published one: it scores as lpips-alex")}
+    return {"lpips-alex": (False, custom_trunk_line(trunk, w.trunk_sha256)), "lpips-alex-custom": (True, f"trunk {trunk} (sha256 {w.trunk_sha256[:8]}...)")}
 
 
 def list_metrics(alexnet=None) -> list[dict]:
     """Every metric with its spec and whether it can run on this machine (and why not)."""
-    trunk = find_alexnet(alexnet)
     lm = available_backends()
     ok_ort = importlib.util.find_spec("onnxruntime") is not None
+    alex = alex_status(alexnet)
     avail = {
         "psnr": (True, "closed form"),
         "ssim": (True, "closed form"),
-        "lpips-alex": (trunk is not None and lpips_heads_path() is not None and ok_ort,
-                       f"trunk {trunk}" if trunk else "AlexNet trunk alexnet-owt-7be5be79.pth not found (--alexnet PATH)"),
+        "lpips-alex": (alex["lpips-alex"][0] and ok_ort, alex["lpips-alex"][1]),
+        "lpips-alex-custom": (alex["lpips-alex-custom"][0] and ok_ort, alex["lpips-alex-custom"][1]),
         "stlpips-alex": (stlpips_weights_path() is not None and ok_ort,
                          str(stlpips_weights_path()) if stlpips_weights_path() else "stlpips-pytorch not installed"),
         "lmd": (lm["dlib"] or lm["fan"], "landmark backends: " + ", ".join(k for k, v in lm.items() if v)),

@@ -11,7 +11,7 @@ import numpy as np
 from lmgs_eval.data.io import list_frames, load_audio, read_rgb, read_video, to_mono_16k
 from lmgs_eval.errors import UserError
 from lmgs_eval.metrics.base import align_lengths, check_frames
-from lmgs_eval.metrics.lpips import find_alexnet
+from lmgs_eval.metrics.lpips import ALEX_NAMES, find_alexnet
 from lmgs_eval.metrics.registry import create_metric
 from lmgs_eval.metrics.sync import lse
 
@@ -58,8 +58,10 @@ def score(pred: str | Path, gt: str | Path | None = None, audio: str | Path | No
         gt: ground-truth video or folder; without it only no-reference metrics (LSE) run.
         audio: driving audio; default: the pred video's audio track.
         truncate: score the common prefix when the clips differ in length (recorded).
-        alexnet: path of torchvision's AlexNet checkpoint (enables official LPIPS).
-        lpips: force ``"lpips-alex"`` or ``"stlpips-alex"``.
+        alexnet: path of torchvision's AlexNet checkpoint (enables official LPIPS; another AlexNet-shaped
+            trunk scores as ``lpips-alex-custom``).
+        lpips: force ``"lpips-alex"`` or ``"stlpips-alex"`` (``lpips-alex`` with a trunk that is not
+            torchvision's scores as ``lpips-alex-custom``).
         landmarks: LMD backend name.
         metrics: subset of names to run (default all).
         reference: ``pred`` is footage known to be in sync: LSE's self-check also requires offset 0 +- 1.
@@ -93,11 +95,11 @@ def score(pred: str | Path, gt: str | Path | None = None, audio: str | Path | No
         if "lmd" in want:
             names.append("lmd")
         for name in names:
-            kw = {"alexnet": alexnet} if name == "lpips-alex" else ({"backend": landmarks} if name == "lmd" else {})
+            kw = {"alexnet": alexnet} if name in ALEX_NAMES else ({"backend": landmarks} if name == "lmd" else {})
             m = create_metric(name, **kw)
             r = m.compute(m.update(pf, gf))
             r.flags = sorted(set(r.flags + tflags))
-            results[name] = r
+            results[r.spec.name] = r  # lpips-alex-custom when the trunk is not torchvision's
     else:
         n = p_frames.shape[0]
         notes.append("no --gt: only no-reference metrics")
@@ -133,18 +135,19 @@ def format_record(rec: dict) -> str:
     lines = [f"pred: {rec['pred']}", f"gt:   {rec['gt']}", f"frames: {rec['n_frames']} @ {rec['fps']:g} fps"]
     for f in rec["flags"]:
         lines.append(f"flag: {f}")
+    w = max([14, *(len(n) + 1 for n in rec["results"])])
     for name, r in rec["results"].items():
         arrow = "↑" if r["spec"]["higher_is_better"] else "↓"
         if not r["available"]:
-            lines.append(f"{name:<14} unavailable: {r['reason']}")
+            lines.append(f"{name:<{w}} unavailable: {r['reason']}")
             continue
         vals = ", ".join(f"{k}={v:.4f}" if isinstance(v, float) else f"{k}={v}" for k, v in r["values"].items())
-        lines.append(f"{name:<14}{arrow} {vals}  (n={r['n_effective']}/{r['n_original']}, {r['spec']['backend']})")
+        lines.append(f"{name:<{w}}{arrow} {vals}  (n={r['n_effective']}/{r['n_original']}, {r['spec']['backend']})")
         for f in r["flags"]:
-            lines.append(f"{'':<16}flag: {f}")
+            lines.append(f"{'':<{w + 2}}flag: {f}")
         if r["spec"].get("standin"):
-            lines.append(f"{'':<16}STAND-IN: {r['spec']['standin']}")
+            lines.append(f"{'':<{w + 2}}STAND-IN: {r['spec']['standin']}")
         if r["values"].get("trusted") is not None:
-            lines.append(f"{'':<16}self-check: separation {r['values']['separation']:.2f}, "
+            lines.append(f"{'':<{w + 2}}self-check: separation {r['values']['separation']:.2f}, "
                          f"{'trusted' if r['values']['trusted'] else 'NOT trusted'}")
     return "\n".join(lines)

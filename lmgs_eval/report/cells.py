@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from lmgs_eval.report.stats import ALPHA, PairedTest, bootstrap_ci_seeds, mean_over_seeds, paired_test, seed_test
-from lmgs_eval.report.table_model import (BUSY, BUSY_SHARE, FAMILY_ORDER, METRICS, MIXED, OURS, SLOW_HOST, TIE, UNTRUSTED,
+from lmgs_eval.report.table_model import (BUSY, BUSY_SHARE, CUSTOM_KEYS, FAMILY_ORDER, METRICS, MIXED, OURS, SLOW_HOST, TIE, UNTRUSTED,
                                           Cell, Column, Record, Row, Section, column_backends)
 from lmgs_eval.results import budget_note
 
@@ -323,6 +323,19 @@ def common_notes(records: Sequence[Record], columns: Sequence[Column], methods: 
         else:
             notes.append(f"Cost measured on {machines.pop()}.")
     return notes
+
+
+def with_custom_keys(keys: Iterable[str], records: Sequence[Record]) -> list[str]:
+    """``keys`` with each custom-weights key (:data:`CUSTOM_KEYS`) after its metric's when a record has a value for it."""
+    keys = list(keys)
+    present = {k for r in records for k, m in r["metrics"].items() if m and m.get("value") is not None}
+    out = []
+    for k in keys:
+        out.append(k)
+        c = CUSTOM_KEYS.get(k)
+        if c and c in present and c not in keys:
+            out.append(c)
+    return out
 
 
 def metric_columns(keys: Iterable[str], clip: str | None = None, group: str = "") -> list[Column]:

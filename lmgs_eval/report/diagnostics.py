@@ -9,8 +9,8 @@ from collections.abc import Sequence
 import numpy as np
 
 from lmgs_eval.report.cells import (by_subject, common_notes, fill_row, is_ok, make_rows, metric_cell, metric_columns,
-                                    row_order, subject_title)
-from lmgs_eval.report.table_model import METRICS, Cell, Column, Record, Row, Section, Table
+                                    row_order, subject_title, with_custom_keys)
+from lmgs_eval.report.table_model import CUSTOM_KEYS, METRICS, Cell, Column, Record, Row, Section, Table
 
 
 def _separates(gt: Cell, ctl: Cell, hib: bool) -> bool:
@@ -34,7 +34,7 @@ def table_calibration(records: Sequence[Record],
     """
     use = [r for r in records if r["protocol"]["name"] in ("self", "calibration") and is_ok(r)
            and r["method"]["family"] in ("ground-truth", "control")]
-    cols = metric_columns(metrics)
+    cols = metric_columns(with_custom_keys(metrics, use))
     sections = []
     for subject, recs in by_subject(use).items():
         rows = sorted(make_rows(recs), key=row_order)
@@ -55,7 +55,8 @@ def table_calibration(records: Sequence[Record],
                 if row.family != "control":
                     continue
                 targets = row.records[0]["method"].get("control", {}).get("targets")
-                if targets is not None and c.key not in targets:
+                base = next((k for k, v in CUSTOM_KEYS.items() if v == c.key), c.key)  # lpips_custom: as lpips
+                if targets is not None and c.key not in targets and base not in targets:
                     continue
                 if gt.mean is None or row.cells[c.id].mean is None:
                     continue

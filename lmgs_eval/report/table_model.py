@@ -16,6 +16,7 @@ METRICS: dict[str, tuple[str, bool, int]] = {
     "psnr": ("PSNR", True, 2),
     "ssim": ("SSIM", True, 4),
     "lpips": ("LPIPS", False, 4),
+    "lpips_custom": ("LPIPS (custom trunk)", False, 4),
     "lmd": ("LMD", False, 2),
     "lse_d": ("LSE-D", False, 3),
     "lse_c": ("LSE-C", True, 3),
@@ -23,6 +24,9 @@ METRICS: dict[str, tuple[str, bool, int]] = {
     "jitter": ("Jitter (px)", False, 3),
     "silence_open": ("Open in silence (px)", False, 2),
 }
+CUSTOM_KEYS = {"lpips": "lpips_custom"}
+"""A metric key and the key of the same network on weights other than the published ones (an AlexNet
+trunk that is not torchvision's): a column of its own, shown beside it when records carry it, never merged."""
 FAMILY_ORDER = ("ground-truth", "reference", "2D", "NeRF", "3DGS", "external", "control")
 OURS = "lmgs"
 UNRANKED = ("ground-truth", "reference")

@@ -36,7 +36,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from lmgs_eval.report.cells import (COST_COLUMNS, by_subject, common_notes, components_of, fill_row, is_ok, is_variant,
-                                    make_rows, metric_columns, rank_section, row_order, subject_title)
+                                    make_rows, metric_columns, rank_section, row_order, subject_title, with_custom_keys)
 from lmgs_eval.report.diagnostics import paper_order_agreement, table_calibration, table_stability, table_status
 from lmgs_eval.report.table_model import METRICS, OURS, UNRANKED, Cell, Column, Record, Section, Table
 from lmgs_eval.results import se_fraction
@@ -55,9 +55,9 @@ def table_self(records: Sequence[Record], metrics: Sequence[str] = ("psnr", "lpi
         metrics: metric keys, in column order.
         cost: include FPS, training time, Gaussians and MB.
     """
-    cols = metric_columns(metrics) + (COST_COLUMNS if cost else [])
     use = [r for r in records if r["protocol"]["name"] == "self" and is_ok(r) and not is_variant(r)
            and r["method"]["family"] != "control"]
+    cols = metric_columns(with_custom_keys(metrics, use)) + (COST_COLUMNS if cost else [])
     sections = []
     for subject, recs in by_subject(use).items():
         rows = sorted(make_rows(recs), key=row_order)
@@ -79,7 +79,8 @@ def table_cross(records: Sequence[Record], metrics: Sequence[str] = ("lse_d", "l
     """Table II: cross-driven, one column group per driving clip (Audio A, Audio B, ...)."""
     use = [r for r in records if r["protocol"]["name"] == "cross" and is_ok(r) and not is_variant(r)]
     clips = sorted({r["protocol"]["clip"] for r in use})
-    cols = [c for clip in clips for c in metric_columns(metrics, clip, f"Audio {clip}" if len(clip) == 1 else clip)]
+    cols = [c for clip in clips
+            for c in metric_columns(with_custom_keys(metrics, use), clip, f"Audio {clip}" if len(clip) == 1 else clip)]
     sections = []
     for subject, recs in by_subject(use).items():
         rows = sorted(make_rows(recs), key=row_order)
@@ -116,7 +117,7 @@ def table_theta(records: Sequence[Record], metrics: Sequence[str] = ("lpips", "l
         variant = r["method"].get("variant") or ""
         if c["se"] and c["lc"] and c["gr"] and (not variant or variant.startswith("theta")):
             use.append(r)
-    cols = [Column("se_points", "Points enhanced", "se_points", "text"), *metric_columns(metrics)]
+    cols = [Column("se_points", "Points enhanced", "se_points", "text"), *metric_columns(with_custom_keys(metrics, use))]
     sections = []
     for subject, recs in by_subject(use).items():
         if len({components_of(r)["theta"] for r in recs}) < 2:
@@ -183,7 +184,7 @@ def _ablation_label(r: Record, full_frontend: str | None = None, full_gr: tuple 
 def table_ablation(records: Sequence[Record], metrics: Sequence[str] = ("lmd", "lpips", "lse_d", "lse_c")) -> Table:
     """Table IV: component ablation (SE / LC / GR as ✓/✗) at the full model's θ; Full model last."""
     cols = [Column("se", "SE", "se", "text"), Column("lc", "LC", "lc", "text"), Column("gr", "GR", "gr", "text")]
-    cols += metric_columns(metrics)
+    cols += metric_columns(with_custom_keys(metrics, _lmgs_self(records)))
     sections = []
     for subject, recs in by_subject(_lmgs_self(records)).items():
         full = [r for r in recs if not is_variant(r)]

@@ -31,6 +31,7 @@ protocol           ``name`` (``self``/``cross``/``stress``/``calibration``/``cap
                    ``version``, ``clip`` (test split, driving clip "A"/"B", or the stress
                    condition), ``split`` (str|null), ``n_frames`` (int|null)
 metrics            ``{key: entry}``; keys are canonical (``psnr``, ``ssim``, ``lpips``,
+                   ``lpips_custom`` (LPIPS alex on a trunk that is not torchvision's),
                    ``lmd``, ``lse_d``, ``lse_c``...); entry: ``value`` (float|null),
                    ``n_original``, ``n_effective``, ``higher_is_better``, ``unit``,
                    ``backend`` (what made the number: ``stlpips-alex``, ``lpips-alex``,
@@ -38,7 +39,9 @@ metrics            ``{key: entry}``; keys are canonical (``psnr``, ``ssim``, ``l
                    share a column silently), ``backend_version``, ``weights_sha256``
                    (str|null), ``flags`` [str], ``standin`` (str|null), ``per_item``
                    ([float|null] per frame / window, rounded to 6 significant digits, or
-                   null), ``values``? (every number the metric reported)
+                   null), ``values``? (every number the metric reported),
+                   ``weights_files``? ({role: {path, sha256}}: each weights file when
+                   ``weights_sha256`` is a hash over several)
 cost               ``train_seconds``, ``fps``, ``ms_per_frame`` {audio, network, raster,
                    total}, ``first_frame_ms``, ``realtime_factor``, ``n_params``,
                    ``n_gaussians``, ``model_mb``, ``peak_mb`` (all number|null),

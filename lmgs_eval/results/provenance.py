@@ -151,15 +151,23 @@ def make_record(*, method: Mapping, subject: Mapping, protocol: Mapping, metrics
     return rec
 
 
-_CANONICAL = {"psnr": "psnr", "ssim": "ssim", "lpips-alex": "lpips", "stlpips-alex": "lpips", "lmd": "lmd"}
+_CANONICAL = {"psnr": "psnr", "ssim": "ssim", "lpips-alex": "lpips", "stlpips-alex": "lpips",
+              "lpips-alex-custom": "lpips_custom", "lmd": "lmd"}
+LPIPS_KEYS = ("lpips", "lpips_custom")
+"""Record keys of the LPIPS family; their ``backend`` is the network's name."""
 
 
 def metric_entries(result: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
     """Schema entries from a metric result dict (:meth:`MetricResult.to_dict` of :mod:`lmgs_eval.metrics`).
 
     ``lpips-alex`` and ``stlpips-alex`` both go under key ``lpips`` with their own name as
-    ``backend`` (so a column mixing them is flagged); ``lse`` becomes ``lse_d`` and ``lse_c``
-    (``per_item`` on ``lse_d`` only: the per-window distances at the chosen offset).
+    ``backend`` (so a column mixing them is flagged). ``lpips-alex-custom`` (an AlexNet-shaped
+    trunk that is not torchvision's published one) goes under its own key ``lpips_custom``, never
+    into ``lpips``, with backend ``lpips-alex-custom(<first 8 hex digits of the trunk's sha256>)``
+    so that numbers of two different trunks are flagged too. ``lse`` becomes ``lse_d`` and
+    ``lse_c`` (``per_item`` on ``lse_d`` only: the per-window distances at the chosen offset).
+    A metric whose weights are several files also records each file's path and sha256
+    (``weights_files``, by role) beside ``weights_sha256``, the hash over them.
 
     Returns:
         ``{key: entry}``; an unavailable metric gives an entry with ``value`` null and
@@ -175,6 +183,8 @@ def metric_entries(result: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
         "unit": spec.get("unit", ""), "backend_version": str(spec.get("version", "")),
         "weights_sha256": spec.get("weights_sha256"), "flags": flags, "standin": spec.get("standin") or None,
     }
+    if spec.get("weights_files"):
+        base["weights_files"] = {role: dict(f) for role, f in spec["weights_files"].items()}
     values = result.get("values", {})
     if name == "lse":
         return {
@@ -188,6 +198,8 @@ def metric_entries(result: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
                           "unit": "frames", "higher_is_better": False, "backend": spec["backend"], "per_item": None},
         }
     key = _CANONICAL.get(name, name)
-    backend = name if key == "lpips" else spec["backend"]
+    backend = name if key in LPIPS_KEYS else spec["backend"]
+    if key == "lpips_custom":
+        backend += f"({((spec.get('weights_files') or {}).get('alexnet') or {}).get('sha256', '')[:8]})"
     return {key: {**base, "value": result.get("value"), "higher_is_better": bool(spec["higher_is_better"]),
                   "backend": backend, "per_item": compact(result.get("per_item")), "values": dict(values)}}

@@ -101,11 +101,14 @@ def input_artefacts(metrics: dict, subject) -> dict:
     else:
         for name in ("transforms_train.json", "transforms_val.json"):
             files[f"ground_truth:{name}"] = root / name
-    lp = (metrics.get("lpips") or {}).get("backend")
-    if lp:
-        if lp == "stlpips-alex":
+    for key in ("lpips", "lpips_custom"):
+        entry = metrics.get(key) or {}
+        if entry.get("weights_files"):  # the files the number was made with, as the metric recorded them
+            for role, f in entry["weights_files"].items():
+                files[f"weights:{role}"] = Path(f["path"])
+        elif entry.get("backend") == "stlpips-alex":
             files["weights:stlpips"] = L.stlpips_weights_path()
-        elif lp == "lpips-alex":
+        elif entry.get("backend") == "lpips-alex":
             files["weights:lpips_heads"] = L.lpips_heads_path()
             files["weights:alexnet"] = L.find_alexnet()
     sb = (metrics.get("lse_d") or {}).get("backend") or ""

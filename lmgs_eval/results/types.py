@@ -92,6 +92,8 @@ class MetricEntry:
     standin: str | None
     per_item: tuple[float | None, ...] | None
     values: dict[str, Any] | None = None
+    # each weights file by role (lpips alex: alexnet, lpips_heads) when weights_sha256 is a hash over several
+    weights_files: dict[str, Artefact] | None = None
 
 
 @dataclass(frozen=True)
