@@ -151,6 +151,85 @@ def test_cross_clips(tiny):
     assert meta["voices"]["cross_A"] != meta["voices"]["train"]
 
 
+def _project(c2w: np.ndarray, focal: float, lms3d: np.ndarray) -> np.ndarray:
+    cam = Camera.from_nerf_c2w(c2w, focal, SIZE, SIZE, SIZE / 2, SIZE / 2)
+    return cam.project(torch.from_numpy(lms3d).double()).numpy()
+
+
+def _cameras(folder: Path) -> np.ndarray:
+    t = [json.loads((folder / f).read_text()) for f in ("transforms_train.json", "transforms_val.json")]
+    return np.stack([np.asarray(fr["transform_matrix"]) for d in t for fr in d["frames"]])
+
+
+def test_default_build_has_no_motion(tiny):
+    assert "motion" not in json.loads((tiny / "meta.json").read_text())
+    assert not (tiny / "focal_per_frame.npy").exists()
+
+
+def test_turning_head(tmp_path, tiny):
+    from lmgs_eval.data.bundled.articulation import COLUMNS
+
+    out = tmp_path / "turn"
+    out.mkdir()
+    meta = bundled.build("astronaut", out, size=SIZE, seconds=SECONDS, seed=0, progress=False, motion="turn")
+    assert meta["motion"]["kind"] == "turn" and not (out / "focal_per_frame.npy").exists()
+    art, still = np.load(out / "articulation.npy"), np.load(tiny / "articulation.npy")
+    yaw, pitch = COLUMNS.index("yaw"), COLUMNS.index("pitch")
+    # +-28 deg yaw and +-10 deg pitch on top of the speech motion (its own yaw within 4 deg)
+    turn = art[:, [yaw, pitch]] - still[:, [yaw, pitch]]
+    assert 27.0 < turn[:, 0].max() < 28.01 and -28.01 < turn[:, 0].min() < -27.0
+    assert 9.5 < turn[:, 1].max() < 10.01 and -10.01 < turn[:, 1].min() < -9.5
+    assert abs(turn[0, 0]) < 2.0  # starts frontal
+    np.testing.assert_array_equal(np.delete(art, [yaw, pitch], 1), np.delete(still, [yaw, pitch], 1))
+    # the truth follows the turn: the cameras turn about the head, and the 3D landmarks project
+    # onto the 2D ones with them
+    c2w = _cameras(out)
+    lms3d = np.load(out / "lms3d.npy")
+    focal = json.loads((out / "transforms_train.json").read_text())["focal_len"]
+    for i in range(len(c2w)):
+        np.testing.assert_allclose(_project(c2w[i], focal, lms3d[i]), np.loadtxt(out / "ori_imgs" / f"{i}.lms"), atol=0.5)
+    fwd = -c2w[:, :3, 2]  # the camera's viewing direction
+    ang = np.degrees(np.arctan2(fwd[:, 0], -fwd[:, 2]))
+    assert np.ptp(ang) > 50.0
+
+
+def test_zooming_camera(tmp_path, tiny):
+    out = tmp_path / "zoom"
+    out.mkdir()
+    meta = bundled.build("astronaut", out, size=SIZE, seconds=SECONDS, seed=0, progress=False, motion="zoom")
+    assert meta["motion"]["kind"] == "zoom" and "focal_per_frame" in meta
+    focals = np.load(out / "focal_per_frame.npy")
+    n = int(SECONDS * 25)
+    top = json.loads((out / "transforms_train.json").read_text())
+    assert focals.shape == (n,) and focals.mean() == pytest.approx(top["focal_len"])
+    assert np.ptp(focals) / focals.mean() == pytest.approx(0.16, abs=0.002)
+    # a zoom moves no camera: the cameras and 3D landmarks are those of the still build
+    np.testing.assert_allclose(_cameras(out), _cameras(tiny))
+    np.testing.assert_allclose(np.load(out / "lms3d.npy"), np.load(tiny / "lms3d.npy"))
+    # the 2D landmarks follow each frame's focal, not the clip's one
+    lms3d = np.load(out / "lms3d.npy")
+    c2w = _cameras(out)
+    one = []
+    for i in range(n):
+        lms = np.loadtxt(out / "ori_imgs" / f"{i}.lms")
+        np.testing.assert_allclose(_project(c2w[i], focals[i], lms3d[i]), lms, atol=0.5)
+        one.append(np.abs(_project(c2w[i], top["focal_len"], lms3d[i]) - lms).max())
+    assert max(one) > 1.0
+    # the torso zooms with the head: its layer changes over the clip (still in the still build)
+    import cv2
+
+    t0, t1 = (cv2.imread(str(out / "torso_imgs" / f"{i}.png"), cv2.IMREAD_UNCHANGED) for i in (0, int(np.argmax(focals))))
+    assert np.abs(t0.astype(int) - t1.astype(int)).mean() > 1.0
+
+
+def test_motion_is_checked():
+    with pytest.raises(UserError, match="spin"):
+        bundled.Motion.of("spin")
+    with pytest.raises(UserError, match="zoom"):
+        bundled.Motion("zoom", zoom=0.5)
+    assert bundled.Motion.of(None) is None and bundled.Motion.of("turn") == bundled.Motion("turn")
+
+
 def test_layout_reader_reads_it(tiny):
     from lmgs_eval.data.layout import read_subject
 
@@ -176,6 +255,11 @@ def test_synthesize_clip_is_consistent():
     assert len(clip.audio) == t * 640 and clip.lms2d.shape == (t, 68, 2) and clip.lms3d.shape == (t, 68, 3)
     assert clip.c2w.shape == (t, 4, 4) and clip.phonemes
     assert "piper:joe" in bundled.list_voices() and any(v.startswith("espeak:") for v in bundled.list_voices())
+    assert clip.motion is None and np.all(clip.focals == clip.focal)
+    zoom = bundled.synthesize_clip("hopper", "Bob moved a map.", "espeak:en-us+m3", size=64, seed=1, motion="zoom")
+    assert zoom.motion.kind == "zoom" and np.ptp(zoom.focals) / zoom.focal == pytest.approx(0.16, abs=0.01)
+    np.testing.assert_array_equal(zoom.c2w, clip.c2w)
+    assert not np.array_equal(zoom.lms2d, clip.lms2d)
 
 
 @pytest.mark.slow

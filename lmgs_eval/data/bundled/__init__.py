@@ -10,8 +10,9 @@ espeak-ng), in the ER-NeRF / TalkingGaussian processed layout plus ground truth
 from __future__ import annotations
 
 from lmgs_eval.data.bundled.generator import GENERATOR_VERSION, Clip, build, list_voices, speech_is_shipped, synthesize_clip
+from lmgs_eval.data.bundled.motion import Motion
 from lmgs_eval.data.bundled.preview import contact_sheet, make_preview
 
 BUNDLED_NAMES: tuple[str, ...] = ("astronaut", "hopper")
 
-__all__ = ["BUNDLED_NAMES", "GENERATOR_VERSION", "Clip", "build", "contact_sheet", "list_voices", "make_preview", "speech_is_shipped", "synthesize_clip"]
+__all__ = ["BUNDLED_NAMES", "GENERATOR_VERSION", "Clip", "Motion", "build", "contact_sheet", "list_voices", "make_preview", "speech_is_shipped", "synthesize_clip"]

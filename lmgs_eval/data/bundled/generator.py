@@ -17,6 +17,7 @@ from lmgs_eval.data import io
 from lmgs_eval.data.bundled import articulation as art_mod
 from lmgs_eval.data.bundled import speech as sp_mod
 from lmgs_eval.data.bundled.head import HeadModel
+from lmgs_eval.data.bundled.motion import Motion
 from lmgs_eval.data.bundled.photo import PHOTOS
 from lmgs_eval.errors import UserError
 
@@ -75,10 +76,14 @@ class Clip:
         frames: uint8 ``[T, H, W, 3]``.
         audio: float32 ``[T * 640]`` at 16 kHz.
         lms2d: ``[T, 68, 2]`` pixels; lms3d: ``[T, 68, 3]`` world.
-        c2w: ``[T, 4, 4]`` OpenGL camera-to-world; focal: pixels.
+        c2w: ``[T, 4, 4]`` OpenGL camera-to-world; focal: pixels (the head model's; the
+            clip's mean under a zoom).
         phonemes: the timeline (dicts with phoneme, start, end, viseme).
-        articulation: ``[T, K]`` (``articulation.COLUMNS``).
+        articulation: ``[T, K]`` (``articulation.COLUMNS``), the head's turn included.
         text, voice: what was spoken, by whom.
+        focals: ``[T]`` the focal length of every frame (pixels): ``focal`` throughout
+            unless the camera zooms.
+        motion: the extra motion (:class:`motion.Motion`), or None.
     """
 
     frames: np.ndarray
@@ -91,6 +96,8 @@ class Clip:
     articulation: np.ndarray
     text: str
     voice: str
+    focals: np.ndarray | None = None
+    motion: Motion | None = None
 
 
 def _check(name: str, size: int, seed: int) -> None:
@@ -106,32 +113,42 @@ def _speech_frames(speech: sp_mod.Speech, n: int) -> sp_mod.Speech:
     return sp_mod.fit_length(speech, n * SPF)
 
 
-def synthesize_clip(name: str, text: str, voice: str, *, size: int, seed: int) -> Clip:
+def synthesize_clip(name: str, text: str, voice: str, *, size: int, seed: int, motion: Motion | str | None = None) -> Clip:
     """Render ``name`` speaking ``text`` in ``voice`` (frames, audio and ground truth), no files.
 
     The clip lasts as long as the speech (plus 0.3 s lead and a short tail), rounded to frames.
+    ``motion``: ``"turn"``, ``"zoom"`` or a :class:`Motion` (see ``motion.py``); the truth
+    (``c2w``, ``focals``) follows it.
     """
     _check(name, size, seed)
     speech = sp_mod.synthesize([text], voice)
     n = max(1, int(np.ceil(speech.seconds * FPS)))
-    return _render_clip(name, size, _speech_frames(speech, n), _rng(seed, name, f"clip:{voice}:{text}"), text, progress=None)
+    return _render_clip(name, size, _speech_frames(speech, n), _rng(seed, name, f"clip:{voice}:{text}"), text, progress=None,
+                        motion=Motion.of(motion))
 
 
-def _render_clip(name: str, size: int, speech: sp_mod.Speech, rng: np.random.Generator, text: str, progress) -> Clip:
+def _render_clip(name: str, size: int, speech: sp_mod.Speech, rng: np.random.Generator, text: str, progress,
+                 motion: Motion | None = None) -> Clip:
     n = len(speech.audio) // SPF
     head = head_model(name, size)
     art = art_mod.articulation(speech.phones, n, FPS, rng)
+    focals = None
+    if motion is not None:
+        art = motion.apply(art, FPS)
+        focals = motion.focals(n, FPS, head.focal)
     frames = np.zeros((n, size, size, 3), np.uint8)
     lms2d = np.zeros((n, 68, 2))
     lms3d = np.zeros((n, 68, 3))
     c2w = np.zeros((n, 4, 4))
     for i in range(n):
-        fr = head.render(art[i], geometry=False)
+        fr = head.render(art[i], geometry=False, focal=None if focals is None else focals[i])
         frames[i] = io.to_u8(fr.rgb)
         lms2d[i], lms3d[i], c2w[i] = fr.lms2d, fr.lms3d, head.c2w(art[i])
         if progress is not None:
             progress.update(1)
-    return Clip(frames, speech.audio, lms2d, lms3d, c2w, head.focal, [p.to_json() for p in speech.phones], art, text, speech.voice)
+    focal = head.focal if focals is None else float(focals.mean())
+    return Clip(frames, speech.audio, lms2d, lms3d, c2w, focal, [p.to_json() for p in speech.phones], art, text, speech.voice,
+                np.full(n, focal) if focals is None else focals, motion)
 
 
 def list_voices() -> list[str]:
@@ -175,7 +192,7 @@ def _au_csv(path: Path, aus: dict[str, np.ndarray], n: int) -> None:
     path.write_text("\n".join(lines) + "\n", encoding="ascii")
 
 
-def _track_params(path: Path, art: np.ndarray, head: HeadModel) -> None:
+def _track_params(path: Path, art: np.ndarray, head: HeadModel, focal: float | None = None) -> None:
     import torch
 
     cols = art_mod.COLUMNS
@@ -183,7 +200,7 @@ def _track_params(path: Path, art: np.ndarray, head: HeadModel) -> None:
     trans = np.stack([head.head_pose(a)[:3, 3] - [0.0, 0.0, head.D] for a in art]).astype(np.float32)
     buf = _io.BytesIO()
     torch.save({"euler": torch.from_numpy(euler), "trans": torch.from_numpy(trans),
-                "focal": torch.tensor([head.focal], dtype=torch.float32)}, buf)
+                "focal": torch.tensor([head.focal if focal is None else focal], dtype=torch.float32)}, buf)
     path.write_bytes(buf.getvalue())
 
 
@@ -191,8 +208,16 @@ def _cross_seconds(seconds: float) -> float:
     return float(min(9.0, max(2.0, seconds / 6.5)))
 
 
-def build(name: str, out_dir: Path, *, size: int = 256, seconds: float = 60.0, seed: int = 0, progress: bool = True) -> dict:
+def build(name: str, out_dir: Path, *, size: int = 256, seconds: float = 60.0, seed: int = 0, progress: bool = True,
+          motion: Motion | str | None = None) -> dict:
     """Write bundled subject ``name`` into ``out_dir`` (an empty, existing folder).
+
+    ``motion``: ``"turn"``, ``"zoom"`` or a :class:`Motion` for the training clip (the cross
+    clips keep the speech motion and the fixed camera). A zoom's focal length per frame is in
+    ``focal_per_frame.npy`` (the transforms files, whose layout has one ``focal_len``, carry its
+    mean) and the frames' torso, parsing and background zoom with it; ``bc.jpg`` stays the
+    background at the mean focal. Without ``motion`` the files are those of earlier versions,
+    byte for byte.
 
     Returns:
         the ``meta.json`` content.
@@ -200,6 +225,7 @@ def build(name: str, out_dir: Path, *, size: int = 256, seconds: float = 60.0, s
     import cv2
 
     _check(name, size, seed)
+    motion = Motion.of(motion)
     if not (0.5 <= float(seconds) <= 3600):
         raise UserError(f"seconds {seconds:g}: must be between 0.5 and 3600")
     out = Path(out_dir)
@@ -222,6 +248,10 @@ def build(name: str, out_dir: Path, *, size: int = 256, seconds: float = 60.0, s
 
     head = head_model(name, size)
     art = art_mod.articulation(speech.phones, n, FPS, _rng(seed, name, "train"))
+    focals = None
+    if motion is not None:
+        art = motion.apply(art, FPS)
+        focals = motion.focals(n, FPS, head.focal)
     layers = head.static_layers()
     for d in ("ori_imgs", "gt_imgs", "torso_imgs", "parsing", "teeth_mask", "depth", "normal"):
         (out / d).mkdir()
@@ -240,7 +270,14 @@ def build(name: str, out_dir: Path, *, size: int = 256, seconds: float = 60.0, s
     c2w = np.zeros((n, 4, 4))
     gaps = np.zeros(n)
     for i in range(n):
-        fr = head.render(art[i])
+        if focals is None:
+            fr = head.render(art[i])
+        else:  # the torso and the background zoom with the head
+            fr = head.render(art[i], focal=focals[i])
+            layers = head.static_layers(focals[i] / head.focal)
+            torso_rgba = np.concatenate([layers["torso"], layers["torso_alpha"][:, :, None]], 2)
+            torso_png = _png_bytes(io.to_u8(torso_rgba)[:, :, [2, 1, 0, 3]])
+            torso_mask = layers["torso_alpha"] >= 0.5
         frames[i] = io.to_u8(fr.rgb)
         lms2d[i], lms3d[i], c2w[i], gaps[i] = fr.lms2d, fr.lms3d, head.c2w(art[i]), fr.lip_gap
         io.write_rgb(out / "ori_imgs" / f"{i}.jpg", frames[i])
@@ -262,13 +299,16 @@ def build(name: str, out_dir: Path, *, size: int = 256, seconds: float = 60.0, s
     io.write_wav(out / "aud.wav", speech.audio)
     io.write_video(out / f"{name}.mp4", frames, FPS, speech.audio)
     cut = int(n * 10 / 11)
-    _write_json(out / "transforms_train.json", _transforms(c2w, range(cut), head.focal, size))
-    _write_json(out / "transforms_val.json", _transforms(c2w, range(cut, n), head.focal, size))
+    focal = head.focal if focals is None else float(focals.mean())
+    _write_json(out / "transforms_train.json", _transforms(c2w, range(cut), focal, size))
+    _write_json(out / "transforms_val.json", _transforms(c2w, range(cut, n), focal, size))
+    if focals is not None:
+        np.save(out / "focal_per_frame.npy", focals)
     np.save(out / "lms3d.npy", lms3d)
     np.save(out / "articulation.npy", art)
     gap_norm = np.clip(gaps / 0.012, 0, 1)
     _au_csv(out / "au.csv", art_mod.action_units(art, gap_norm), n)
-    _track_params(out / "track_params.pt", art, head)
+    _track_params(out / "track_params.pt", art, head, None if focals is None else focal)
     _write_json(out / "phonemes.json", [p.to_json() for p in speech.phones])
     (out / "text.txt").write_text("\n".join(used) + "\n", encoding="utf-8")
 
@@ -320,6 +360,11 @@ def build(name: str, out_dir: Path, *, size: int = 256, seconds: float = 60.0, s
         "teeth_mask": "visible inside-mouth surfaces (teeth, tongue, cavity)",
         "parsing_colours": {k: list(v) for k, v in PARSING_COLOURS.items()},
     }
+    if motion is not None:
+        meta["motion"] = {**motion.to_json(), "applies_to": "the training clip (ori_imgs, transforms_*.json); not the cross clips"}
+        if focals is not None:
+            meta["focal_per_frame"] = ("focal_per_frame.npy: the focal length of every frame in pixels; transforms_*.json carry its "
+                                       "mean, bc.jpg the background at that mean; the frames' torso and background zoom with it")
     _write_json(out / "meta.json", meta)
     _write_json(out / "manifest.json", manifest(out))
     return meta

@@ -376,22 +376,38 @@ class HeadModel:
         plate = torso * ta[..., None] + bc * (1 - ta[..., None])
         return plate.astype(np.float32), ta, bc, torso
 
-    def static_layers(self) -> dict[str, np.ndarray]:
+    def static_layers(self, zoom: float = 1.0) -> dict[str, np.ndarray]:
         """Frame-size static images: ``torso`` (torso over background) and its ``torso_alpha``,
-        ``bc``, ``neck`` mask. The head is composited over ``torso`` by ``torso_alpha`` over ``bc``."""
+        ``bc``, ``neck`` mask. The head is composited over ``torso`` by ``torso_alpha`` over ``bc``.
+
+        ``zoom``: the focal length relative to :attr:`focal`; the layers as that camera sees them
+        (:meth:`zoomed`)."""
         import cv2
 
         _, ta, bc, torso = self._under
-        neck = cv2.resize(self.p.neck.astype(np.float32), (self.size, self.size), interpolation=cv2.INTER_AREA) > 0.5
-        return {"torso": torso, "torso_alpha": ta, "bc": bc, "neck": neck}
+        neck = cv2.resize(self.p.neck.astype(np.float32), (self.size, self.size), interpolation=cv2.INTER_AREA)
+        if zoom != 1.0:
+            ta, bc, torso, neck = (self.zoomed(x, zoom) for x in (ta, bc, torso, neck))
+        return {"torso": torso, "torso_alpha": ta, "bc": bc, "neck": neck > 0.5}
 
-    def render(self, a: np.ndarray, ss: int = 2, geometry: bool = True) -> Frame:
-        """Render one frame for articulation row ``a``."""
+    def zoomed(self, img: np.ndarray, zoom: float) -> np.ndarray:
+        """A frame-size image as a camera with ``zoom`` times the focal length sees it: scaled by
+        ``zoom`` about the principal point (the frame centre); uncovered borders are mirrored."""
+        import cv2
+
+        c = self.size / 2 - 0.5  # the frame centre in OpenCV's pixel-centre coordinates
+        m = np.array([[zoom, 0.0, (1 - zoom) * c], [0.0, zoom, (1 - zoom) * c]])
+        return cv2.warpAffine(img, m, (self.size, self.size), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT_101)
+
+    def render(self, a: np.ndarray, ss: int = 2, geometry: bool = True, focal: float | None = None) -> Frame:
+        """Render one frame for articulation row ``a``; ``focal`` (pixels) other than
+        :attr:`focal` renders a zoomed camera: the head projected with it, over the plate
+        scaled by the same ratio."""
         v = self.deform(a)
         w2c = np.linalg.inv(self.c2w(a) @ _GL_TO_CV)
         pc = v @ w2c[:3, :3].T + w2c[:3, 3]
         s = self.size
-        f = self.focal
+        f = self.focal if focal is None else float(focal)
         xy = np.stack([f * pc[:, 0] / pc[:, 2] + s / 2, f * pc[:, 1] / pc[:, 2] + s / 2], 1)
         attr = np.stack([self.shade, self.alpha_all], 1)
         if ss > 1:
@@ -403,7 +419,7 @@ class HeadModel:
             rgb, at, _, _ = raster.rasterize(xy, pc[:, 2], self.uv_all, attr, self.faces, self.atlas, s, s, True)
             alpha = at[:, :, 1]
             prem = rgb * alpha[:, :, None]
-        under = self._under[0]
+        under = self._under[0] if f == self.focal else self.zoomed(self._under[0], f / self.focal)
         out = prem + (1.0 - alpha[:, :, None]) * under
         lip_gap = float(np.linalg.norm(v[62] - v[66]))
         if not geometry:

@@ -4,12 +4,18 @@ The bundled generator writes each subject's raw video (``<name>.mp4``) beside th
 was rendered from; ingesting that video and comparing gives the figures of ``design.md``:
 
 * ``landmark_px``: mean distance of the 68 landmarks, per frame then over frames (pixels);
+  ``inner_landmark_px``: the same without the jaw contour (0-16), whose detected points are
+  silhouette points while the generator's are surface points (they part under yaw);
 * ``rotation_deg``: head rotation error after removing one constant rotation (the two world
   frames differ by a fixed rotation: the template's axes are not the generator's), mean over
   frames, and ``rotation_spread_deg``: the truth's own mean rotation away from its mean pose
   (what a fit that returned a constant pose would score);
 * ``translation_rel``: camera-to-head distance error relative to the true distance (scale of
   the world removed: the ingest's world unit is the template's jaw width);
+* for a truth whose focal length changes (``focal_per_frame.npy``: a zooming camera):
+  ``focal_range_true``, the truth's focal range relative to its mean, and
+  ``distance_zoom_slope``, the slope of the per-frame distance error on the relative focal
+  change (-1: a fit with one focal length put the whole zoom into the camera's distance);
 * ``head_iou``: intersection over union of the head parsing masks, mean over frames;
 * ``depth_rel``, ``normal_deg``, ``geometry_cover``: the depth / normal priors against the
   truth's maps (:func:`geometry_error`);
@@ -42,12 +48,27 @@ def rotation_error_deg(c2w_true: np.ndarray, c2w_est: np.ndarray) -> tuple[float
     return float(err.mean()), float(spread.mean())
 
 
-def distance_error_rel(c2w_true: np.ndarray, c2w_est: np.ndarray) -> float:
-    """Relative error of the per-frame camera distance to the world origin after one best scale."""
+def distance_track(c2w_true: np.ndarray, c2w_est: np.ndarray) -> np.ndarray:
+    """Signed relative error ``[N]`` of the per-frame camera distance to the world origin after
+    one best scale."""
     dt = np.linalg.norm(c2w_true[:, :3, 3], axis=1)
     de = np.linalg.norm(c2w_est[:, :3, 3], axis=1)
     s = float(np.dot(dt, de) / np.dot(de, de))
-    return float(np.mean(np.abs(s * de - dt) / dt))
+    return (s * de - dt) / dt
+
+
+def distance_error_rel(c2w_true: np.ndarray, c2w_est: np.ndarray) -> float:
+    """Relative error of the per-frame camera distance to the world origin after one best scale."""
+    return float(np.mean(np.abs(distance_track(c2w_true, c2w_est))))
+
+
+def zoom_error(c2w_true: np.ndarray, c2w_est: np.ndarray, focals: np.ndarray) -> dict[str, float]:
+    """Where a zoom went in a fit with one focal length: the truth's focal range (relative to its
+    mean) and the slope of the per-frame distance error on the relative focal change."""
+    x = focals / focals.mean() - 1.0
+    y = distance_track(c2w_true, c2w_est)
+    return {"focal_range_true": float(np.ptp(x)),
+            "distance_zoom_slope": float((x - x.mean()) @ (y - y.mean()) / ((x - x.mean()) @ (x - x.mean())))}
 
 
 def head_iou(true_dir: Path, est_dir: Path, n: int) -> float:
@@ -115,6 +136,7 @@ def compare(true_dir: str | Path, est_dir: str | Path) -> dict[str, float]:
     psnr, vis = plate_psnr(t.root, e.root, n)
     return {
         "landmark_px": float(np.linalg.norm(t.landmarks - e.landmarks, axis=2).mean()),
+        "inner_landmark_px": float(np.linalg.norm(t.landmarks[:, 17:] - e.landmarks[:, 17:], axis=2).mean()),
         "mouth_landmark_px": float(np.linalg.norm(t.landmarks[:, 48:] - e.landmarks[:, 48:], axis=2).mean()),
         "rotation_deg": rot,
         "rotation_spread_deg": spread,
@@ -127,4 +149,5 @@ def compare(true_dir: str | Path, est_dir: str | Path) -> dict[str, float]:
         "audio_identical": bool(len(t.audio) == len(e.audio) and np.array_equal(t.audio, e.audio)),
         "audio_snr_db": _snr(t.audio, e.audio),
         **geometry_error(t, e),
+        **(zoom_error(t.c2w, e.c2w, np.load(t.root / "focal_per_frame.npy")) if (t.root / "focal_per_frame.npy").is_file() else {}),
     }

@@ -25,7 +25,7 @@ import numpy as np
 from lmgs_eval.data.ingest import decode, writer
 from lmgs_eval.errors import UserError
 
-INGEST_VERSION = "2"  # 2: depth / normal priors
+INGEST_VERSION = "3"  # 2: depth / normal priors; 3: the zoom check (pose.scale in the manifest)
 MIN_SECONDS = 10.0  # shorter clips are ingested with a warning: too little to train on
 MIN_FACE_PX = 100  # jaw width in source pixels under which the face is flagged as small
 MOVING_SHARE = 0.02  # moving-camera flag: background residual above STATIC_LEVELS in more than this share...

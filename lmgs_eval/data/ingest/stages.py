@@ -8,7 +8,7 @@ import time
 import numpy as np
 
 from lmgs_eval.data import io
-from lmgs_eval.data.ingest import decode, pose as pose_mod, track as track_mod, writer
+from lmgs_eval.data.ingest import decode, pose as pose_mod, track as track_mod, writer, zoom as zoom_mod
 from lmgs_eval.data.ingest.crop import choose_window
 from lmgs_eval.data.ingest import frames as frames_mod
 from lmgs_eval.data.ingest.parsing import PlateBuilder
@@ -109,8 +109,20 @@ def pose(ctx, sel) -> None:
     writer.write_transforms(ctx.sub, fit.c2w, fit.focal, s, s)
     writer.write_track_params(ctx.sub / "track_params.pt", fit.euler, fit.trans, fit.focal)
     np.save(ctx.sub / "lms3d.npy", pose_mod.lift_landmarks(fit, lms, s, s))
+    sc = zoom_mod.check_scale(ctx.sub / "ori_imgs", lms, fit.c2w, s)
+    if sc.zooms:
+        ctx.warn("zoom", f"{ctx.video}: the frame outside the head scales with the face ({100 * sc.frame_range:.1f} % and "
+                 f"{100 * sc.face_range:.1f} % over the clip, slope {sc.slope:.2f}): the camera zooms or moves along its view. "
+                 f"The one focal length of the layout reads it as the camera's distance (for the head's images nearly the "
+                 f"same: a zoom and a dolly look alike on a face); the plate and the torso assume a still frame and are "
+                 f"wrong where the frame is scaled")
+    failed = int(np.isnan(sc.frame).sum())
+    if failed > len(sc.frame) // 2:
+        ctx.log.append(f"zoom check: {failed} of {len(sc.frame)} sampled frames could not be registered outside the head "
+                       f"(too little of it, or too little texture): a zoom would go unseen; the face's scale changes by {100 * sc.face_range:.1f} %")
     save_npz(ctx.work / "pose.npz", w2c=fit.w2c, c2w=fit.c2w, euler=fit.euler, trans=fit.trans, template=fit.template,
-             focal=fit.focal, reproj=fit.reproj_px, curve=np.asarray(fit.focal_curve, np.float64).reshape(-1, 2))
+             focal=fit.focal, reproj=fit.reproj_px, curve=np.asarray(fit.focal_curve, np.float64).reshape(-1, 2),
+             scale=json.dumps(sc.to_json()))
     ctx.timed("pose", t0, len(lms))
 
 
@@ -211,7 +223,8 @@ def finish(ctx, info: decode.VideoInfo, sel, audio: np.ndarray, source: str, key
         "window": json.loads(str(sel["window"])),
         "pose": {"focal": float(pz["focal"]), "focal_widths": float(pz["focal"]) / ctx.cfg.size,
                  "focal_search": pz["curve"].tolist(), "reprojection_px_mean": float(pz["reproj"].mean()),
-                 "pitch_yaw_roll_deg_min": eul.min(0).round(2).tolist(), "pitch_yaw_roll_deg_max": eul.max(0).round(2).tolist()},
+                 "pitch_yaw_roll_deg_min": eul.min(0).round(2).tolist(), "pitch_yaw_roll_deg_max": eul.max(0).round(2).tolist(),
+                 "scale": json.loads(str(pz["scale"]))},
         "flags": ctx.flags,
         "notes": ctx.log,
         "timings": ctx.timings,
