@@ -28,6 +28,12 @@ import numpy as np
 
 DERIVED_VERSION = "1"
 
+# What a processed folder of the field holds (ER-NeRF's process.py, plus TalkingGaussian's
+# teeth masks): ``ori_imgs`` carries the frames and their ``.lms``. No 3D landmarks, no depth
+# or normal maps, no manifest.
+PLAIN_LAYOUT = ("ori_imgs", "gt_imgs", "torso_imgs", "parsing", "teeth_mask", "bc.jpg", "aud.wav", "au.csv",
+                "track_params.pt", "transforms_train.json", "transforms_val.json")
+
 
 @dataclass(frozen=True)
 class HeadPrior:
@@ -91,3 +97,26 @@ def derive(root: Path, lms2d: np.ndarray, c2w: np.ndarray, focal: float, cx: flo
     atomic_write_text(meta_p, json.dumps({"key": key, "folder": str(root), "centre": centre.tolist(), "axes": axes.tolist(),
                                           "source": source, "version": DERIVED_VERSION}, indent=1))
     return lms3d, HeadPrior(tuple(centre.tolist()), tuple(axes.tolist()), source), cache
+
+
+def strip_to_plain(src: Path, dst: Path) -> Path:
+    """Copy a complete subject folder to ``dst`` with only the entries of :data:`PLAIN_LAYOUT`.
+
+    What a user with a folder made by the field's preprocessing has; :func:`derive` completes
+    it when it is read. ``dst`` must not exist. ``ori_imgs`` keeps its ``.jpg`` and ``.lms``.
+    """
+    import shutil
+
+    src, dst = Path(src), Path(dst)
+    missing = [n for n in PLAIN_LAYOUT if not (src / n).exists()]
+    if missing:
+        raise FileNotFoundError(f"{src}: no {', '.join(missing)} to copy")
+    dst.mkdir(parents=True)
+    for n in PLAIN_LAYOUT:
+        if (src / n).is_dir():
+            keep = (".jpg", ".lms") if n == "ori_imgs" else None
+            shutil.copytree(src / n, dst / n, ignore=None if keep is None else
+                            (lambda d, names, keep=keep: [x for x in names if not x.endswith(keep)]))
+        else:
+            shutil.copy2(src / n, dst / n)
+    return dst
