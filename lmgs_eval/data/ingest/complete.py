@@ -62,8 +62,11 @@ def content_key(root: Path, n: int) -> str:
     return h.hexdigest()
 
 
-def derive(root: Path, lms2d: np.ndarray, c2w: np.ndarray, focal: float, cx: float, cy: float) -> tuple[np.ndarray, HeadPrior, Path]:
-    """3D landmarks ``[N, 68, 3]`` and the head prior of a folder, from the cache or computed."""
+def derive(root: Path, lms2d: np.ndarray, c2w: np.ndarray, focal: float, cx: float, cy: float,
+           cache_dir: Path | None = None) -> tuple[np.ndarray, HeadPrior, Path]:
+    """3D landmarks ``[N, 68, 3]`` and the head prior of a folder, from the cache or computed.
+
+    ``cache_dir``: where the derived results are kept (default ``<cache>/derived``)."""
     from lmgs.landmarks import MEAN_FACE_DEPTH, lift_2d_landmarks
     from lmgs_eval.data.ingest.geometry import head_ellipsoid
     from lmgs_eval.data.ingest.pose import RELIEF
@@ -71,7 +74,7 @@ def derive(root: Path, lms2d: np.ndarray, c2w: np.ndarray, focal: float, cx: flo
 
     root = Path(root)
     key = content_key(root, len(lms2d))
-    cache = cache_root() / "derived" / key[:24]
+    cache = (Path(cache_dir) if cache_dir is not None else cache_root() / "derived") / key[:24]
     meta_p, lms_p = cache / "derived.json", cache / "lms3d.npy"
     if meta_p.exists() and lms_p.exists():
         meta = json.loads(meta_p.read_text())
