@@ -158,22 +158,25 @@ def timed_render(method, driving: DrivingAudio, timings: dict | None = None,
 LOCK = ".lock"
 
 
-def fit_method(method, clip, subject, seed: int, progress: bool) -> dict:
+def fit_method(method, clip, subject, seed: int, progress: bool, workdir: Path | None = None) -> dict:
     """Fit (or reload) a method; returns the cost of training.
 
     The model's cache folder is claimed for the fit (:func:`lmgs_eval.paths.claim`): a second
     run of the same method, config and seed on this machine waits, then reloads the model the
     first one trained instead of training it again. A fit that fails in a folder it made,
     before anything was saved there, removes the folder (no empty model folders are left).
+    ``workdir``: a folder of the caller's instead of the model cache (a benchmark that must
+    train afresh); a model already in it is reloaded all the same.
     """
     info = method.describe()
-    workdir = model_dir(subject, info.name, info.config_hash, seed)
+    own = workdir is None
+    workdir = model_dir(subject, info.name, info.config_hash, seed) if own else Path(workdir)
     made = not workdir.exists()
     try:
         with claim(workdir / LOCK, f"{info.name} seed {seed} on {subject.name}", log):
             return _fit_claimed(method, clip, subject, seed, progress, workdir)
     except BaseException:
-        if made:
+        if made and own:
             _drop_if_empty(workdir)
         raise
 
@@ -276,8 +279,10 @@ def write_render(root: Path, rel: str, frames: np.ndarray, audio: np.ndarray) ->
 
 
 def fit_render_score(cfg: RunConfig, method, subject, seed: int, train, driving: DrivingAudio, gt: np.ndarray, render_rel: str,
-                     protocol: str = "self", clip: str = "test") -> dict:
-    """Fit (or reload) one method, render the test split from its audio, score, record; returns the record."""
+                     protocol: str = "self", clip: str = "test", workdir: Path | None = None) -> dict:
+    """Fit (or reload) one method, render the test split from its audio, score, record; returns the record.
+
+    ``workdir``: where the model is trained (:func:`fit_method`; default the model cache)."""
     info = method.describe()
     timings: dict = {}
     if getattr(method, "prerendered", False):
@@ -288,7 +293,7 @@ def fit_render_score(cfg: RunConfig, method, subject, seed: int, train, driving:
         log(f"{info.name}: {len(frames)} frames read from its renders; scoring")
     else:
         log(f"{info.name} seed {seed}: fitting on {len(train)} frames")
-        fit_cost = fit_method(method, train, subject, seed, cfg.progress)
+        fit_cost = fit_method(method, train, subject, seed, cfg.progress, workdir)
         frames, rc = timed_render(method, driving, timings)
         log(f"{info.name}: {len(frames)} frames at {rc['fps']:.1f} FPS; scoring")
     res = cfg.suite.score(frames, gt, driving.audio)

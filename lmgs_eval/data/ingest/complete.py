@@ -28,6 +28,12 @@ import numpy as np
 
 DERIVED_VERSION = "1"
 
+# What a processed folder of the field holds (ER-NeRF's process.py, plus TalkingGaussian's
+# teeth masks): ``ori_imgs`` carries the frames and their ``.lms``. No 3D landmarks, no depth
+# or normal maps, no manifest.
+PLAIN_LAYOUT = ("ori_imgs", "gt_imgs", "torso_imgs", "parsing", "teeth_mask", "bc.jpg", "aud.wav", "au.csv",
+                "track_params.pt", "transforms_train.json", "transforms_val.json")
+
 
 @dataclass(frozen=True)
 class HeadPrior:
@@ -56,8 +62,11 @@ def content_key(root: Path, n: int) -> str:
     return h.hexdigest()
 
 
-def derive(root: Path, lms2d: np.ndarray, c2w: np.ndarray, focal: float, cx: float, cy: float) -> tuple[np.ndarray, HeadPrior, Path]:
-    """3D landmarks ``[N, 68, 3]`` and the head prior of a folder, from the cache or computed."""
+def derive(root: Path, lms2d: np.ndarray, c2w: np.ndarray, focal: float, cx: float, cy: float,
+           cache_dir: Path | None = None) -> tuple[np.ndarray, HeadPrior, Path]:
+    """3D landmarks ``[N, 68, 3]`` and the head prior of a folder, from the cache or computed.
+
+    ``cache_dir``: where the derived results are kept (default ``<cache>/derived``)."""
     from lmgs.landmarks import MEAN_FACE_DEPTH, lift_2d_landmarks
     from lmgs_eval.data.ingest.geometry import head_ellipsoid
     from lmgs_eval.data.ingest.pose import RELIEF
@@ -65,7 +74,7 @@ def derive(root: Path, lms2d: np.ndarray, c2w: np.ndarray, focal: float, cx: flo
 
     root = Path(root)
     key = content_key(root, len(lms2d))
-    cache = cache_root() / "derived" / key[:24]
+    cache = (Path(cache_dir) if cache_dir is not None else cache_root() / "derived") / key[:24]
     meta_p, lms_p = cache / "derived.json", cache / "lms3d.npy"
     if meta_p.exists() and lms_p.exists():
         meta = json.loads(meta_p.read_text())
@@ -91,3 +100,26 @@ def derive(root: Path, lms2d: np.ndarray, c2w: np.ndarray, focal: float, cx: flo
     atomic_write_text(meta_p, json.dumps({"key": key, "folder": str(root), "centre": centre.tolist(), "axes": axes.tolist(),
                                           "source": source, "version": DERIVED_VERSION}, indent=1))
     return lms3d, HeadPrior(tuple(centre.tolist()), tuple(axes.tolist()), source), cache
+
+
+def strip_to_plain(src: Path, dst: Path) -> Path:
+    """Copy a complete subject folder to ``dst`` with only the entries of :data:`PLAIN_LAYOUT`.
+
+    What a user with a folder made by the field's preprocessing has; :func:`derive` completes
+    it when it is read. ``dst`` must not exist. ``ori_imgs`` keeps its ``.jpg`` and ``.lms``.
+    """
+    import shutil
+
+    src, dst = Path(src), Path(dst)
+    missing = [n for n in PLAIN_LAYOUT if not (src / n).exists()]
+    if missing:
+        raise FileNotFoundError(f"{src}: no {', '.join(missing)} to copy")
+    dst.mkdir(parents=True)
+    for n in PLAIN_LAYOUT:
+        if (src / n).is_dir():
+            keep = (".jpg", ".lms") if n == "ori_imgs" else None
+            shutil.copytree(src / n, dst / n, ignore=None if keep is None else
+                            (lambda d, names, keep=keep: [x for x in names if not x.endswith(keep)]))
+        else:
+            shutil.copy2(src / n, dst / n)
+    return dst
