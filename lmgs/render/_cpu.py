@@ -65,9 +65,8 @@ def _composite_rows(rows: np.ndarray, rects: np.ndarray, vis: np.ndarray, depths
     tiles_w, tiles_h = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
     n_tiles = tiles_w * tiles_h
     # stable sort by depth: ties keep index order, like the dense reference
-    vis_ids = np.flatnonzero(vis)
-    order = vis_ids[np.argsort(depths[vis_ids], kind="stable")].astype(np.int64)
-    offsets, ids = K.bin_tiles(rects, order, n_tiles, tiles_w)
+    order = K.depth_order(np.ascontiguousarray(depths, np.float64), vis)
+    offsets, ids = K.bin_tiles(rects, order, n_tiles, tiles_w, numba.get_num_threads())
     tile_order = _tile_order(n_tiles)
     if rows.dtype == np.float32 and ids.shape[0] >= C.F32_MAX_ISECT:
         rows = rows.astype(np.float64)
@@ -92,7 +91,7 @@ def _composite_backward(ctx, g_feat, g_alpha) -> torch.Tensor:
     kd = torch.float32 if rows.dtype == np.float32 else torch.float64
     grad = C.backward(rows, ids, offsets, tile_order, tiles_w, width, height, t_final, last, _np(g_feat, kd),
                       _np(g_alpha, kd)[..., 0], C.consts(rows.dtype), C.pixel_centres(width, height, rows.dtype))
-    return torch.from_numpy(C.reduce_grads(grad, ids, n)).to(device=dev, dtype=dtype)
+    return torch.from_numpy(C.reduce_grads(grad, ids, n, numba.get_num_threads())).to(device=dev, dtype=dtype)
 
 
 class _Composite(torch.autograd.Function):

@@ -21,33 +21,103 @@ ROW = 7 + NF + 2  # + the pixel box half-widths (ext_x, ext_y)
 
 
 @njit(cache=True)
-def bin_tiles(rects, order, n_tiles, tiles_w):  # pragma: no cover - compiled
+def depth_order(depths, visible):  # pragma: no cover - compiled
+    """Ids of the ``visible`` Gaussians sorted by ``depths`` (float64), front to back; equal
+    depths keep index order (a stable sort, the same order as ``np.argsort(kind="stable")``).
+
+    An LSD radix sort over the depths' bits, 8 bits a pass (a float64 made an unsigned key
+    whose order is the floats' order); passes in which every key has the same byte are skipped.
+    """
+    n = depths.shape[0]
+    m = 0
+    for g in range(n):
+        m += 1 if visible[g] else 0
+    keys = np.empty(m, np.uint64)
+    ids = np.empty(m, np.int64)
+    bits = depths.view(np.uint64)
+    sign = np.uint64(1) << np.uint64(63)
+    j = 0
+    for g in range(n):
+        if visible[g]:
+            b = bits[g] if depths[g] != 0.0 else np.uint64(0)  # -0.0 ties with 0.0
+            keys[j] = ~b if b & sign else b | sign
+            ids[j] = g
+            j += 1
+    hist = np.zeros((8, 256), np.int64)
+    for i in range(m):
+        k = keys[i]
+        for d in range(8):
+            hist[d, (k >> np.uint64(8 * d)) & np.uint64(255)] += 1
+    keys2 = np.empty_like(keys)
+    ids2 = np.empty_like(ids)
+    pos = np.empty(256, np.int64)
+    for d in range(8):
+        skip = False
+        for v in range(256):
+            if hist[d, v] == m:
+                skip = True
+        if skip:
+            continue
+        run = 0
+        for v in range(256):
+            pos[v] = run
+            run += hist[d, v]
+        shift = np.uint64(8 * d)
+        for i in range(m):
+            v = (keys[i] >> shift) & np.uint64(255)
+            q = pos[v]
+            keys2[q] = keys[i]
+            ids2[q] = ids[i]
+            pos[v] = q + 1
+        keys, keys2 = keys2, keys
+        ids, ids2 = ids2, ids
+    return ids
+
+
+@njit(parallel=True, cache=True)
+def bin_tiles(rects, order, n_tiles, tiles_w, n_chunks):  # pragma: no cover - compiled
     """Sorted per-tile Gaussian lists.
 
     Args:
         rects: ``[N, 4]`` int64 half-open tile ranges ``(x0, x1, y0, y1)``.
         order: ``[M]`` int64 Gaussian ids sorted front to back (visible ones only).
+        n_chunks: parallel chunks (the numba thread count; the result does not depend on it).
 
     Returns:
         ``offsets [n_tiles + 1]`` and ``ids [n_isect]``: tile ``t`` holds
         ``ids[offsets[t]:offsets[t + 1]]``, front to back.
+
+    A counting sort by tile, in parallel over contiguous chunks of ``order``: each chunk
+    counts its intersections per tile, chunk ``c`` of tile ``t`` then starts after those of
+    chunks ``< c``, so the lists are those of the sequential sort whatever the chunk count.
     """
-    counts = np.zeros(n_tiles + 1, np.int64)
-    for k in range(order.shape[0]):
-        g = order[k]
-        for ty in range(rects[g, 2], rects[g, 3]):
-            for tx in range(rects[g, 0], rects[g, 1]):
-                counts[ty * tiles_w + tx + 1] += 1
-    offsets = np.cumsum(counts)
-    fill = offsets[:-1].copy()
-    ids = np.empty(offsets[-1], np.int64)
-    for k in range(order.shape[0]):
-        g = order[k]
-        for ty in range(rects[g, 2], rects[g, 3]):
-            for tx in range(rects[g, 0], rects[g, 1]):
-                t = ty * tiles_w + tx
-                ids[fill[t]] = g
-                fill[t] += 1
+    m = order.shape[0]
+    n_chunks = max(1, min(n_chunks, m // 256))
+    counts = np.zeros((n_chunks, n_tiles), np.int64)
+    for c in prange(n_chunks):
+        for k in range(c * m // n_chunks, (c + 1) * m // n_chunks):
+            g = order[k]
+            for ty in range(rects[g, 2], rects[g, 3]):
+                for tx in range(rects[g, 0], rects[g, 1]):
+                    counts[c, ty * tiles_w + tx] += 1
+    offsets = np.empty(n_tiles + 1, np.int64)
+    run = 0
+    for t in range(n_tiles):
+        offsets[t] = run
+        for c in range(n_chunks):
+            n_ct = counts[c, t]
+            counts[c, t] = run  # now the chunk's next slot in tile t
+            run += n_ct
+    offsets[n_tiles] = run
+    ids = np.empty(run, np.int64)
+    for c in prange(n_chunks):
+        for k in range(c * m // n_chunks, (c + 1) * m // n_chunks):
+            g = order[k]
+            for ty in range(rects[g, 2], rects[g, 3]):
+                for tx in range(rects[g, 0], rects[g, 1]):
+                    t = ty * tiles_w + tx
+                    ids[counts[c, t]] = g
+                    counts[c, t] += 1
     return offsets, ids
 
 
