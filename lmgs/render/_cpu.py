@@ -189,38 +189,44 @@ def project_autograd(means, quats, log_scales, opacity_logits, colors, camera: C
 
 class _CompositeRows(torch.autograd.Function):
     """Compositing of the rows the numba projection wrote; differentiable in ``means2d`` and
-    ``props`` (whose values the rows hold)."""
+    ``props`` (whose values the rows hold). Returns ``rgb``, ``depth``, ``normal`` (views of one
+    ``[H, W, 7]`` image: their gradients are joined once in the backward, where slicing
+    a single output would add a zero-filled image per slice) and ``alpha``."""
 
     @staticmethod
     def forward(ctx, means2d, props, prep, width, height):
-        return _composite_forward(ctx, prep.rows, prep.rects, prep.radii > 0, prep.depths, width, height,
-                                  means2d.shape[0], means2d.dtype, means2d.device)
+        feat, alpha = _composite_forward(ctx, prep.rows, prep.rects, prep.radii > 0, prep.depths, width, height,
+                                         means2d.shape[0], means2d.dtype, means2d.device)
+        return feat[..., 0:3], feat[..., 3:4], feat[..., 4:7], alpha
 
     @staticmethod
-    def backward(ctx, g_feat, g_alpha):
-        per_g = _composite_backward(ctx, g_feat, g_alpha)
+    def backward(ctx, g_rgb, g_depth, g_normal, g_alpha):
+        per_g = _composite_backward(ctx, torch.cat([g_rgb, g_depth, g_normal], -1), g_alpha)
         return per_g[:, 0:2], per_g[:, 2:], None, None, None
 
 
 def rasterize_numba(means, quats, log_scales, opacity_logits, colors, camera: Camera,
-                    nf: int = K.NF) -> tuple[torch.Tensor, ...]:
-    """Projection and compositing in numba: ``features [H, W, nf]``, ``alpha``, ``means2d``, ``radii``.
+                    nf: int = K.NF) -> tuple[torch.Tensor | None, ...]:
+    """Projection and compositing in numba: ``rgb [H, W, 3]``, ``depth [H, W, 1]``,
+    ``normal [H, W, 3]``, ``alpha [H, W, 1]``, ``means2d [N, 2]``, ``radii [N]``.
 
     ``colors`` are rgb ``[N, 3]`` (SH already evaluated). With a gradient to take the two
-    autograd functions above run (and ``nf`` is 7); without, the projection and compositing
-    run alone, and ``nf = 3`` composites colour only.
+    autograd functions above run (all 7 features); without, the projection and compositing
+    run alone, and ``nf = 3`` composites colour only (``depth`` and ``normal`` None).
     """
     width, height = int(camera.width), int(camera.height)
     params = (means, quats, log_scales, opacity_logits, colors)
     if torch.is_grad_enabled() and any(t.requires_grad for t in params):
         box: list[Prepared] = []
         means2d, props = _Project.apply(*params, camera, box)
-        feat, alpha = _CompositeRows.apply(means2d, props, box[0], width, height)
-        return feat, alpha, means2d, torch.from_numpy(box[0].radii)
+        rgb, depth, normal, alpha = _CompositeRows.apply(means2d, props, box[0], width, height)
+        return rgb, depth, normal, alpha, means2d, torch.from_numpy(box[0].radii)
     dtype, dev = means.dtype, means.device
     arrays = tuple(_np(t) for t in params)
     m2, _, prep = _project_np(arrays, camera, dtype, False)
     out, t_final, _, _ = _composite_rows(prep.rows, prep.rects, prep.radii > 0, prep.depths, width, height, nf)
     feat = torch.from_numpy(out).to(device=dev, dtype=dtype)
     alpha = torch.from_numpy(1.0 - t_final).to(device=dev, dtype=dtype)[..., None]
-    return feat, alpha, torch.from_numpy(m2).to(device=dev, dtype=dtype), torch.from_numpy(prep.radii)
+    depth, normal = (feat[..., 3:4], feat[..., 4:7]) if nf == K.NF else (None, None)
+    return feat[..., 0:3], depth, normal, alpha, torch.from_numpy(m2).to(device=dev, dtype=dtype), torch.from_numpy(
+        prep.radii)

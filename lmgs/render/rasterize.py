@@ -124,12 +124,13 @@ def rasterize(
         feat, alpha, means2d, radii = rasterize_gsplat(
             means, quats, log_scales, opacity_logits, colors, degree, camera
         )
+        rgb, depth, normal = feat[..., 0:3], feat[..., 3:4], feat[..., 4:7]
     elif chosen == "numba" and not (torch.is_grad_enabled() and camera.world_to_camera.requires_grad):
         from lmgs.render._cpu import rasterize_numba
 
-        rgb = view_colors(means, colors, degree, camera)
-        feat, alpha, means2d, radii = rasterize_numba(means, quats, log_scales, opacity_logits, rgb, camera,
-                                                      _MODE_FEATURES[render_mode])
+        rgb, depth, normal, alpha, means2d, radii = rasterize_numba(
+            means, quats, log_scales, opacity_logits, view_colors(means, colors, degree, camera), camera,
+            _MODE_FEATURES[render_mode])
     else:
         p = project(means, quats, log_scales, opacity_logits, colors, degree, camera)
         if chosen == "numba":
@@ -137,17 +138,17 @@ def rasterize(
         else:
             from lmgs.render._tiled_torch import composite
         feat, alpha = composite(p.means2d, p.conics, p.opacities, p.features, p.radii, p.depths, width, height)
+        rgb, depth, normal = feat[..., 0:3], feat[..., 3:4], feat[..., 4:7]
         means2d, radii = p.means2d, p.radii
     if means2d.requires_grad:
         means2d.retain_grad()
-    rgb = feat[..., 0:3]
     if background is not None:
         rgb = rgb + (1.0 - alpha) * background.to(rgb)
     return RasterResult(
         rgb=rgb,
         alpha=alpha,
-        depth=None if render_mode == "RGB" else feat[..., 3:4],
-        normal=None if render_mode == "RGB" else feat[..., 4:7],
+        depth=None if render_mode == "RGB" else depth,
+        normal=None if render_mode == "RGB" else normal,
         radii=radii,
         visible=radii > 0,
         means2d=means2d,
