@@ -144,7 +144,7 @@ def _project_np(arrays, camera: Camera, dtype: torch.dtype, with_props: bool):
     """Run :func:`NP.project_forward` on float64 ``arrays`` (means, quats, log-scales, opacity
     logits, rgb): ``means2d``, ``props`` (numpy, float32 for float32 ``dtype``) and :class:`Prepared`."""
     n = arrays[0].shape[0]
-    kd = np.float32 if _kernel_dtype(torch.empty(0, dtype=dtype)) == torch.float32 else np.float64
+    kd = np.float32 if dtype == torch.float32 else np.float64  # as _kernel_dtype
     rows = np.empty((n, K.ROW), kd)
     means2d = np.empty((n, 2), kd)
     props = np.empty((n if with_props else 0, NP.NPROP), kd)
