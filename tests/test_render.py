@@ -9,6 +9,8 @@ import torch
 
 from lmgs.errors import InputError
 from lmgs.render import rasterize
+from lmgs.render._cpu import composite
+from lmgs.render._projection import project
 from lmgs.render._reference import _rasterize
 from lmgs.types import Camera
 
@@ -63,8 +65,9 @@ def _edge_scene(dtype=torch.float32):
 
 @pytest.mark.parametrize("dtype,atol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
 @pytest.mark.parametrize("scene", ["random", "edges", "rotated"])
-def test_nograd_projection_equals_the_autograd_path(dtype, atol, scene):
-    """Without autograd the numba path projects in numba too; it equals the torch projection."""
+def test_numba_projection_equals_the_torch_projection(dtype, atol, scene):
+    """The numba path projects in numba (with and without autograd); both equal the torch
+    projection (``project``, the definition) feeding the same compositor."""
     w2c = None
     if scene == "rotated":
         c, s_ = math.cos(0.4), math.sin(0.4)
@@ -75,13 +78,19 @@ def test_nograd_projection_equals_the_autograd_path(dtype, atol, scene):
     bg = torch.tensor([0.1, 0.5, 0.9], dtype=dtype)
     with torch.no_grad():
         fast = rasterize(*p, cam, bg, backend="numba")
+        tp = project(*p, None, cam)
+        feat, alpha = composite(tp.means2d, tp.conics, tp.opacities, tp.features, tp.radii, tp.depths, 37, 29)
+    slow = {"rgb": feat[..., 0:3] + (1.0 - alpha) * bg, "alpha": alpha, "depth": feat[..., 3:4],
+            "normal": feat[..., 4:7]}
     grads = [t.clone().requires_grad_(True) for t in p]
-    slow = rasterize(*grads, cam, bg, backend="numba")  # torch projection (autograd)
+    fast_grad = rasterize(*grads, cam, bg, backend="numba")  # the numba projection's autograd function
     for k in OUTS:
-        torch.testing.assert_close(getattr(fast, k), getattr(slow, k).detach(), atol=atol, rtol=0, msg=lambda m: f"{k}: {m}")
-    assert torch.equal(fast.radii, slow.radii)
-    torch.testing.assert_close(fast.means2d * fast.visible[:, None], slow.means2d.detach() * slow.visible[:, None],
-                               atol=atol * 100, rtol=0)
+        torch.testing.assert_close(getattr(fast, k), slow[k], atol=atol, rtol=0, msg=lambda m: f"{k}: {m}")
+        torch.testing.assert_close(getattr(fast_grad, k).detach(), slow[k], atol=atol, rtol=0, msg=lambda m: f"{k}: {m}")
+    assert torch.equal(fast.radii, tp.radii) and torch.equal(fast_grad.radii, tp.radii)
+    for m2 in (fast.means2d, fast_grad.means2d.detach()):
+        torch.testing.assert_close(m2 * fast.visible[:, None], tp.means2d * fast.visible[:, None], atol=atol * 100,
+                                   rtol=0)
     assert fast.visible.any() and not fast.visible.all()
 
 

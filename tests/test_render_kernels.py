@@ -12,6 +12,7 @@ import torch
 from numba import njit
 
 from lmgs.render import _numba_composite as C
+from lmgs.render import _numba_kernels as K
 from lmgs.render import flops, rasterize
 from lmgs.render._reference import _rasterize
 from lmgs.types import Camera
@@ -102,3 +103,43 @@ def test_float32_inputs_past_the_stop_index_limit_composite_in_float64(monkeypat
     gb = torch.autograd.grad(ref.rgb.sum() + ref.alpha.sum(), p)
     for a, b in zip(ga, gb):
         torch.testing.assert_close(a, b, atol=1e-4, rtol=1e-4)
+
+
+def test_depth_order_is_a_stable_argsort_of_the_visible():
+    rng = np.random.default_rng(0)
+    for n in (0, 1, 7, 5000):
+        d = rng.normal(size=n) * 10.0 ** rng.integers(-3, 3, size=n)
+        d[: n // 3] = np.round(d[: n // 3], 1)  # many ties, and equal depths of both signs
+        if n > 3:
+            d[1], d[2] = 0.0, -0.0
+        vis = rng.random(n) < 0.8
+        ids = np.flatnonzero(vis)
+        want = ids[np.argsort(d[ids], kind="stable")]
+        assert np.array_equal(K.depth_order(d, vis), want)
+
+
+def test_bin_tiles_lists_each_tiles_gaussians_front_to_back():
+    rng = np.random.default_rng(1)
+    n, tiles_w, tiles_h = 3000, 7, 5
+    x0, y0 = rng.integers(0, tiles_w, n), rng.integers(0, tiles_h, n)
+    rects = np.stack([x0, np.minimum(x0 + rng.integers(0, 4, n), tiles_w), y0,
+                      np.minimum(y0 + rng.integers(0, 3, n), tiles_h)], 1).astype(np.int64)
+    order = rng.permutation(n)[: n - 100].astype(np.int64)
+    offsets, ids = K.bin_tiles(rects, order, tiles_w * tiles_h, tiles_w, 3)
+    for n_chunks in (1, 2, 5):
+        o2, i2 = K.bin_tiles(rects, order, tiles_w * tiles_h, tiles_w, n_chunks)
+        assert np.array_equal(o2, offsets) and np.array_equal(i2, ids)
+    for t in range(tiles_w * tiles_h):
+        tx, ty = t % tiles_w, t // tiles_w
+        want = [g for g in order if rects[g, 0] <= tx < rects[g, 1] and rects[g, 2] <= ty < rects[g, 3]]
+        assert ids[offsets[t]:offsets[t + 1]].tolist() == want
+
+
+def test_reduce_grads_sums_in_intersection_order():
+    rng = np.random.default_rng(2)
+    ids = rng.integers(0, 900, 20000).astype(np.int64)
+    grad = (rng.normal(size=(20000, C.GROW)) * 10.0 ** rng.integers(-4, 4, (20000, 1))).astype(np.float32)
+    want = np.zeros((1000, C.GROW), np.float32)
+    np.add.at(want, ids, grad)  # sequential, in index order
+    for n_chunks in (1, 2, 3):
+        assert np.array_equal(C.reduce_grads(grad, ids, 1000, n_chunks), want)

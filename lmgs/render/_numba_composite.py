@@ -367,12 +367,19 @@ def backward(rows, ids, offsets, tile_order, tiles_w, width, height, t_final, la
     return grad
 
 
-@njit(cache=True)
-def reduce_grads(grad, ids, n):  # pragma: no cover - compiled
-    """Sum per-intersection gradient rows into ``[n, 13]`` per-Gaussian rows, in order."""
+@njit(parallel=True, cache=True)
+def reduce_grads(grad, ids, n, n_chunks):  # pragma: no cover - compiled
+    """Sum per-intersection gradient rows into ``[n, 13]`` per-Gaussian rows, in intersection order.
+
+    In parallel over ``n_chunks`` ranges of Gaussians: each range scans every intersection and
+    adds those of its own Gaussians, so each sum runs in the same order whatever the count."""
     out = np.zeros((n, GROW), grad.dtype)
-    for k in range(ids.shape[0]):
-        g = ids[k]
-        for c in range(GROW):
-            out[g, c] += grad[k, c]
+    n_chunks = max(1, min(n_chunks, n // 256))
+    for r in prange(n_chunks):
+        lo, hi = r * n // n_chunks, (r + 1) * n // n_chunks
+        for k in range(ids.shape[0]):
+            g = ids[k]
+            if lo <= g < hi:
+                for c in range(GROW):
+                    out[g, c] += grad[k, c]
     return out

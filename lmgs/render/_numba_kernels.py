@@ -1,5 +1,6 @@
-"""Numba kernels of the CPU rasterizer before compositing: per-Gaussian rows, the no-autograd
-projection and tile binning (the compositing itself is :mod:`lmgs.render._numba_composite`).
+"""Numba kernels of the CPU rasterizer before compositing: per-Gaussian rows and tile binning
+(the projection is :mod:`lmgs.render._numba_projection`, the compositing
+:mod:`lmgs.render._numba_composite`).
 
 Per-Gaussian row layout (``rows[g]``; intersection ``k`` of a tile reads ``rows[ids[k]]``)::
 
@@ -20,33 +21,103 @@ ROW = 7 + NF + 2  # + the pixel box half-widths (ext_x, ext_y)
 
 
 @njit(cache=True)
-def bin_tiles(rects, order, n_tiles, tiles_w):  # pragma: no cover - compiled
+def depth_order(depths, visible):  # pragma: no cover - compiled
+    """Ids of the ``visible`` Gaussians sorted by ``depths`` (float64), front to back; equal
+    depths keep index order (a stable sort, the same order as ``np.argsort(kind="stable")``).
+
+    An LSD radix sort over the depths' bits, 8 bits a pass (a float64 made an unsigned key
+    whose order is the floats' order); passes in which every key has the same byte are skipped.
+    """
+    n = depths.shape[0]
+    m = 0
+    for g in range(n):
+        m += 1 if visible[g] else 0
+    keys = np.empty(m, np.uint64)
+    ids = np.empty(m, np.int64)
+    bits = depths.view(np.uint64)
+    sign = np.uint64(1) << np.uint64(63)
+    j = 0
+    for g in range(n):
+        if visible[g]:
+            b = bits[g] if depths[g] != 0.0 else np.uint64(0)  # -0.0 ties with 0.0
+            keys[j] = ~b if b & sign else b | sign
+            ids[j] = g
+            j += 1
+    hist = np.zeros((8, 256), np.int64)
+    for i in range(m):
+        k = keys[i]
+        for d in range(8):
+            hist[d, (k >> np.uint64(8 * d)) & np.uint64(255)] += 1
+    keys2 = np.empty_like(keys)
+    ids2 = np.empty_like(ids)
+    pos = np.empty(256, np.int64)
+    for d in range(8):
+        skip = False
+        for v in range(256):
+            if hist[d, v] == m:
+                skip = True
+        if skip:
+            continue
+        run = 0
+        for v in range(256):
+            pos[v] = run
+            run += hist[d, v]
+        shift = np.uint64(8 * d)
+        for i in range(m):
+            v = (keys[i] >> shift) & np.uint64(255)
+            q = pos[v]
+            keys2[q] = keys[i]
+            ids2[q] = ids[i]
+            pos[v] = q + 1
+        keys, keys2 = keys2, keys
+        ids, ids2 = ids2, ids
+    return ids
+
+
+@njit(parallel=True, cache=True)
+def bin_tiles(rects, order, n_tiles, tiles_w, n_chunks):  # pragma: no cover - compiled
     """Sorted per-tile Gaussian lists.
 
     Args:
         rects: ``[N, 4]`` int64 half-open tile ranges ``(x0, x1, y0, y1)``.
         order: ``[M]`` int64 Gaussian ids sorted front to back (visible ones only).
+        n_chunks: parallel chunks (the numba thread count; the result does not depend on it).
 
     Returns:
         ``offsets [n_tiles + 1]`` and ``ids [n_isect]``: tile ``t`` holds
         ``ids[offsets[t]:offsets[t + 1]]``, front to back.
+
+    A counting sort by tile, in parallel over contiguous chunks of ``order``: each chunk
+    counts its intersections per tile, chunk ``c`` of tile ``t`` then starts after those of
+    chunks ``< c``, so the lists are those of the sequential sort whatever the chunk count.
     """
-    counts = np.zeros(n_tiles + 1, np.int64)
-    for k in range(order.shape[0]):
-        g = order[k]
-        for ty in range(rects[g, 2], rects[g, 3]):
-            for tx in range(rects[g, 0], rects[g, 1]):
-                counts[ty * tiles_w + tx + 1] += 1
-    offsets = np.cumsum(counts)
-    fill = offsets[:-1].copy()
-    ids = np.empty(offsets[-1], np.int64)
-    for k in range(order.shape[0]):
-        g = order[k]
-        for ty in range(rects[g, 2], rects[g, 3]):
-            for tx in range(rects[g, 0], rects[g, 1]):
-                t = ty * tiles_w + tx
-                ids[fill[t]] = g
-                fill[t] += 1
+    m = order.shape[0]
+    n_chunks = max(1, min(n_chunks, m // 256))
+    counts = np.zeros((n_chunks, n_tiles), np.int64)
+    for c in prange(n_chunks):
+        for k in range(c * m // n_chunks, (c + 1) * m // n_chunks):
+            g = order[k]
+            for ty in range(rects[g, 2], rects[g, 3]):
+                for tx in range(rects[g, 0], rects[g, 1]):
+                    counts[c, ty * tiles_w + tx] += 1
+    offsets = np.empty(n_tiles + 1, np.int64)
+    run = 0
+    for t in range(n_tiles):
+        offsets[t] = run
+        for c in range(n_chunks):
+            n_ct = counts[c, t]
+            counts[c, t] = run  # now the chunk's next slot in tile t
+            run += n_ct
+    offsets[n_tiles] = run
+    ids = np.empty(run, np.int64)
+    for c in prange(n_chunks):
+        for k in range(c * m // n_chunks, (c + 1) * m // n_chunks):
+            g = order[k]
+            for ty in range(rects[g, 2], rects[g, 3]):
+                for tx in range(rects[g, 0], rects[g, 1]):
+                    t = ty * tiles_w + tx
+                    ids[counts[c, t]] = g
+                    counts[c, t] += 1
     return offsets, ids
 
 
@@ -86,103 +157,3 @@ def _fill_row(rows, g, mx, my, a, b, c, op):  # pragma: no cover - compiled
     else:
         rows[g, 14] = -1.0
         rows[g, 15] = -1.0
-
-
-@njit(parallel=True, cache=True)
-def project_rows(means, quats, log_scales, opacity_logits, colors, w2c, fx, fy, cx, cy, width, height,
-                 near, eps2d, ls_min, ls_max):  # pragma: no cover - compiled
-    """No-autograd twin of ``_projection.project`` + :func:`gaussian_rows` + ``tile_rects``, in float64.
-
-    Every formula is the torch projection's (see :mod:`lmgs.render._projection`), one
-    Gaussian at a time; used when nothing needs a gradient (rendering a trained model).
-
-    Returns:
-        ``rows [N, ROW]``, ``depths [N]`` (camera z, 1 behind the near plane),
-        ``radii [N]`` int32 (0 = culled), ``rects [N, 4]`` int64 tile ranges, ``means2d [N, 2]``.
-    """
-    n = means.shape[0]
-    rows = np.empty((n, ROW), np.float64)
-    depths = np.empty(n, np.float64)
-    radii = np.zeros(n, np.int32)
-    rects = np.zeros((n, 4), np.int64)
-    means2d = np.empty((n, 2), np.float64)
-    tw = (width + TILE - 1) // TILE
-    th = (height + TILE - 1) // TILE
-    tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
-    lim_xp, lim_xn = (width - cx) / fx + 0.3 * tan_x, cx / fx + 0.3 * tan_x
-    lim_yp, lim_yn = (height - cy) / fy + 0.3 * tan_y, cy / fy + 0.3 * tan_y
-    for g in prange(n):
-        qw, qx, qy, qz = quats[g, 0], quats[g, 1], quats[g, 2], quats[g, 3]
-        qn = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-        if qn > 1e-12:
-            qw, qx, qy, qz = qw / qn, qx / qn, qy / qn, qz / qn
-        else:
-            qw, qx, qy, qz = 1.0, 0.0, 0.0, 0.0
-        r = np.empty((3, 3))
-        r[0, 0] = 1 - 2 * (qy * qy + qz * qz)
-        r[0, 1] = 2 * (qx * qy - qw * qz)
-        r[0, 2] = 2 * (qx * qz + qw * qy)
-        r[1, 0] = 2 * (qx * qy + qw * qz)
-        r[1, 1] = 1 - 2 * (qx * qx + qz * qz)
-        r[1, 2] = 2 * (qy * qz - qw * qx)
-        r[2, 0] = 2 * (qx * qz - qw * qy)
-        r[2, 1] = 2 * (qy * qz + qw * qx)
-        r[2, 2] = 1 - 2 * (qx * qx + qy * qy)
-        ls = np.empty(3)
-        k = 0
-        for i in range(3):
-            ls[i] = min(max(log_scales[g, i], ls_min), ls_max)
-            if ls[i] < ls[k]:  # argmin, first index on ties (torch's)
-                k = i
-        rc = np.empty((3, 3))  # rot_cw @ R: columns are the Gaussian's axes in camera space
-        mc = np.empty(3)
-        for i in range(3):
-            mc[i] = w2c[i, 0] * means[g, 0] + w2c[i, 1] * means[g, 1] + w2c[i, 2] * means[g, 2] + w2c[i, 3]
-            for j in range(3):
-                rc[i, j] = w2c[i, 0] * r[0, j] + w2c[i, 1] * r[1, j] + w2c[i, 2] * r[2, j]
-        in_front = mc[2] >= near
-        z = mc[2] if in_front else 1.0
-        x, y = mc[0], mc[1]
-        tx = z * min(max(x / z, -lim_xn), lim_xp)
-        ty = z * min(max(y / z, -lim_yn), lim_yp)
-        j00, j02 = fx / z, -fx * tx / (z * z)
-        j11, j12 = fy / z, -fy * ty / (z * z)
-        m0 = np.empty(3)
-        m1 = np.empty(3)
-        for j in range(3):
-            s = math.exp(ls[j])
-            m0[j] = (j00 * rc[0, j] + j02 * rc[2, j]) * s
-            m1[j] = (j11 * rc[1, j] + j12 * rc[2, j]) * s
-        a = m0[0] * m0[0] + m0[1] * m0[1] + m0[2] * m0[2] + eps2d
-        b = m0[0] * m1[0] + m0[1] * m1[1] + m0[2] * m1[2]
-        c = m1[0] * m1[0] + m1[1] * m1[1] + m1[2] * m1[2] + eps2d
-        det = a * c - b * b
-        ok = in_front and det > 0
-        det_s = det if ok else 1.0
-        mx = fx * x / z + cx
-        my = fy * y / z + cy
-        means2d[g, 0] = mx
-        means2d[g, 1] = my
-        mid = 0.5 * (a + c)
-        lam = mid + math.sqrt(max(mid * mid - det, 0.1))
-        radius = math.ceil(3.0 * math.sqrt(lam))
-        on_img = (mx + radius > 0) and (mx - radius < width) and (my + radius > 0) and (my - radius < height)
-        if ok and on_img and radius > 0:
-            radii[g] = np.int32(radius)
-            rects[g, 0] = np.int64(min(max(math.floor((mx - radius) / TILE), 0.0), tw))
-            rects[g, 1] = np.int64(min(max(math.ceil((mx + radius) / TILE), 0.0), tw))
-            rects[g, 2] = np.int64(min(max(math.floor((my - radius) / TILE), 0.0), th))
-            rects[g, 3] = np.int64(min(max(math.ceil((my + radius) / TILE), 0.0), th))
-        nx, ny, nz = rc[0, k], rc[1, k], rc[2, k]
-        if nx * mc[0] + ny * mc[1] + nz * mc[2] > 0:  # face the camera
-            nx, ny, nz = -nx, -ny, -nz
-        rows[g, 7] = colors[g, 0]
-        rows[g, 8] = colors[g, 1]
-        rows[g, 9] = colors[g, 2]
-        rows[g, 10] = z
-        rows[g, 11] = nx
-        rows[g, 12] = ny
-        rows[g, 13] = nz
-        depths[g] = z
-        _fill_row(rows, g, mx, my, c / det_s, -b / det_s, a / det_s, 1.0 / (1.0 + math.exp(-opacity_logits[g])))
-    return rows, depths, radii, rects, means2d

@@ -117,7 +117,9 @@ def check_inputs(
     for name, t in tensors.items():
         if not t.is_floating_point():
             raise InputError(f"{name} must be a floating-point tensor, got {t.dtype}")
-        bad = ~torch.isfinite(t.detach())
+        if math.isfinite(float(t.detach().sum())):  # one reduction: a NaN or inf makes the sum non-finite
+            continue
+        bad = ~torch.isfinite(t.detach())  # (or finite values summed past the float range: no error then)
         n_bad = int(bad.sum())
         if n_bad:
             rows = bad.reshape(t.shape[0], -1).any(dim=1).nonzero().flatten() if t.dim() > 0 else torch.zeros(1)
@@ -198,6 +200,20 @@ def eval_sh(coeffs: torch.Tensor, degree: int, dirs: torch.Tensor) -> torch.Tens
     return (res + 0.5).clamp_min(0.0)
 
 
+def view_colors(means: torch.Tensor, colors: torch.Tensor, sh_degree: int | None, camera: Camera) -> torch.Tensor:
+    """rgb ``[N, 3]`` in the dtype of ``means``: ``colors`` itself, or SH ``[N, K, 3]`` evaluated
+    (:func:`eval_sh`) for the direction from the camera centre to each mean."""
+    dtype = means.dtype
+    if colors.dim() != 3:
+        return colors.to(dtype)
+    w2c = camera.world_to_camera.to(device=means.device, dtype=dtype)
+    rot_cw, t_cw = w2c[:3, :3], w2c[:3, 3]
+    campos = -rot_cw.T @ t_cw
+    dirs = means - campos
+    dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    return eval_sh(colors.to(dtype), int(sh_degree or 0), dirs)
+
+
 @dataclass
 class Projected:
     """Per-Gaussian screen-space quantities, all in the autograd graph except ``radii``."""
@@ -269,13 +285,7 @@ def project(
     flip = ((normal * mc).sum(-1, keepdim=True) > 0).detach()
     normal = torch.where(flip, -normal, normal)
 
-    if colors.dim() == 3:
-        campos = -rot_cw.T @ t_cw
-        dirs = means - campos
-        dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        rgb = eval_sh(colors.to(dtype), int(sh_degree or 0), dirs)
-    else:
-        rgb = colors.to(dtype)
+    rgb = view_colors(means, colors, sh_degree, camera)
     features = torch.cat([rgb, z[:, None], normal], dim=-1)
     return Projected(means2d, conics, torch.sigmoid(opacity_logits.to(dtype)), features, z.detach(), radii)
 

@@ -8,7 +8,7 @@ from typing import Literal
 import torch
 
 from lmgs.errors import InputError
-from lmgs.render._projection import check_inputs, project
+from lmgs.render._projection import check_inputs, project, view_colors
 from lmgs.types import Camera
 
 Backend = Literal["auto", "numba", "torch", "gsplat"]
@@ -97,10 +97,10 @@ def rasterize(
             convention :math:`c = \\max(0, \\mathrm{SH}(v) + 0.5)`.
         backend: ``"numba"`` (fast CPU path), ``"torch"`` (pure-torch tiled compositor,
             slow), ``"gsplat"`` (CUDA, ``pip install .[cuda]``), or ``"auto"``: gsplat
-            for CUDA tensors when it is installed, else numba. When no input needs a
-            gradient (rendering a trained model), the numba path also projects in numba
-            (``K.project_rows``, float64, the same formulas; tests hold it equal to the
-            torch projection) instead of the ~60 small torch operations autograd needs.
+            for CUDA tensors when it is installed, else numba. The numba path projects in
+            numba too (float64, the formulas of ``project``, with a hand-written backward;
+            tests hold both equal to torch autograd of ``project``), except when the
+            camera's ``world_to_camera`` needs a gradient: then the projection is torch.
         render_mode: ``"RGB+D+N"`` (colour, depth and normals, what training needs) or
             ``"RGB"`` (colour and alpha alone, ``depth`` and ``normal`` None). On the no-grad
             numba path ``"RGB"`` composites 3 features per pixel instead of 7 (the same colour
@@ -124,12 +124,13 @@ def rasterize(
         feat, alpha, means2d, radii = rasterize_gsplat(
             means, quats, log_scales, opacity_logits, colors, degree, camera
         )
-    elif chosen == "numba" and degree is None and not (torch.is_grad_enabled() and any(
-            t.requires_grad for t in (means, quats, log_scales, opacity_logits, colors))):
-        from lmgs.render._cpu import rasterize_nograd
+        rgb, depth, normal = feat[..., 0:3], feat[..., 3:4], feat[..., 4:7]
+    elif chosen == "numba" and not (torch.is_grad_enabled() and camera.world_to_camera.requires_grad):
+        from lmgs.render._cpu import rasterize_numba
 
-        feat, alpha, means2d, radii = rasterize_nograd(means, quats, log_scales, opacity_logits, colors, camera,
-                                                       _MODE_FEATURES[render_mode])
+        rgb, depth, normal, alpha, means2d, radii = rasterize_numba(
+            means, quats, log_scales, opacity_logits, view_colors(means, colors, degree, camera), camera,
+            _MODE_FEATURES[render_mode])
     else:
         p = project(means, quats, log_scales, opacity_logits, colors, degree, camera)
         if chosen == "numba":
@@ -137,17 +138,17 @@ def rasterize(
         else:
             from lmgs.render._tiled_torch import composite
         feat, alpha = composite(p.means2d, p.conics, p.opacities, p.features, p.radii, p.depths, width, height)
+        rgb, depth, normal = feat[..., 0:3], feat[..., 3:4], feat[..., 4:7]
         means2d, radii = p.means2d, p.radii
     if means2d.requires_grad:
         means2d.retain_grad()
-    rgb = feat[..., 0:3]
     if background is not None:
         rgb = rgb + (1.0 - alpha) * background.to(rgb)
     return RasterResult(
         rgb=rgb,
         alpha=alpha,
-        depth=None if render_mode == "RGB" else feat[..., 3:4],
-        normal=None if render_mode == "RGB" else feat[..., 4:7],
+        depth=None if render_mode == "RGB" else depth,
+        normal=None if render_mode == "RGB" else normal,
         radii=radii,
         visible=radii > 0,
         means2d=means2d,
