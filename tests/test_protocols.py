@@ -233,7 +233,7 @@ def test_a_training_that_diverges_is_one_line_and_exit_1(tmp_path, monkeypatch):
     import lmgs_eval.runner as runner
     from lmgs.train import TrainingDiverged
 
-    def diverge(method, train, subject, seed, progress):
+    def diverge(method, train, subject, seed, progress, workdir=None):
         raise TrainingDiverged("training collapsed at step 1040 (dynamic stage): the mean loss of the last 25 steps is 3.9x ...")
 
     monkeypatch.setattr(runner, "fit_method", diverge)

@@ -20,7 +20,7 @@ TARGETS: dict[str, str] = {
     "metrics": "lmgs_eval.metrics.bench",
     "model": "lmgs.bench",
     "ingest": "lmgs_eval.data.ingest.bench",
-    "stripped": "lmgs_eval.data.ingest.bench_stripped",
+    "stripped": "lmgs_eval.commands._bench_stripped",
 }
 
 

@@ -402,11 +402,11 @@ class LPIPS:
             if k < len(cached):
                 fg = cached[k]
                 fp = None if same else self.features(pred[s:e])
-            elif same:
-                fg, fp = self.features(gt[s:e]), None
             else:
-                both = self.features(np.concatenate([pred[s:e], gt[s:e]]))
-                fp, fg = [f[:e - s] for f in both], [np.ascontiguousarray(f[e - s:]) for f in both]
+                # each side in a run of its own, so a frame's features (to the last bit) do not depend on
+                # whether the ground truth's came from the cache or were computed beside the prediction's
+                fg = self.features(gt[s:e])
+                fp = None if same else self.features(pred[s:e])
             out[s:e] = 0.0 if same else self.distance(fp, fg)
             if building and len(keep) == k:  # a prefix of the clip, as much as the budget holds
                 size = sum(f.nbytes for f in fg)
