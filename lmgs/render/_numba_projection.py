@@ -23,7 +23,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from lmgs.render._numba_kernels import NF, ROW, TILE, _fill_row
+from lmgs.render._numba_kernels import NF, TILE, _fill_row
 
 NPROP = 4 + NF  # conic (3), opacity, features (7)
 

@@ -21,7 +21,7 @@ from lmgs_eval.metrics.image import psnr_per_frame, ssim_per_frame
 from lmgs_eval.metrics.landmarks import DlibBackend
 from lmgs_eval.metrics.lpips import LPIPS, LPIPS_ALEX_SPEC, backend_of, build_stlpips_torch
 from lmgs_eval.metrics.lpips_nets import AlexTrunk, LPIPSNet
-from lmgs_eval.metrics.ort import load_session, n_threads
+from lmgs_eval.metrics.ort import n_threads
 from lmgs_eval.metrics.sync import find_scorer, lse
 
 HELP = "frames/s per metric (256, 512) and LPIPS ONNX Runtime vs eager torch, same run"
@@ -41,14 +41,9 @@ LSE_FRAMES = 50
 
 
 def _clip(n: int, size: int) -> tuple[np.ndarray, np.ndarray]:
-    import cv2
-    from skimage import data
-
-    face = cv2.resize(data.astronaut(), (size, size), interpolation=cv2.INTER_AREA).astype(np.float32) / 255
-    rng = np.random.default_rng(0)
-    gt = np.stack([np.roll(face, i % 4, axis=1) for i in range(n)])
-    pred = np.clip(gt + rng.normal(0, 0.03, gt.shape), 0, 1).astype(np.float32)
-    return pred, gt
+    """Float ``pred, gt`` in [0, 1] of :func:`_talking_clip` (without its audio)."""
+    gt, pred, _ = _talking_clip(n, size)
+    return pred.astype(np.float32) / 255, gt.astype(np.float32) / 255
 
 
 def _best(fn, reps: int = 2) -> float:

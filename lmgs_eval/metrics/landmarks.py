@@ -279,23 +279,32 @@ def create_backend(name: str = "dlib", **kw) -> LandmarkBackend:
     raise UserError(f"unknown landmark backend {name!r} (dlib, fan; 'given' takes arrays)")
 
 
-def cached_landmarks(backend: LandmarkBackend, frames: np.ndarray) -> np.ndarray:
+def frames_digest(frames: np.ndarray) -> str:
+    """sha256 of a clip's frames (shape, dtype and bytes): the key of the ground-truth caches."""
+    a = np.ascontiguousarray(frames)
+    h = hashlib.sha256(f"{a.shape}|{a.dtype}|".encode())
+    h.update(memoryview(a).cast("B"))
+    return h.hexdigest()
+
+
+def cached_landmarks(backend: LandmarkBackend, frames: np.ndarray, digest: str | None = None) -> np.ndarray:
     """``backend.landmarks(frames)``, kept on disk under the frames' sha256 and the backend version.
 
     Ground truth is scored again for every method, seed and protocol run of a subject; its
     landmarks depend only on the frames and the backend (name, version, settings), so they
     are computed once (``<cache>/landmarks/<key>.npy``, written atomically). A damaged or
-    mismatched entry is recomputed. Backends without a ``version`` are not cached.
+    mismatched entry is recomputed. Backends without a ``version`` are not cached. ``digest``: the
+    :func:`frames_digest` of the clip the frames were converted from, when the caller has it (the frames
+    are then not hashed again).
     """
     version = getattr(backend, "version", None)
     if not version or getattr(backend, "name", "") == "given":
         return backend.landmarks(frames)
 
 
-    frames = np.ascontiguousarray(frames)
-    h = hashlib.sha256(f"{frames.shape}|{frames.dtype}|{backend.name}|{version}|".encode())
-    h.update(memoryview(frames).cast("B"))
-    path = cache_root() / "landmarks" / f"{h.hexdigest()}.npy"
+    digest = digest or frames_digest(frames)
+    key = hashlib.sha256(f"{digest}|{backend.name}|{version}".encode()).hexdigest()
+    path = cache_root() / "landmarks" / f"{key}.npy"
     if path.is_file():
         try:
             lms = np.load(path, allow_pickle=False)
@@ -322,9 +331,10 @@ class LMD:
         self.gt_backend = gt_backend or self.backend
         self.spec = LMD_SPEC.with_weights(None, backend=f"{self.backend.version}|gt:{self.gt_backend.version}")
 
-    def update(self, pred: np.ndarray, gt: np.ndarray, same: bool = False) -> dict[str, np.ndarray]:
-        """Landmarks of both clips (``same``: ``pred`` is ``gt``, detected once when one backend reads both)."""
-        gt_lms = cached_landmarks(self.gt_backend, gt)
+    def update(self, pred: np.ndarray, gt: np.ndarray, same: bool = False, gt_key: str | None = None) -> dict[str, np.ndarray]:
+        """Landmarks of both clips (``same``: ``pred`` is ``gt``, detected once when one backend reads both;
+        ``gt_key``: the ground truth's :func:`frames_digest`, when the caller has it)."""
+        gt_lms = cached_landmarks(self.gt_backend, gt, gt_key)
         if same and self.gt_backend is self.backend:
             return {"pred_lms": gt_lms, "gt_lms": gt_lms}
         return {"pred_lms": self.backend.landmarks(pred), "gt_lms": gt_lms}

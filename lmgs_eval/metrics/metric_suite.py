@@ -8,7 +8,6 @@ a worker process that receives it loads its own copies.
 
 from __future__ import annotations
 
-import hashlib
 import time
 from typing import Any
 
@@ -16,6 +15,7 @@ import numpy as np
 
 from lmgs_eval.errors import UserError
 from lmgs_eval.metrics.base import MetricResult
+from lmgs_eval.metrics.landmarks import frames_digest
 from lmgs_eval.metrics.lpips import ALEX_NAMES, find_alexnet
 from lmgs_eval.metrics.registry import create_metric
 from lmgs_eval.metrics.sync import lse
@@ -93,8 +93,8 @@ class MetricSuite:
             gf = gt.astype(np.float32) / 255.0
             if gf.shape != pf.shape:
                 raise UserError(f"rendered frames {pf.shape} and ground truth {gf.shape} differ")
-            gt_key = frames_key(gt)
-            same = pred is gt or (pred.shape == gt.shape and frames_key(pred) == gt_key)
+            gt_key = frames_digest(gt)
+            same = pred is gt  # the ground-truth row: its side is computed once
             self.timings["convert+hash"] = clock() - t0
             names = ["psnr", "ssim", self.lpips_name] if reference else []
             for name in names:
@@ -111,7 +111,7 @@ class MetricSuite:
             if lmd:
                 t = clock()
                 m = self.metric("lmd")
-                stats = m.update(pf, gf, same=same)
+                stats = m.update(pf, gf, same=same, gt_key=gt_key)
                 out["lmd"] = m.compute(stats)
                 pred_lms = stats["pred_lms"]
                 self.timings["lmd"] = clock() - t
@@ -122,10 +122,3 @@ class MetricSuite:
         self.timings["total"] = clock() - t0
         return out
 
-
-def frames_key(frames: np.ndarray) -> str:
-    """sha256 of a clip's frames (shape, dtype and bytes): the ground-truth caches' key."""
-    a = np.ascontiguousarray(frames)
-    h = hashlib.sha256(f"{a.shape}|{a.dtype}|".encode())
-    h.update(memoryview(a).cast("B"))
-    return h.hexdigest()

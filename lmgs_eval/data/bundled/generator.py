@@ -222,8 +222,6 @@ def build(name: str, out_dir: Path, *, size: int = 256, seconds: float = 60.0, s
     Returns:
         the ``meta.json`` content.
     """
-    import cv2
-
     _check(name, size, seed)
     motion = Motion.of(motion)
     if not (0.5 <= float(seconds) <= 3600):
