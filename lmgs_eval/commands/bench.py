@@ -3,8 +3,8 @@
 Each target is a module with ``add_arguments(parser)`` and ``run(args) -> dict``; the dict
 is printed as a table, or as one JSON object on stdout with ``--json``. Ratios are always
 measured in the same run, on this machine, never compared with stored figures. ``stripped``
-trains one method twice (on a bundled subject and on its plain copy) and compares quality as
-well as cost; ``bench all`` leaves it out.
+and ``ingested`` train one method twice (on a bundled subject, and on its plain copy or on the
+ingest of its raw video) and compare quality as well as cost; ``bench all`` leaves them out.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ TARGETS: dict[str, str] = {
     "model": "lmgs.bench",
     "ingest": "lmgs_eval.data.ingest.bench",
     "stripped": "lmgs_eval.commands._bench_stripped",
+    "ingested": "lmgs_eval.commands._bench_ingested",
 }
 
 

@@ -21,6 +21,11 @@ was rendered from; ingesting that video and comparing gives the figures of ``des
   truth's maps (:func:`geometry_error`);
 * ``plate_psnr``: PSNR of ``bc.jpg`` over the pixels that are background in every frame of
   the truth (where the background is visible); ``audio_identical``: ``aud.wav`` sample-equal.
+
+For a method trained on both folders, :func:`edge_band` and :func:`psnr_outside` give the PSNR
+away from the head's outline: the outline decides which pixels the test frame's own torso
+layer supplies and which the method must render, and two parsings of the same footage draw
+it differently (see ``design.md``, "End to end").
 """
 
 from __future__ import annotations
@@ -81,6 +86,38 @@ def head_iou(true_dir: Path, est_dir: Path, n: int) -> float:
         u = (a | b).sum()
         ious.append((a & b).sum() / u if u else 1.0)
     return float(np.mean(ious))
+
+
+def head_masks(folder: Path, ids) -> np.ndarray:
+    """The head of each frame's parsing map (ER-NeRF's red), bool ``[len(ids), H, W]``."""
+    from lmgs_eval.data.io import read_rgb_u8
+
+    return np.stack([np.all(read_rgb_u8(Path(folder) / "parsing" / f"{int(i)}.png") == (255, 0, 0), axis=-1) for i in ids])
+
+
+def edge_band(masks: np.ndarray, radius: int) -> np.ndarray:
+    """Pixels within ``radius`` pixels (chessboard distance) of each mask's outline, bool like ``masks``:
+    the mask dilated minus the mask eroded by a ``2 radius + 1`` square."""
+    import cv2
+
+    k = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
+    out = np.zeros(masks.shape, bool)
+    for t, m in enumerate(np.asarray(masks, np.uint8)):
+        out[t] = (cv2.dilate(m, k) > 0) & ~(cv2.erode(m, k, borderType=cv2.BORDER_REPLICATE) > 0)
+    return out
+
+
+def psnr_outside(pred: np.ndarray, gt: np.ndarray, exclude: np.ndarray) -> float:
+    """PSNR (dB, peak 1) of uint8 or [0, 1] frames ``[T, H, W, 3]`` over the pixels not in ``exclude`` ``[T, H, W]``."""
+    def unit(x):
+        x = np.asarray(x)
+        return x.astype(np.float64) / 255.0 if x.dtype == np.uint8 else x.astype(np.float64)
+
+    keep = ~np.asarray(exclude, bool)
+    if not keep.any():
+        return float("nan")
+    mse = float(np.mean(((unit(pred) - unit(gt)) ** 2).mean(-1)[keep]))
+    return float("inf") if mse == 0 else float(-10 * np.log10(mse))
 
 
 def plate_psnr(true_dir: Path, est_dir: Path, n: int) -> tuple[float, float]:

@@ -1,0 +1,73 @@
+"""``lmgs-eval bench ingested`` and the outline-band figures it adds to the full-frame ones."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import run_cli
+
+FAST = {"train.static_steps": 40, "train.dynamic_steps": 40, "train.landmark_steps": 20, "train.densify_every": 20}
+
+
+def test_edge_band_is_the_ring_within_the_radius_of_the_outline():
+    from lmgs_eval.data.ingest.compare import edge_band
+
+    m = np.zeros((1, 20, 20), bool)
+    m[0, 5:15, 6:12] = True  # a 10 x 6 block
+    for r in (0, 1, 2):
+        got = edge_band(m, r)[0]
+        # by hand: a pixel is in the band when its (2r+1)^2 square holds both mask and non-mask pixels
+        want = np.zeros((20, 20), bool)
+        for y in range(20):
+            for x in range(20):
+                win = m[0, max(0, y - r):y + r + 1, max(0, x - r):x + r + 1]
+                want[y, x] = win.any() and not win.all()
+        assert np.array_equal(got, want), r
+    assert edge_band(m, 1)[0].sum() == (12 * 8 - 8 * 4)  # dilated 12x8 minus eroded 8x4
+    assert not edge_band(np.ones((1, 8, 8), bool), 2).any()  # a mask filling the frame has no outline inside it
+
+
+def test_psnr_outside_leaves_out_the_excluded_pixels():
+    from lmgs_eval.data.ingest.compare import psnr_outside
+
+    gt = np.full((2, 4, 4, 3), 100, np.uint8)
+    pred = gt.copy()
+    pred[:, 0, 0] = 255  # a wrong pixel in each frame
+    pred[:, 1, 1] = 110  # an error of 10 grey levels everywhere else
+    ex = np.zeros((2, 4, 4), bool)
+    ex[:, 0, 0] = True
+    mse = (10 / 255) ** 2 / 15  # one pixel of 10 levels among the 15 kept
+    assert psnr_outside(pred, gt, ex) == pytest.approx(-10 * np.log10(mse))
+    assert psnr_outside(pred.astype(np.float32) / 255, gt, ex) == pytest.approx(-10 * np.log10(mse), abs=1e-4)
+    assert psnr_outside(gt, gt, ex) == float("inf")
+    assert np.isnan(psnr_outside(pred, gt, np.ones((2, 4, 4), bool)))
+
+
+def test_bench_ingested_puts_the_two_folders_side_by_side(tmp_path):
+    """The tiny subject (128 px: dlib finds no face at 64) and its ingested video, short schedules."""
+    sets = [a for k, v in FAST.items() for a in ("--set", f"{k}={v}")]
+    rc, out, err = run_cli("bench", "ingested", "--size", "128", "--seconds", "2", *sets, "--data-root", str(tmp_path / "data"),
+                           "--results", str(tmp_path / "res"), "--json")
+    assert rc == 0, err
+    got = json.loads(out)
+    rows = {r["figure"]: r for r in got["rows"]}
+    full, away = rows["PSNR dB"], rows["PSNR dB away from the head outlines (+-4 px)"]
+    for r in (full, away):
+        assert r["generator"] > 25 and r["ingested"] > 20
+        assert r["ingested - generator"] == pytest.approx(r["ingested"] - r["generator"])
+    # measured: full frame -4.3 dB, away from the outlines -0.4 dB (16 % of the pixels left out):
+    # the ingest's frames and poses train as well as the generator's, the outlines differ
+    assert abs(away["ingested - generator"]) < abs(full["ingested - generator"])
+    assert "% of the test pixels left out" in away["note"]
+    assert "head IoU" in got["ingest accuracy"]
+    assert not Path(got["ingested"].split(" (")[0]).exists()  # the ingest is temporary
+    assert len(list((tmp_path / "res").rglob("*.json"))) >= 2
+
+
+def test_bench_ingested_refuses_a_bad_band(tmp_path):
+    rc, out, err = run_cli("bench", "ingested", "--band", "-1", "--data-root", str(tmp_path))
+    assert rc == 2 and "--band -1" in err and "Traceback" not in err
