@@ -27,19 +27,27 @@ only position offsets from audio (``DeformConfig.mouth()``).
 
 The spatial part that does not change from frame to frame (:math:`\\phi(x_i)` of the
 canonical points) can be computed once with :meth:`DeformNet.encode_points` and passed in.
+For inference, :meth:`DeformNet.prepare` goes further: every layer that reads only
+:math:`F_i` is linear in it up to its first activation, and :math:`F_i = f_i` except for the
+points Spatial Enhancement selects, so the first layers' products with :math:`f_i` (and the
+attention gates of unselected points, and of every point without SE) are computed once per
+clip; a frame then computes the selected points' share (:math:`g_{j^*_i} W^\\top`, one
+product per keypoint) and the layers after the first activations
+(:meth:`DeformNet.forward_prepared`; equal to :meth:`DeformNet.forward` up to float rounding).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import nn
 
 from lmgs.config import DeformConfig, GuidanceConfig, TriplaneConfig
 from lmgs.encoders.triplane import TriplaneEncoder
 from lmgs.errors import InputError
-from lmgs.guidance import LandmarkCompensation, spatial_enhance
+from lmgs.guidance import LandmarkCompensation, select_points, spatial_enhance, unit_rows
 
 
 @dataclass(frozen=True)
@@ -59,6 +67,28 @@ class DeformOutput:
     d_scale: torch.Tensor
     se_fraction: float | None
     audio_attention: torch.Tensor
+
+
+@dataclass(frozen=True)
+class PreparedPoints:
+    """What :meth:`DeformNet.prepare` computes once per clip for fixed canonical points.
+
+    Attributes:
+        f: ``[N, D]`` point features :math:`\\phi(x_i)`.
+        f_unit: ``[N, D]`` the same over their norms (Spatial Enhancement's similarities), or None.
+        base: for each first layer that reads :math:`F_i` (:meth:`DeformNet._first_layers`),
+            ``[N, out]`` its F-columns times :math:`f_i` plus its bias.
+        a_aud, a_exp: ``[N, A]`` / ``[N, E]`` the attention gates of :math:`f_i` (the gates of
+            every point without SE, of the unselected ones with it); ``a_exp`` None without expression.
+    """
+
+    f: torch.Tensor
+    f_unit: torch.Tensor | None
+    base: dict[str, torch.Tensor]
+    a_aud: torch.Tensor
+    a_exp: torch.Tensor | None
+    w_first: torch.Tensor
+    slices: dict[str, slice]
 
 
 def _gate(x: torch.Tensor, kind: str) -> torch.Tensor:
@@ -169,6 +199,97 @@ class DeformNet(nn.Module):
             d_xyz = d_xyz + cx * self.cfg.position_scale
             if not self.cfg.position_only:
                 d_rot, d_scale = d_rot + cr, d_scale + cs
+        return DeformOutput(d_xyz, d_rot, d_scale, se_fraction, a_aud)
+
+    # ------------------------------------------------------------------ inference
+    def _first_layers(self) -> list[tuple[str, nn.Linear]]:
+        """The first layers that read :math:`F_i` (their first D input columns do)."""
+        out = [("aud", self.aud_att[0])]
+        if self.exp_att is not None:
+            out.append(("exp", self.exp_att[0]))
+        out.append(("mlp", self.mlp[0]))
+        if self.lc is not None:
+            out += [("off", self.lc.offset[0]), ("tau", self.lc.tau[0])]
+        return out
+
+    @torch.no_grad()
+    def prepare(self, xyz: torch.Tensor, point_features: torch.Tensor | None = None) -> PreparedPoints:
+        """The per-point work of :meth:`forward` that does not change from frame to frame."""
+        f = self.encode_points(xyz) if point_features is None else point_features
+        d = self.feature_dim
+        base = {name: torch.addmm(lin.bias, f, lin.weight[:, :d].T) for name, lin in self._first_layers()}
+        kind = self.cfg.attention
+        a_aud = _gate(self.aud_att[1:](base["aud"]), kind)
+        a_exp = _gate(self.exp_att[1:](base["exp"]), kind) if self.exp_att is not None else None
+        layers = self._first_layers()
+        bounds = np.cumsum([0] + [lin.out_features for _, lin in layers])
+        slices = {name: slice(int(a), int(b)) for (name, _), a, b in zip(layers, bounds[:-1], bounds[1:])}
+        w_first = torch.cat([lin.weight[:, :d] for _, lin in layers])
+        return PreparedPoints(f, unit_rows(f) if self.guidance_cfg.se else None, base, a_aud, a_exp, w_first, slices)
+
+    @torch.no_grad()
+    def forward_prepared(
+        self,
+        prep: PreparedPoints,
+        audio: torch.Tensor,
+        landmarks: torch.Tensor | None = None,
+        blink: torch.Tensor | float | None = None,
+        exp: torch.Tensor | None = None,
+    ) -> DeformOutput:
+        """:meth:`forward` for one frame from :meth:`prepare`'s parts (inference: no gradients)."""
+        if audio.shape != (self.audio_dim,):
+            raise InputError(f"audio feature must be [{self.audio_dim}] for one frame, got {tuple(audio.shape)}")
+        gcfg, kind, d = self.guidance_cfg, self.cfg.attention, self.feature_dim
+        a_aud, a_exp, base = prep.a_aud, prep.a_exp, prep.base
+        g = idx = None
+        extra: dict[str, torch.Tensor] = {}
+        se_fraction = None
+        if gcfg.se or gcfg.lc:
+            if landmarks is None or landmarks.shape != (gcfg.n_landmarks, 3):
+                got = None if landmarks is None else tuple(landmarks.shape)
+                raise InputError(f"SE/LC are on: landmarks [{gcfg.n_landmarks}, 3] are needed, got {got}")
+            g = self.encoder(landmarks.to(prep.f))
+        if gcfg.se:
+            selected, match, _ = select_points(prep.f_unit @ unit_rows(g).T, gcfg.theta, gcfg.select_fraction)
+            se_fraction = float(selected.float().mean()) if len(selected) else 0.0
+            idx = selected.nonzero()[:, 0]
+            if len(idx):
+                # F_i = f_i + g_j* on the selected rows: each first layer gains g_j* W^T there
+                gw = (g @ prep.w_first.T)[match[idx]]
+                extra = {name: gw[:, sl] for name, sl in prep.slices.items()}
+                a_aud = a_aud.clone()
+                a_aud[idx] = _gate(self.aud_att[1:](base["aud"][idx] + extra["aud"]), kind)
+                if a_exp is not None:
+                    a_exp = a_exp.clone()
+                    a_exp[idx] = _gate(self.exp_att[1:](base["exp"][idx] + extra["exp"]), kind)
+
+        def first(name: str, h: torch.Tensor) -> torch.Tensor:
+            if extra:
+                h[idx] += extra[name]
+            return h
+
+        audio = torch.tanh(audio.to(prep.f)) if self.cfg.bound_audio else audio.to(prep.f)
+        # mlp(cat[F, a_aud * audio, a_exp * e]) with its first layer split by input columns
+        w0 = self.mlp[0].weight
+        h = first("mlp", torch.addmm(base["mlp"], a_aud, (w0[:, d : d + self.audio_dim] * audio).T))
+        if self.exp_total:
+            h = torch.addmm(h, a_exp * self._expression(blink, exp, prep.f), w0[:, d + self.audio_dim :].T)
+        out = self.mlp[1:](h)
+        d_xyz = out[:, :3] * self.cfg.position_scale
+        n = prep.f.shape[0]
+        if self.cfg.position_only:
+            d_rot, d_scale = prep.f.new_zeros(n, 4), prep.f.new_zeros(n, 3)
+        else:
+            d_rot, d_scale = out[:, 3:7], out[:, 7:10]
+        if self.lc is not None:
+            c = self.lc.condition(g)
+            h_off = first("off", base["off"] + self.lc.offset[0].weight[:, d:] @ c)
+            h_tau = first("tau", base["tau"] + self.lc.tau[0].weight[:, d:] @ c)
+            act = torch.sigmoid if self.lc.cfg.tau_activation == "sigmoid" else torch.tanh
+            comp = self.lc.offset[1:](h_off) * act(self.lc.tau[1:](h_tau))
+            d_xyz = d_xyz + comp[:, :3] * self.cfg.position_scale
+            if not self.cfg.position_only:
+                d_rot, d_scale = d_rot + comp[:, 3:7], d_scale + comp[:, 7:10]
         return DeformOutput(d_xyz, d_rot, d_scale, se_fraction, a_aud)
 
     def _expression(self, blink, exp, ref: torch.Tensor) -> torch.Tensor:

@@ -38,9 +38,23 @@ class EnhanceResult:
 
 def cosine_similarity_matrix(f: torch.Tensor, g: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
     """:math:`S_{ij} = f_i^\\top g_j / (\\|f_i\\| \\|g_j\\|)`, ``[N, D] x [K, D] -> [N, K]`` (norms floored at eps)."""
-    fn = f / f.norm(dim=-1, keepdim=True).clamp_min(eps)
-    gn = g / g.norm(dim=-1, keepdim=True).clamp_min(eps)
-    return fn @ gn.T
+    return unit_rows(f, eps) @ unit_rows(g, eps).T
+
+
+def unit_rows(x: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
+    """Each row over its norm (floored at eps): one side of :func:`cosine_similarity_matrix`."""
+    return x / x.norm(dim=-1, keepdim=True).clamp_min(eps)
+
+
+def select_points(s: torch.Tensor, theta: float, max_fraction: float = 0.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The selection of :func:`spatial_enhance` from the similarities ``S`` ``[N, K]``:
+    ``(selected [N] bool, match [N] int64, max_similarity [N])``."""
+    best, match = s.max(dim=1)
+    thr = theta
+    if max_fraction > 0.0 and s.shape[0]:
+        k = int(round(max_fraction * s.shape[0]))
+        thr = max(theta, float(torch.topk(best, k).values[-1]) if k > 0 else float("inf"))
+    return best >= thr, match, best
 
 
 def spatial_enhance(f: torch.Tensor, g: torch.Tensor, theta: float = 0.6, max_fraction: float = 0.0) -> EnhanceResult:
@@ -68,13 +82,7 @@ def spatial_enhance(f: torch.Tensor, g: torch.Tensor, theta: float = 0.6, max_fr
     if g.shape[0] == 0:
         raise InputError("spatial_enhance needs at least one keypoint")
     with torch.no_grad():
-        s = cosine_similarity_matrix(f, g)
-        best, match = s.max(dim=1)
-        thr = theta
-        if max_fraction > 0.0 and f.shape[0]:
-            k = int(round(max_fraction * f.shape[0]))
-            thr = max(theta, float(torch.topk(best, k).values[-1]) if k > 0 else float("inf"))
-        selected = best >= thr
+        selected, match, best = select_points(cosine_similarity_matrix(f, g), theta, max_fraction)
     # One-hot matrix product rather than ``g[match]``: the backward of an index with
     # repeated indices accumulates with atomic adds on the CPU (run-to-run different
     # float sums); a matrix product is reproducible for a given machine and thread count.

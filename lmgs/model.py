@@ -99,6 +99,12 @@ def to_image(x: np.ndarray, device) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(x)).to(device).float() / 255.0
 
 
+def prepared_params(gs: GaussianSet, deform, prep, audio: torch.Tensor, landmarks, blink) -> tuple[tuple[torch.Tensor, ...], float | None]:
+    """:meth:`LMGSModel.branch_params` of a dynamic branch at inference, from ``deform.prepare``'s parts."""
+    out = deform.forward_prepared(prep, audio, landmarks, blink)
+    return (gs.means + out.d_xyz, gs.quats + out.d_rot, gs.log_scales + out.d_scale, gs.opacity_logits, gs.colors()), out.se_fraction
+
+
 class LMGSModel(nn.Module):
     """The trained talking head: two Gaussian branches, the audio net, two deformation
     networks and the per-subject audio-to-landmark predictor.
@@ -186,8 +192,8 @@ class LMGSModel(nn.Module):
         fa = self.audio_net(feats)
         lms = self.predictor.predict(feats).to(dev) if (self.uses_landmarks and self.predictor is not None) else None
         t_audio = time.perf_counter() - t0
-        face_f = self.face_deform.encode_points(self.face.means)
-        mouth_f = self.mouth_deform.encode_points(self.mouth.means)
+        face_prep = self.face_deform.prepare(self.face.means)
+        mouth_prep = self.mouth_deform.prepare(self.mouth.means)
         out = np.empty((n, int(self.intrinsics[4]), int(self.intrinsics[3]), 3), np.uint8)
         t_net = t_ras = 0.0
         fracs = []
@@ -199,10 +205,10 @@ class LMGSModel(nn.Module):
             bg = to_image(driving.backgrounds[t], dev) if driving.backgrounds is not None else self.default_background
             blink = float(driving.blink[t]) if driving.blink is not None else 0.0
             a = time.perf_counter()
-            face_p, frac = self.branch_params(self.face, self.face_deform, True, fa[t], None if lms is None else lms[t], blink, face_f)
+            face_p, frac = prepared_params(self.face, self.face_deform, face_prep, fa[t], None if lms is None else lms[t], blink)
             if frac is not None:
                 fracs.append(float(frac))
-            mouth_p, _ = self.branch_params(self.mouth, self.mouth_deform, True, fa[t], None, None, mouth_f)
+            mouth_p, _ = prepared_params(self.mouth, self.mouth_deform, mouth_prep, fa[t], None, None)
             b = time.perf_counter()
             r = render_branches(face_p, mouth_p, self.camera(w2c.to(dev)), bg, geometry=False)
             out[t] = (r.rgb.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()

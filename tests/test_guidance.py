@@ -236,3 +236,37 @@ def test_added_options_leave_the_config_hash_as_it_was():
     assert mean.to_dict()["train"]["normal_reduce"] == "mean" and mean.hash() != cfg.hash()
     with pytest.raises(ValueError, match="normal_reduce"):
         cfg.replace(**{"train.normal_reduce": "max"})
+
+
+@pytest.mark.parametrize("cfg,guid", [
+    (DeformConfig(exp_dim=3), GuidanceConfig()),  # the face branch: SE (capped) and LC, blink and an expression vector
+    (DeformConfig(), GuidanceConfig(select_fraction=0.0, theta=0.2)),  # SE by theta alone, many points selected
+    (DeformConfig(attention="softmax", bound_audio=True), GuidanceConfig(lc=False)),
+    (DeformConfig(), GuidanceConfig(se=False)),  # LC alone
+    (DeformConfig.mouth(), GuidanceConfig(se=False, lc=False)),  # the mouth branch: position only, no expression
+    (DeformConfig(), GuidanceConfig(theta=1.1, select_fraction=0.0)),  # SE on, nothing selected
+])
+def test_prepared_inference_equals_the_forward_pass(cfg, guid):
+    """forward_prepared (first layers of f computed once per clip) against forward, every switch."""
+    torch.manual_seed(1)
+    net = DeformNet(16, cfg, _small_tri(), guid)
+    with torch.no_grad():  # trained-looking heads (the last layers start at zero)
+        for p in net.parameters():
+            p.add_(torch.randn_like(p) * 0.2)
+    xyz = torch.rand(300, 3) * 2 - 1
+    prep = net.prepare(xyz)
+    for t in range(3):
+        lms, aud = torch.rand(68, 3) * 2 - 1, torch.randn(16) * 2
+        kw = {"blink": 0.1 + 0.3 * t} if cfg.blink else {}
+        if cfg.exp_dim:
+            kw["exp"] = torch.randn(cfg.exp_dim)
+        with torch.no_grad():
+            want = net(xyz, aud, lms if (guid.se or guid.lc) else None, **kw)
+        got = net.forward_prepared(prep, aud, lms if (guid.se or guid.lc) else None, **kw)
+        for a, b in ((got.d_xyz, want.d_xyz), (got.d_rot, want.d_rot), (got.d_scale, want.d_scale),
+                     (got.audio_attention, want.audio_attention)):
+            torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+        assert got.se_fraction == want.se_fraction
+        assert float(want.d_xyz.abs().max()) > 1e-4  # the offsets are not trivially zero
+    if guid.se and guid.theta > 1:
+        assert got.se_fraction == 0.0
