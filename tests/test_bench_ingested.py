@@ -40,10 +40,17 @@ def test_psnr_outside_leaves_out_the_excluded_pixels():
     pred[:, 1, 1] = 110  # an error of 10 grey levels everywhere else
     ex = np.zeros((2, 4, 4), bool)
     ex[:, 0, 0] = True
-    mse = (10 / 255) ** 2 / 15  # one pixel of 10 levels among the 15 kept
-    assert psnr_outside(pred, gt, ex) == pytest.approx(-10 * np.log10(mse))
-    assert psnr_outside(pred.astype(np.float32) / 255, gt, ex) == pytest.approx(-10 * np.log10(mse), abs=1e-4)
-    assert psnr_outside(gt, gt, ex) == float("inf")
+    pred[1, 2, 2] = 130  # and in the second frame a second one of 30
+    mse0, mse1 = (10 / 255) ** 2 / 15, ((10 / 255) ** 2 + (30 / 255) ** 2) / 15  # among the 15 pixels kept
+    want = -5 * (np.log10(mse0) + np.log10(mse1))  # per frame, then the mean: as the PSNR metric
+    assert psnr_outside(pred, gt, ex) == pytest.approx(want)
+    assert psnr_outside(pred.astype(np.float32) / 255, gt, ex) == pytest.approx(want, abs=1e-4)
+    from lmgs_eval.metrics.image import PSNR_CAP_DB, psnr
+
+    assert psnr_outside(gt, gt, ex) == PSNR_CAP_DB
+    assert psnr_outside(pred, gt, np.zeros((2, 4, 4), bool)) == pytest.approx(psnr(pred / 255, gt / 255).value)  # none left out
+    ex[1] = True  # a frame with nothing kept is skipped
+    assert psnr_outside(pred, gt, ex) == pytest.approx(-10 * np.log10(mse0))
     assert np.isnan(psnr_outside(pred, gt, np.ones((2, 4, 4), bool)))
 
 
