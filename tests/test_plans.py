@@ -107,7 +107,8 @@ def test_expansion_crosses_every_axis_once_and_chains_runs_of_one_model():
 
 def test_the_committed_benchmark_plan_holds_the_paper_runs():
     """benchmarks/paper.toml: Table I (10 methods x 2 subjects, self + cross; 5 seeds for lmgs and
-    TalkingGaussian), the out-of-fold and uncapped rows, Tables III-IV's variants, stress and capacity."""
+    TalkingGaussian), the out-of-fold and uncapped rows, Tables III-IV's variants, stress and capacity,
+    and the 512 px section."""
     runs = expand(load_plan(REPO / "benchmarks" / "paper.toml"))
     got = {(r.protocol, r.subject, r.method, r.seed) for r in runs}
     methods = ("lmgs", "talkinggaussian", "degstalk", "gaussiantalker", "wav2lip", "ip_lap", "ernerf", "radnerf", "adnerf",
@@ -128,8 +129,10 @@ def test_the_committed_benchmark_plan_holds_the_paper_runs():
     assert {(m, s) for p, su, m, s in got if p == "stress"} == {(m, 0) for m in ("lmgs", "talkinggaussian",
                                                                                     "gaussiantalker", "degstalk")}
     cap = {r.subject: r.budgets for r in runs if r.protocol == "capacity"}
-    assert cap == {"astronaut": None, "hopper": (4000, 10000, 16000)}
-    assert len(runs) == 40 + 32 + 20 + 6 + 6 + 10 + 3 + 4 + 2
+    assert cap == {"astronaut": None, "hopper": (4000, 10000, 16000), "astronaut-512px-60s": (6000, 12000)}
+    big = {(p, m, s) for p, su, m, s in got if su == "astronaut-512px-60s" and p != "capacity"}
+    assert big == {("self", m, 0) for m in ("lmgs", "talkinggaussian", "degstalk")}  # 512 px: self only
+    assert len(runs) == 40 + 32 + 20 + 6 + 6 + 10 + 3 + 4 + 2 + 3 + 1
     assert {r.cpus for r in runs} == {2} and {r.preset for r in runs} == {"quick"}
 
 
