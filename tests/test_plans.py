@@ -129,7 +129,7 @@ def test_the_committed_benchmark_plan_holds_the_paper_runs():
     assert {(m, s) for p, su, m, s in got if p == "stress"} == {(m, 0) for m in ("lmgs", "talkinggaussian",
                                                                                     "gaussiantalker", "degstalk")}
     cap = {r.subject: r.budgets for r in runs if r.protocol == "capacity"}
-    assert cap == {"astronaut": None, "hopper": (4000, 10000, 16000), "astronaut-512px-60s": (6000, 12000)}
+    assert cap == {"astronaut": None, "hopper": (4000, 10000, 16000), "astronaut-512px-60s": (3000, 6000, 12000)}
     big = {(p, m, s) for p, su, m, s in got if su == "astronaut-512px-60s" and p != "capacity"}
     assert big == {("self", m, 0) for m in ("lmgs", "talkinggaussian", "degstalk")}  # 512 px: self only
     assert len(runs) == 40 + 32 + 20 + 6 + 6 + 10 + 3 + 4 + 2 + 3 + 1
