@@ -1,7 +1,7 @@
 """Typed records, and the committed store of version-1 records read through the migration.
 
-The committed ``tables/records`` were written by schema version 1 (SE share and subject budget in
-prose notes, no ``method.components``). They must load as version 2, agree with what today's lmgs
+Most committed ``tables/records`` were written by schema version 1 (SE share and subject budget in
+prose notes, no ``method.components``; the 512 px section by the current version). They must load as version 2, agree with what today's lmgs
 adapter declares for the same config, and make the committed tables again byte for byte.
 """
 
@@ -28,8 +28,9 @@ def committed():
 
 
 def test_the_committed_version_1_records_load_as_the_current_schema(committed):
-    raw_versions = {json.loads(p.read_text())["schema_version"] for p, _ in committed}
-    assert raw_versions == {"1"}  # the migration is what is exercised here
+    raw = [json.loads(p.read_text())["schema_version"] for p, _ in committed]
+    # most were written by version 1 (the migration is what is exercised here); later runs by the current one
+    assert set(raw) <= {"1", SCHEMA_VERSION} and raw.count("1") > 200
     for path, rec in committed:
         assert rec["schema_version"] == SCHEMA_VERSION and validate(rec) == [], path
         typed = Record.from_dict(rec)
