@@ -32,7 +32,7 @@ def test_edge_band_is_the_ring_within_the_radius_of_the_outline():
 
 
 def test_psnr_outside_leaves_out_the_excluded_pixels():
-    from lmgs_eval.data.ingest.compare import psnr_outside
+    from lmgs_eval.metrics.image import psnr_outside
 
     gt = np.full((2, 4, 4, 3), 100, np.uint8)
     pred = gt.copy()

@@ -32,7 +32,7 @@ def test_bench_runs_the_committed_plan_then_the_tables(tmp_path, monkeypatch, ca
     rc = demo.run_full(args)
     out = capsys.readouterr().out
     assert rc == 1 and "failed: stress hopper / degstalk seed 0: worker died" in out
-    assert "plan: 123 runs, 3 already in the store, 1 done, 1 failed" in out
+    assert "plan: 127 runs, 3 already in the store, 1 done, 1 failed" in out
     (_, plan, executor, results), tab, rep = calls
     assert plan == load_plan("benchmarks/paper.toml") and executor == "serial" and results == tmp_path / "results"
     assert tab == ("table", tmp_path / "tables", tmp_path / "tables" / "records")

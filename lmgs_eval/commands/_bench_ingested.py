@@ -43,9 +43,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> dict:
     from lmgs_eval.commands import _bench_pair as pair
     from lmgs_eval.data.ingest import IngestConfig, ingest
-    from lmgs_eval.data.ingest.compare import compare, edge_band, head_masks, psnr_outside
+    from lmgs_eval.data.ingest.compare import compare, edge_band, head_masks
     from lmgs_eval.data.registry import ensure_bundled
     from lmgs_eval.errors import UserError
+    from lmgs_eval.metrics.image import psnr_outside
 
     if not 0 <= args.band <= 64:
         raise UserError(f"--band {args.band}: must be between 0 and 64 pixels")

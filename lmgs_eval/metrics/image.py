@@ -88,6 +88,24 @@ def psnr(pred: np.ndarray, gt: np.ndarray) -> MetricResult:
     return m.compute(m.update(pred, gt))
 
 
+def psnr_outside(pred: np.ndarray, gt: np.ndarray, exclude: np.ndarray) -> float:
+    """The toolkit's PSNR (dB; per frame, then the mean over frames; an identical frame capped as
+    the metric caps it) of uint8 or [0, 1] frames ``[T, H, W, 3]`` over the pixels not in
+    ``exclude`` ``[T, H, W]``; frames with no pixel left are skipped (NaN when none is left)."""
+
+    def unit(x):
+        x = np.asarray(x)
+        return x.astype(np.float64) / 255.0 if x.dtype == np.uint8 else x.astype(np.float64)
+
+    keep = ~np.asarray(exclude, bool)
+    vals = []
+    for t in range(len(keep)):
+        if keep[t].any():
+            mse = float(np.mean(((unit(pred[t]) - unit(gt[t])) ** 2).mean(-1)[keep[t]]))
+            vals.append(PSNR_CAP_DB if mse == 0 else min(PSNR_CAP_DB, -10 * np.log10(mse)))
+    return float(np.mean(vals)) if vals else float("nan")
+
+
 # ----------------------------------------------------------------------------- SSIM
 SSIM_SIGMA = 1.5
 SSIM_TRUNCATE = 3.5

@@ -22,10 +22,10 @@ was rendered from; ingesting that video and comparing gives the figures of ``des
 * ``plate_psnr``: PSNR of ``bc.jpg`` over the pixels that are background in every frame of
   the truth (where the background is visible); ``audio_identical``: ``aud.wav`` sample-equal.
 
-For a method trained on both folders, :func:`edge_band` and :func:`psnr_outside` give the PSNR
-away from the head's outline: the outline decides which pixels the test frame's own torso
-layer supplies and which the method must render, and two parsings of the same footage draw
-it differently (see ``design.md``, "End to end").
+For a method trained on both folders, :func:`edge_band` (with
+:func:`lmgs_eval.metrics.image.psnr_outside`) gives the PSNR away from the head's outline: the
+outline decides which pixels the test frame's own torso layer supplies and which the method must
+render, and two parsings of the same footage draw it differently (see ``design.md``, "End to end").
 """
 
 from __future__ import annotations
@@ -105,25 +105,6 @@ def edge_band(masks: np.ndarray, radius: int) -> np.ndarray:
     for t, m in enumerate(np.asarray(masks, np.uint8)):
         out[t] = (cv2.dilate(m, k) > 0) & ~(cv2.erode(m, k, borderType=cv2.BORDER_REPLICATE) > 0)
     return out
-
-
-def psnr_outside(pred: np.ndarray, gt: np.ndarray, exclude: np.ndarray) -> float:
-    """The toolkit's PSNR (dB; per frame, then the mean over frames; an identical frame capped as
-    the metric caps it) of uint8 or [0, 1] frames ``[T, H, W, 3]`` over the pixels not in
-    ``exclude`` ``[T, H, W]``; frames with no pixel left are skipped (NaN when none is left)."""
-    from lmgs_eval.metrics.image import PSNR_CAP_DB
-
-    def unit(x):
-        x = np.asarray(x)
-        return x.astype(np.float64) / 255.0 if x.dtype == np.uint8 else x.astype(np.float64)
-
-    keep = ~np.asarray(exclude, bool)
-    vals = []
-    for t in range(len(keep)):
-        if keep[t].any():
-            mse = float(np.mean(((unit(pred[t]) - unit(gt[t])) ** 2).mean(-1)[keep[t]]))
-            vals.append(PSNR_CAP_DB if mse == 0 else min(PSNR_CAP_DB, -10 * np.log10(mse)))
-    return float(np.mean(vals)) if vals else float("nan")
 
 
 def plate_psnr(true_dir: Path, est_dir: Path, n: int) -> tuple[float, float]:
