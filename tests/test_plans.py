@@ -203,6 +203,17 @@ def test_the_run_command_runs_a_plan_file_and_a_dry_run_lists_what_is_done(tmp_p
     assert len(recs) == 4 and {r["method"]["name"] for r in recs} == {"plan-toy"}
 
 
+def test_a_dry_run_builds_no_subject(tmp_path):
+    """A bundled subject not built yet is listed as to do, and left unbuilt (building one takes minutes)."""
+    plan = tmp_path / "toy.toml"
+    plan.write_text('name = "toy"\n[[stage]]\nprotocols = ["self"]\nsubjects = ["hopper-64px-3s"]\nmethods = ["lmgs"]\n')
+    root = tmp_path / "data"
+    rc, out, err = run_cli("run", str(plan), "--results", str(tmp_path / "res"), "--data-root", str(root), "--dry-run")
+    assert rc == 0, err
+    assert out.startswith("todo  self hopper-64px-3s / lmgs seed 0  (subject not built yet at ")
+    assert not (root / "hopper-64px-3s").exists()
+
+
 def test_a_stress_run_is_found_done_by_the_records_of_its_conditions(tmp_path):
     """The keys a stress run is looked up by (its conditions, the stress config hash) are those it writes."""
     res = tmp_path / "res"

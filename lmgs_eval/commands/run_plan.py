@@ -39,6 +39,11 @@ def run(args: argparse.Namespace) -> int:
     if args.dry_run:
         ids = Identities(results, plan.data_root)
         for r in expand(plan):
+            missing = _unbuilt(r.subject, plan.data_root)
+            if missing:
+                # a dry run builds nothing: without the subject its config hashes (and records) cannot be looked up
+                print(f"todo  {r.label}  (subject not built yet at {missing}: the run builds it)")
+                continue
             keys = ids.keys(r)
             done = bool(keys) and all(ids.finished(r, k) for k in keys)
             print(f"{'done' if done else 'todo'}  {r.label}  ({len(keys)} record(s))")
@@ -46,6 +51,16 @@ def run(args: argparse.Namespace) -> int:
     executor = make_executor(args.executor, args.address, args.max_parallel)
     summary = run_plan(plan, executor, results)
     return report(summary, results)
+
+
+def _unbuilt(subject: str, data_root) -> str | None:
+    """The folder of a bundled subject that is not built yet (None when it is, or when ``subject`` is not bundled)."""
+    from lmgs_eval.data.registry import BundledSpec, resolve_subject_dir
+
+    if BundledSpec.parse(subject) is None:
+        return None
+    folder = resolve_subject_dir(subject, data_root, build=False)
+    return None if (folder / "meta.json").is_file() else str(folder)
 
 
 def report(summary, results) -> int:
