@@ -216,12 +216,11 @@ class DeformNet(nn.Module):
     def prepare(self, xyz: torch.Tensor, point_features: torch.Tensor | None = None) -> PreparedPoints:
         """The per-point work of :meth:`forward` that does not change from frame to frame."""
         f = self.encode_points(xyz) if point_features is None else point_features
-        d = self.feature_dim
-        base = {name: torch.addmm(lin.bias, f, lin.weight[:, :d].T) for name, lin in self._first_layers()}
+        d, layers = self.feature_dim, self._first_layers()
+        base = {name: torch.addmm(lin.bias, f, lin.weight[:, :d].T) for name, lin in layers}
         kind = self.cfg.attention
         a_aud = _gate(self.aud_att[1:](base["aud"]), kind)
         a_exp = _gate(self.exp_att[1:](base["exp"]), kind) if self.exp_att is not None else None
-        layers = self._first_layers()
         bounds = np.cumsum([0] + [lin.out_features for _, lin in layers])
         slices = {name: slice(int(a), int(b)) for (name, _), a, b in zip(layers, bounds[:-1], bounds[1:])}
         w_first = torch.cat([lin.weight[:, :d] for _, lin in layers])
