@@ -315,3 +315,31 @@ def test_frames_outside_the_head_are_the_plate_the_files_carry(tiny):
     d = np.concatenate(diffs)
     assert d.size > 0.3 * SIZE * SIZE * len(diffs)
     assert (d ** 2).mean() < 40 and d.max() < 64, ((d ** 2).mean(), d.max())
+
+
+def test_hair_layer_or_head(tiny, tmp_path):
+    """``hair="head"``: the hair beyond the head outline (a rim above the crown, locks beside
+    the jaw), which the subjects as built keep in the still torso layer, moves with the head:
+    the torso layer holds no person above the ears, the parsing's head grows by that hair, and
+    away from the head every frame is still the plate the files carry."""
+    import cv2
+
+    out = tmp_path / "hair"
+    out.mkdir()
+    meta = bundled.build("astronaut", out, size=SIZE, seconds=SECONDS, seed=0, progress=False, hair="head")
+    assert meta["hair"]["mode"] == "head" and "hair" not in json.loads((tiny / "meta.json").read_text())
+
+    def above_ears(folder):
+        lms = np.loadtxt(folder / "ori_imgs" / "0.lms")
+        t = cv2.imread(str(folder / "torso_imgs" / "0.png"), cv2.IMREAD_UNCHANGED)
+        ear_y = 0.5 * (lms[0, 1] + lms[16, 1])
+        return int((t[: int(ear_y), :, 3] >= 128).sum())
+
+    def head_px(folder):
+        return int(np.all(cv2.imread(str(folder / "parsing" / "0.png")) == (0, 0, 255), axis=2).sum())
+
+    assert above_ears(tiny) > 10 and above_ears(out) == 0
+    assert head_px(out) > head_px(tiny) + above_ears(tiny) // 2
+    test_frames_outside_the_head_are_the_plate_the_files_carry(out)
+    with pytest.raises(UserError, match="hair 'wig'"):
+        bundled.build("astronaut", tmp_path, size=SIZE, seconds=SECONDS, hair="wig")

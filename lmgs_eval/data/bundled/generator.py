@@ -18,7 +18,7 @@ from lmgs_eval.data.bundled import articulation as art_mod
 from lmgs_eval.data.bundled import speech as sp_mod
 from lmgs_eval.data.bundled.head import HeadModel
 from lmgs_eval.data.bundled.motion import Motion
-from lmgs_eval.data.bundled.photo import PHOTOS
+from lmgs_eval.data.bundled.photo import HAIR, PHOTOS
 from lmgs_eval.errors import UserError
 
 GENERATOR_VERSION = "2"  # 2: the head composited over the written plate, not the photo
@@ -64,8 +64,8 @@ def _rng(seed: int, name: str, stream: str) -> np.random.Generator:
 
 
 @functools.lru_cache(maxsize=4)
-def head_model(name: str, size: int) -> HeadModel:
-    return HeadModel(name, size)
+def head_model(name: str, size: int, hair: str = "layer") -> HeadModel:
+    return HeadModel(name, size, hair)
 
 
 @dataclass
@@ -128,9 +128,9 @@ def synthesize_clip(name: str, text: str, voice: str, *, size: int, seed: int, m
 
 
 def _render_clip(name: str, size: int, speech: sp_mod.Speech, rng: np.random.Generator, text: str, progress,
-                 motion: Motion | None = None) -> Clip:
+                 motion: Motion | None = None, hair: str = "layer") -> Clip:
     n = len(speech.audio) // SPF
-    head = head_model(name, size)
+    head = head_model(name, size, hair)
     art = art_mod.articulation(speech.phones, n, FPS, rng)
     focals = None
     if motion is not None:
@@ -209,7 +209,7 @@ def _cross_seconds(seconds: float) -> float:
 
 
 def build(name: str, out_dir: Path, *, size: int = 256, seconds: float = 60.0, seed: int = 0, progress: bool = True,
-          motion: Motion | str | None = None) -> dict:
+          motion: Motion | str | None = None, hair: str = "layer") -> dict:
     """Write bundled subject ``name`` into ``out_dir`` (an empty, existing folder).
 
     ``motion``: ``"turn"``, ``"zoom"`` or a :class:`Motion` for the training clip (the cross
@@ -219,10 +219,16 @@ def build(name: str, out_dir: Path, *, size: int = 256, seconds: float = 60.0, s
     background at the mean focal. Without ``motion`` the files are those of earlier versions,
     byte for byte.
 
+    ``hair``: ``"layer"`` (default: the bundled subjects) or ``"head"``, where all the hair moves
+    with the head as on a camera, and the subject's parsing labels it head
+    (:func:`lmgs_eval.data.bundled.photo.portrait`). Recorded in ``meta.json`` when not the default.
+
     Returns:
         the ``meta.json`` content.
     """
     _check(name, size, seed)
+    if hair not in HAIR:
+        raise UserError(f"hair {hair!r}: one of {', '.join(HAIR)}")
     motion = Motion.of(motion)
     if not (0.5 <= float(seconds) <= 3600):
         raise UserError(f"seconds {seconds:g}: must be between 0.5 and 3600")
@@ -244,7 +250,7 @@ def build(name: str, out_dir: Path, *, size: int = 256, seconds: float = 60.0, s
         s, u = sp_mod.speak_for(corpus[sec], voice, cross_n / FPS)
         cross_speech[key] = (_speech_frames(s, cross_n), u)
 
-    head = head_model(name, size)
+    head = head_model(name, size, hair)
     art = art_mod.articulation(speech.phones, n, FPS, _rng(seed, name, "train"))
     focals = None
     if motion is not None:
@@ -315,7 +321,7 @@ def build(name: str, out_dir: Path, *, size: int = 256, seconds: float = 60.0, s
         d = out / "cross" / key
         (d / "gt_imgs").mkdir(parents=True)
         (d / "ori_imgs").mkdir()
-        clip = _render_clip(name, size, cs, _rng(seed, name, f"cross-{key}"), " ".join(cu), bar)
+        clip = _render_clip(name, size, cs, _rng(seed, name, f"cross-{key}"), " ".join(cu), bar, hair=hair)
         for i in range(len(clip.frames)):
             io.write_rgb(d / "gt_imgs" / f"{i}.jpg", clip.frames[i])
             _write_lms(d / "ori_imgs" / f"{i}.lms", clip.lms2d[i])
@@ -358,6 +364,8 @@ def build(name: str, out_dir: Path, *, size: int = 256, seconds: float = 60.0, s
         "teeth_mask": "visible inside-mouth surfaces (teeth, tongue, cavity)",
         "parsing_colours": {k: list(v) for k, v in PARSING_COLOURS.items()},
     }
+    if hair != "layer":
+        meta["hair"] = {"mode": hair, "note": "all the hair above the jaw's lower half moves with the head and is labelled head"}
     if motion is not None:
         meta["motion"] = {**motion.to_json(), "applies_to": "the training clip (ori_imgs, transforms_*.json); not the cross clips"}
         if focals is not None:

@@ -88,10 +88,11 @@ class HeadModel:
     Args:
         name: bundled subject name (``astronaut`` or ``hopper``).
         size: output frame size in pixels (square).
+        hair: where the hair outside the head outline goes (:func:`photo.portrait`).
     """
 
-    def __init__(self, name: str, size: int) -> None:
-        self.p: Portrait = portrait(name)
+    def __init__(self, name: str, size: int, hair: str = "layer") -> None:
+        self.p: Portrait = portrait(name, hair)
         self.size = int(size)
         self.focal = F_REL * self.size
         self.atlas = _atlas(self.p.tex)

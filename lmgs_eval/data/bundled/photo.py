@@ -152,8 +152,12 @@ def _poly_mask(pts: np.ndarray, shape=(TEX, TEX)) -> np.ndarray:
     return m.astype(bool)
 
 
-def head_outline(lms: np.ndarray, spec: PhotoSpec, n: int = 72) -> np.ndarray:
-    """A prior outline of the head (face + hair) ``[n, 2]``: the jaw below, an ellipse above."""
+def head_outline(lms: np.ndarray, spec: PhotoSpec, n: int = 72, jaw_out: float = 0.04) -> np.ndarray:
+    """A prior outline of the head (face + hair) ``[n, 2]``: the jaw below, an ellipse above.
+
+    ``jaw_out``: the jaw line is pushed out from the jaw's centre by this fraction and down by
+    half of it in face heights (the photographs' soft jaw edge; 0: the jaw landmarks themselves).
+    """
     jaw = lms[:17]
     brow_y = lms[17:27, 1].mean()
     chin_y = lms[8, 1]
@@ -167,14 +171,26 @@ def head_outline(lms: np.ndarray, spec: PhotoSpec, n: int = 72) -> np.ndarray:
     upper = np.stack([cx + half * np.cos(ang), ear_y - (ear_y - top) * np.sin(ang)], 1)
     # lower part: from the left ear down along the jaw (a little outside it) to the right ear
     c = jaw.mean(0)
-    lower = c + (jaw - c) * 1.04 + np.array([0.0, 0.02 * fh])
+    lower = c + (jaw - c) * (1.0 + jaw_out) + np.array([0.0, 0.5 * jaw_out * fh])
     lower = np.concatenate([[[cx - half, ear_y + 0.1 * fh]], lower, [[cx + half, ear_y + 0.1 * fh]]])
     return np.concatenate([upper, lower])  # closed polygon: over the top, then back along the jaw
 
 
+HAIR = ("layer", "head")  # where the hair outside the head outline goes (:func:`portrait`)
+
+
 @functools.lru_cache(maxsize=4)
-def portrait(name: str) -> Portrait:
-    """Load, crop and segment the photograph of bundled subject ``name`` (cached)."""
+def portrait(name: str, hair: str = "layer") -> Portrait:
+    """Load, crop and segment the photograph of bundled subject ``name`` (cached).
+
+    ``hair``: ``"layer"`` (the subjects as built so far) keeps the head to the person inside
+    the head outline (:func:`head_outline`); hair beyond it (a rim above the crown, locks
+    beside the jaw) stays in the static torso layer, so the video shows it still while the
+    head moves, and the subject's own parsing labels it torso. ``"head"`` makes all the hair
+    above the jaw's lower half part of the head, as on a camera, where hair moves with the head.
+    """
+    if hair not in HAIR:
+        raise UserError(f"hair {hair!r}: one of {', '.join(HAIR)}")
     import cv2
 
     spec = PHOTOS.get(name)
@@ -225,6 +241,11 @@ def portrait(name: str) -> Portrait:
     person = person.astype(bool) | face
 
     # --- head = person inside the head prior; the rest of the person is neck and torso
+    if hair == "head":  # every person pixel above the collar the GrabCut seeds allow the head
+        jaw = lms[:17]
+        ear_y = 0.5 * (jaw[0, 1] + jaw[16, 1])
+        beside = (yy > ear_y) & (yy < max(lms[3, 1], lms[13, 1])) & (np.abs(xx - jcx) < 0.5 * jw * spec.head_wide * 1.25)
+        head_prior = head_prior | ~outside_head | beside
     head = person & head_prior
     head = cv2.morphologyEx(head.astype(np.uint8), cv2.MORPH_OPEN, np.ones((7, 7), np.uint8)).astype(bool) | face
     neck = person & ~head & (np.abs(xx - jcx) < 0.42 * jw) & (yy < lms[8, 1] + 0.7 * fh) & (yy > lms[4, 1])
