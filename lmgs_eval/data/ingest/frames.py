@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from lmgs_eval.data import io
-from lmgs_eval.data.ingest.parsing import KEYFRAME, mouth_mask, person_mask, split_parts
+from lmgs_eval.data.ingest.parsing import KEYFRAME, PARSING_COLOURS, Parts, mouth_mask, person_mask, split_parts, torso_layer
 from lmgs_eval.errors import UserError
 
 CHUNK = 2 * KEYFRAME
@@ -64,10 +64,11 @@ def composite(sub: Path, a: int, b: int) -> None:
         img = io.read_rgb_u8(sub / "ori_imgs" / f"{i}.jpg")
         p = io.read_rgb_u8(sub / "parsing" / f"{i}.png")
         bg = np.all(p == 255, axis=-1)
-        head = np.all(p == (255, 0, 0), axis=-1)
         io.write_rgb(sub / "gt_imgs" / f"{i}.jpg", np.where(bg[..., None], bc, img))
-        alpha = (~bg & ~head).astype(np.uint8) * 255
-        png(sub / "torso_imgs" / f"{i}.png", np.concatenate([img, alpha[..., None]], -1))
+        parts = Parts(np.all(p == PARSING_COLOURS["head"], axis=-1), np.all(p == PARSING_COLOURS["neck"], axis=-1),
+                      np.all(p == PARSING_COLOURS["torso"], axis=-1))
+        rgb, alpha = torso_layer(img, parts)
+        png(sub / "torso_imgs" / f"{i}.png", np.concatenate([rgb, alpha[..., None].astype(np.uint8) * 255], -1))
 
 
 def run_chunks(fn: Callable, n: int, args: tuple, jobs: int, bar=None) -> list:

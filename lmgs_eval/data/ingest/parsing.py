@@ -6,8 +6,9 @@ the landmarks give (the same seeding the bundled generator uses on its photograp
 certainly person inside the face and below the chin, probably person in a head prior (an
 ellipse over the brows, the jaw below) and the shoulders, certainly background in the upper
 frame corners outside a widened head prior. The person is then split by the head prior:
-head (face and hair) inside it, the neck below the chin within the jaw's width, the torso
-the rest.
+head (face and hair) inside it, down to the jaw line itself (what lies below it is neck, which
+does not move with the head), the neck below the chin within the jaw's width, the torso the
+rest. The torso layer (:func:`torso_layer`) continues the neck and torso up behind the head.
 
 GrabCut learns its colour models on every ``KEYFRAME``-th frame and only cuts, with the models
 frozen, in between. The core of the head prior is seeded as certain person, so the hair's
@@ -30,6 +31,7 @@ GRABCUT_SIDE = 160  # GrabCut runs at this size (the masks are upsampled with a 
 KEYFRAME = 25  # frames between GrabCut's colour-model updates (frozen models in between)
 HAIR_UP = 0.85  # head prior: its top above the brows, in face heights (brow to chin)
 HEAD_WIDE = 1.55  # head prior: half width in jaw half widths
+PLATE_MARGIN = 0.012  # the person grown by this fraction of the frame before its pixels count as background
 
 
 def _poly(pts: np.ndarray, shape) -> np.ndarray:
@@ -40,12 +42,14 @@ def _poly(pts: np.ndarray, shape) -> np.ndarray:
     return m.astype(bool)
 
 
-def head_outline(lms: np.ndarray, hair_up: float = HAIR_UP, head_wide: float = HEAD_WIDE, n: int = 72) -> np.ndarray:
-    """A prior outline of the head (face + hair) ``[n, 2]``: the jaw below, an ellipse above."""
+def head_outline(lms: np.ndarray, hair_up: float = HAIR_UP, head_wide: float = HEAD_WIDE, n: int = 72,
+                 jaw_out: float = 0.04) -> np.ndarray:
+    """A prior outline of the head (face + hair) ``[n, 2]``: the jaw below, an ellipse above
+    (``jaw_out``: the jaw line pushed out by that fraction, as GrabCut's prior; 0 for the label)."""
     from lmgs_eval.data.bundled.photo import PhotoSpec
     from lmgs_eval.data.bundled.photo import head_outline as outline
 
-    return outline(lms, PhotoSpec("", "", 0.0, 0.0, hair_up, head_wide), n)
+    return outline(lms, PhotoSpec("", "", 0.0, 0.0, hair_up, head_wide), n, jaw_out)
 
 
 def person_mask(img: np.ndarray, lms: np.ndarray, model: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, tuple]:
@@ -132,7 +136,7 @@ def split_parts(person: np.ndarray, lms: np.ndarray) -> Parts:
     """Head = person inside the head prior; neck = the rest below the chin within the jaw's
     width, down to 0.7 face heights under the chin; torso = the remainder."""
     h, w = person.shape
-    head = person & _poly(head_outline(lms), (h, w))
+    head = person & _poly(head_outline(lms, jaw_out=0.0), (h, w))
     yy, xx = np.mgrid[0:h, 0:w] + 0.5
     fh = lms[8, 1] - lms[17:27, 1].mean()
     jw = lms[16, 0] - lms[0, 0]
@@ -140,6 +144,66 @@ def split_parts(person: np.ndarray, lms: np.ndarray) -> Parts:
     neck = person & ~head & (np.abs(xx - jcx) < 0.42 * jw) & (yy < lms[8, 1] + 0.7 * fh) & (yy > lms[4, 1])
     torso = person & ~head & ~neck
     return Parts(head, neck, torso)
+
+
+# The torso layer continued up behind the head, as the field's processing writes ``torso_imgs``:
+# lengths in pixels of a 512-pixel frame (scaled with the frame), per-pixel darkening upwards.
+NECK_UP, TORSO_UP, NECK_PUSH = 48, 8, 4
+UP_DARKEN = 0.98
+
+
+def _continue_up(rgb: np.ndarray, alpha: np.ndarray, part: np.ndarray, head: np.ndarray, length: int, push: int,
+                 darken: float) -> None:
+    """Continue ``part`` straight up behind ``head`` in place: in each column whose topmost
+    ``part`` pixel lies under a head pixel, the colour ``push`` pixels below that top (at most
+    the column's last part pixel) is repeated upwards for ``length`` pixels, darkened by
+    ``darken`` per pixel (in shadow under the chin)."""
+    h = part.shape[0]
+    cols = np.nonzero(part.any(0))[0]
+    if cols.size == 0:
+        return
+    top = part[:, cols].argmax(0)
+    keep = (top > 0) & head[np.maximum(top - 1, 0), cols]
+    cols, top = cols[keep], top[keep]
+    if cols.size == 0:
+        return
+    bottom = h - 1 - part[::-1, cols].argmax(0)
+    src = np.minimum(top + push, bottom)
+    colour = rgb[src, cols].astype(np.float32)
+    k = np.arange(length)
+    ys = src[None, :] - k[:, None]  # [length, m]
+    ok = ys >= 0
+    xs = np.broadcast_to(cols[None, :], ys.shape)
+    shade = (darken ** k)[:, None, None] * colour[None]
+    rgb[ys[ok], xs[ok]] = np.clip(np.rint(shade[ok]), 0, 255).astype(rgb.dtype)
+    alpha[ys[ok], xs[ok]] = True
+
+
+def torso_layer(img: np.ndarray, parts: "Parts") -> tuple[np.ndarray, np.ndarray]:
+    """``torso_imgs`` of one frame: RGB uint8 ``[H, W, 3]`` and its alpha, bool ``[H, W]``.
+
+    The frame on the neck and torso, and behind the head what lies there: the neck (grown 3
+    pixels up and down) and the torso continued straight up into the head's region, darkened
+    as they go and lightly blurred, as ER-NeRF's processing writes its torso images. Methods
+    composite the head over this layer over ``bc.jpg``, so at the chin's soft edge the head
+    blends into neck, not into the plate's background.
+    """
+    import cv2
+
+    h, w = parts.head.shape
+    s = max(h, w) / 512.0
+    fill = img.copy()
+    up = np.zeros((h, w), bool)
+    _continue_up(fill, up, parts.torso, parts.head, max(1, round(TORSO_UP * s)) + 1, 0, UP_DARKEN ** (1 / s))
+    grow = max(1, round(3 * s))
+    neck = cv2.dilate(parts.neck.astype(np.uint8), np.ones((2 * grow + 1, 1), np.uint8)).astype(bool)
+    _continue_up(fill, up, neck, parts.head, max(1, round((NECK_UP + NECK_PUSH) * s)) + 1, max(1, round(NECK_PUSH * s)),
+                 UP_DARKEN ** (1 / s))
+    alpha = parts.neck | parts.torso
+    up &= ~alpha  # the frame's own neck and torso pixels stay as filmed
+    rgb = img.copy()
+    rgb[up] = cv2.GaussianBlur(fill, (0, 0), max(0.5, s))[up]
+    return rgb, alpha | up
 
 
 def mouth_mask(lms: np.ndarray, shape) -> np.ndarray:
@@ -162,7 +226,7 @@ class PlateBuilder:
 
         if k not in self.keep:
             return
-        grow = max(3, int(round(0.012 * max(self.shape))) * 2 + 1)
+        grow = max(3, int(round(PLATE_MARGIN * max(self.shape))) * 2 + 1)
         self.stack.append(img)
         self.ids.append(int(k))
         self.masks.append(cv2.dilate(person.astype(np.uint8), np.ones((grow, grow), np.uint8)).astype(bool))

@@ -25,7 +25,7 @@ import numpy as np
 from lmgs_eval.data.ingest import decode, writer
 from lmgs_eval.errors import UserError
 
-INGEST_VERSION = "3"  # 2: depth / normal priors; 3: the zoom check (pose.scale in the manifest)
+INGEST_VERSION = "4"  # 2: depth / normal priors; 3: the zoom check (pose.scale in the manifest); 4: head label on the jaw line, neck continued behind the head in torso_imgs, poses refined by tracked texture
 MIN_SECONDS = 10.0  # shorter clips are ingested with a warning: too little to train on
 MIN_FACE_PX = 100  # jaw width in source pixels under which the face is flagged as small
 MOVING_SHARE = 0.02  # moving-camera flag: background residual above STATIC_LEVELS in more than this share...
@@ -43,6 +43,8 @@ class IngestConfig:
         focal: focal length in output pixels; None searches it over the clip.
         smooth_window: Savitzky-Golay window of the landmark smoothing (frames, odd; 1 = off).
         pose_sigma: Gaussian smoothing of the pose (frames; 0 = off).
+        pose_refine: refine each frame's landmark pose by the upper head's texture tracked
+            from a reference frame (:mod:`align`).
         plate_frames: frames sampled for the background plate.
     """
 
@@ -51,6 +53,7 @@ class IngestConfig:
     focal: float | None = None
     smooth_window: int = 5
     pose_sigma: float = 2.0
+    pose_refine: bool = True
     plate_frames: int = 60
 
 

@@ -73,6 +73,9 @@ class PoseFit:
         trans: ``[N, 3]`` head translation in the camera frame (OpenGL axes), metres.
         reproj_px: ``[N]`` mean reprojection error of the rigid points after smoothing.
         focal_curve: ``[(focal, median error px)]`` of the search.
+        aligned: ``[N]`` bool, the frames whose pose the images refined (:mod:`align`), or None.
+        reference: the frame the others were tracked from (-1 without images).
+        refinable: how many frames the images could refine (all are, or none: ``align.MIN_SHARE``).
     """
 
     template: np.ndarray
@@ -83,6 +86,9 @@ class PoseFit:
     trans: np.ndarray
     reproj_px: np.ndarray
     focal_curve: list[tuple[float, float]]
+    aligned: np.ndarray | None = None
+    reference: int = -1
+    refinable: int = 0
 
 
 def _similarity(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -181,8 +187,13 @@ def euler_pyr(R: np.ndarray) -> np.ndarray:
     return np.array([pitch, yaw, roll])
 
 
-def fit_poses(lms: np.ndarray, w: int, h: int, *, focal: float | None = None, sigma: float = 2.0) -> PoseFit:
-    """Template, focal and smoothed per-frame poses for landmarks ``[N, 68, 2]`` (output pixels)."""
+def fit_poses(lms: np.ndarray, w: int, h: int, *, focal: float | None = None, sigma: float = 2.0,
+              frames: list | None = None) -> PoseFit:
+    """Template, focal and smoothed per-frame poses for landmarks ``[N, 68, 2]`` (output pixels).
+
+    ``frames``: the frames' image paths; with them each landmark pose is refined by the upper
+    head's texture tracked from a reference frame (:mod:`align`) before the smoothing.
+    """
     from scipy.ndimage import gaussian_filter1d
     from scipy.spatial.transform import Rotation
 
@@ -197,6 +208,12 @@ def fit_poses(lms: np.ndarray, w: int, h: int, *, focal: float | None = None, si
         r, t, _ = _solve(obj, lms[i], focal, w, h, guess)
         rv[i], tv[i] = r, t
         guess = (r, t)
+    aligned, ref, refinable = None, -1, 0
+    if frames is not None and n > 1:
+        from lmgs_eval.data.ingest.align import refine
+
+        rf = refine(frames, lms, rv, tv, focal, w, h, obj, RIGID)
+        rv, tv, aligned, ref, refinable = rf.rv, rf.tv, rf.used, rf.reference, rf.refinable
     # smooth rotations as small rotations about their mean (no wrap-around at +-pi)
     rots = Rotation.from_rotvec(rv)
     mean = rots.mean()
@@ -213,7 +230,7 @@ def fit_poses(lms: np.ndarray, w: int, h: int, *, focal: float | None = None, si
     euler = np.stack([euler_pyr(flip @ R[i]) for i in range(n)])
     trans = (flip @ tv.T).T
     err = np.array([_reproj(obj, lms[i], w2c[i], focal, w, h) for i in range(n)])
-    return PoseFit(obj, float(focal), w2c, c2w, euler, trans, err, curve)
+    return PoseFit(obj, float(focal), w2c, c2w, euler, trans, err, curve, aligned, ref, refinable)
 
 
 def project(pts: np.ndarray, w2c: np.ndarray, f: float, w: int, h: int) -> tuple[np.ndarray, np.ndarray]:

@@ -9,6 +9,7 @@ import numpy as np
 
 from lmgs_eval.data import io
 from lmgs_eval.data.ingest import decode, pose as pose_mod, track as track_mod, writer, zoom as zoom_mod
+from lmgs_eval.data.ingest.align import MIN_SHARE
 from lmgs_eval.data.ingest.crop import choose_window
 from lmgs_eval.data.ingest import frames as frames_mod
 from lmgs_eval.data.ingest.parsing import PlateBuilder
@@ -101,7 +102,15 @@ def pose(ctx, sel) -> None:
     t0 = time.perf_counter()
     lms = sel["lms"]
     s = ctx.cfg.size
-    fit = pose_mod.fit_poses(lms, s, s, focal=ctx.cfg.focal, sigma=ctx.cfg.pose_sigma)
+    frames = [ctx.sub / "ori_imgs" / f"{i}.jpg" for i in range(len(lms))] if ctx.cfg.pose_refine else None
+    fit = pose_mod.fit_poses(lms, s, s, focal=ctx.cfg.focal, sigma=ctx.cfg.pose_sigma, frames=frames)
+    if fit.aligned is not None and fit.aligned.any():
+        ctx.log.append(f"pose: {int(fit.aligned.sum())} of {len(lms)} frames refined by the upper head's texture tracked "
+                       f"from frame {fit.reference + int(sel['first'])} (the rest keep their landmark pose)")
+    elif fit.aligned is not None:
+        ctx.log.append(f"pose: the landmark poses are kept: the upper head's texture could refine {fit.refinable} of {len(lms)} "
+                       f"frames, fewer than {100 * MIN_SHARE:.0f} % (the head turns too far from frame "
+                       f"{fit.reference + int(sel['first'])}, or too little texture follows)")
     lo, hi = pose_mod.FOCAL_RANGE
     if fit.focal_curve and (fit.focal >= 0.99 * hi * s or fit.focal <= 1.01 * lo * s):
         ctx.log.append(f"the focal search ended at its range's edge ({fit.focal / s:.2f} frame widths): the head turns too little "

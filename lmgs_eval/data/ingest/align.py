@@ -1,0 +1,140 @@
+"""Sub-pixel head motion from the images: the landmark poses refined by tracked texture.
+
+A detector's 68 points jitter by about a pixel from frame to frame, and the pose fitted to
+them (:mod:`pose`) jitters with them: a degree of rotation moves the top of the hair by a
+pixel or two at 256 px, enough to blur what a method learns of the hair and to misplace it at
+test time. The skull's upper part (forehead, brows, eyes, nose, upper cheeks) moves rigidly
+and carries far more texture than 68 points. So corners are picked there in one reference
+frame (the frame nearest the mean pose), placed in 3D on the head ellipsoid the depth priors
+use (:mod:`geometry`) as that frame's pose sees it, and followed into every other frame by
+pyramidal Lucas-Kanade flow (OpenCV), started where the frame's landmark pose projects them
+and kept only where the flow back to the reference returns within half a pixel. The pose is
+then solved again from those 2D-3D pairs (least squares from the landmark pose, twice, the
+worst-fitting corners dropped in between).
+
+A frame cannot be refined when it is turned more than :data:`MAX_TURN_DEG` from the reference
+(its texture no longer looks like the reference's), when too few corners survive, or when the
+new pose moves its rigid landmarks' projections further from the detections than
+:data:`MAX_SHIFT` face heights. Unless :data:`MIN_SHARE` of the frames can be, every frame keeps
+its landmark pose: the two kinds of pose differ by a bias of their own (on a real clip that
+turns +-20 deg, 1-2 deg), and a clip of both would jump between them. What it gives up: the corners' depth is the ellipsoid's, not
+the face's (a pose error that is the same in every frame, which a method absorbs), and the
+region is drawn from landmarks, so a fringe over the forehead or a hand over the face enters it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+MAX_CORNERS = 200
+MIN_TRACKED = 12  # fewer corners followed: the landmark pose stays
+MAX_TURN_DEG = 12.0  # a frame turned further than this from the reference keeps its landmark pose
+MAX_SHIFT = 0.05  # the new pose's rigid landmarks further than this share of the face height from the detections: rejected
+MIN_SHARE = 0.9  # the share of the frames that must be refined, or none is
+FB_PX = 0.5  # forward-backward flow disagreement allowed, pixels
+OUTLIER_PX = 1.0  # a corner further than this (at 256 px) from the solved pose's projection is dropped
+
+
+@dataclass
+class Refined:
+    """Per frame: rotation and translation vectors (OpenCV), whether the images set them, how
+    many corners did; the reference frame, and how many frames could be refined (all or none
+    are: :data:`MIN_SHARE`)."""
+
+    rv: np.ndarray
+    tv: np.ndarray
+    used: np.ndarray
+    tracked: np.ndarray
+    reference: int
+    refinable: int = 0
+
+
+def upper_head_mask(lms: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """The skull's rigid upper part in one frame, bool ``[H, W]``: the hull of the brows raised
+    by 0.3 face heights, the jaw's upper ends (0-2, 14-16) and the nose's base (31-35)."""
+    import cv2
+
+    fh = lms[8, 1] - lms[17:27, 1].mean()
+    brows = lms[17:27] - [0.0, 0.3 * fh]
+    pts = np.concatenate([lms[[0, 1, 2, 14, 15, 16]], lms[31:36], brows]).astype(np.float32)
+    m = np.zeros(shape, np.uint8)
+    hull = np.round(cv2.convexHull(pts)[:, 0] * 16).astype(np.int32)
+    cv2.fillConvexPoly(m, hull, 1, cv2.LINE_8, 4)
+    return m.astype(bool)
+
+
+def _grey(path: Path) -> np.ndarray:
+    import cv2
+
+    from lmgs_eval.data import io
+
+    return cv2.cvtColor(io.read_rgb_u8(path), cv2.COLOR_RGB2GRAY)
+
+
+def refine(frame_paths: list[Path], lms: np.ndarray, rv: np.ndarray, tv: np.ndarray, focal: float, w: int, h: int,
+           template: np.ndarray, rigid: np.ndarray) -> Refined:
+    """Refine per-frame landmark poses ``rv``, ``tv`` (``[N, 3]``, OpenCV world-to-camera) by
+    tracked corners; ``template``: the fitted ``[68, 3]`` points, ``rigid`` the indices the
+    landmark pose was solved from."""
+    import cv2
+    from scipy.spatial.transform import Rotation
+
+    from lmgs_eval.data.ingest.geometry import head_ellipsoid, render_prior
+
+    n = len(frame_paths)
+    rots = Rotation.from_rotvec(rv)
+    ref = int(np.argmin((rots.mean().inv() * rots).magnitude()))
+    turn = np.degrees((rots[ref].inv() * rots).magnitude())
+    K = np.array([[focal, 0, w / 2], [0, focal, h / 2], [0, 0, 1]], np.float64)
+    w2c_ref = np.eye(4)
+    w2c_ref[:3, :3], w2c_ref[:3, 3] = rots[ref].as_matrix(), tv[ref]
+    g_ref = _grey(frame_paths[ref])
+    mask = upper_head_mask(lms[ref], (h, w))
+    centre, axes = head_ellipsoid(template)
+    depth, _ = render_prior(w2c_ref, focal, w, h, centre, axes, mask)
+    scale = max(h, w) / 256.0
+    corners = cv2.goodFeaturesToTrack(g_ref, MAX_CORNERS, 0.01, max(2.0, 3 * scale), mask=(depth > 0).astype(np.uint8),
+                                      blockSize=max(3, int(round(5 * scale)) | 1))
+    out = Refined(rv.copy(), tv.copy(), np.zeros(n, bool), np.zeros(n, int), ref)
+    if corners is None or len(corners) < MIN_TRACKED:
+        return out
+    p_ref = corners[:, 0].astype(np.float32)  # OpenCV pixel coordinates (a pixel's centre at its index)
+    z = depth[np.clip(np.rint(p_ref[:, 1]).astype(int), 0, h - 1), np.clip(np.rint(p_ref[:, 0]).astype(int), 0, w - 1)]
+    cam = np.stack([(p_ref[:, 0] + 0.5 - w / 2) / focal * z, (p_ref[:, 1] + 0.5 - h / 2) / focal * z, z], 1)
+    c2w = np.linalg.inv(w2c_ref)
+    world = cam @ c2w[:3, :3].T + c2w[:3, 3]
+    win = (max(9, int(round(15 * scale)) | 1),) * 2
+    lk = dict(winSize=win, maxLevel=3, criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+    fh = lms[:, 8, 1] - lms[:, 17:27, 1].mean(1)
+    out.used[ref], out.tracked[ref] = True, len(p_ref)
+    for i in range(n):
+        if i == ref or turn[i] > MAX_TURN_DEG:
+            continue
+        guess, _ = cv2.projectPoints(world, rv[i], tv[i], K, None)
+        guess = (guess[:, 0] - 0.5).astype(np.float32)
+        g = _grey(frame_paths[i])
+        fwd, ok1, _ = cv2.calcOpticalFlowPyrLK(g_ref, g, p_ref, guess.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
+        back, ok2, _ = cv2.calcOpticalFlowPyrLK(g, g_ref, fwd, p_ref.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
+        good = (ok1[:, 0] == 1) & (ok2[:, 0] == 1) & (np.linalg.norm(back - p_ref, axis=1) < FB_PX)
+        if good.sum() < MIN_TRACKED:
+            continue
+        obj, img = world[good], fwd[good].astype(np.float64) + 0.5
+        r, t = rv[i].reshape(3, 1).copy(), tv[i].reshape(3, 1).copy()
+        keep = np.ones(len(obj), bool)
+        for _ in range(2):  # least squares from the landmark pose, the worst corners dropped, again
+            _, r, t = cv2.solvePnP(obj[keep], img[keep], K, None, r, t, useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
+            res = np.linalg.norm(cv2.projectPoints(obj, r, t, K, None)[0][:, 0] - img, axis=1)
+            keep = res < max(OUTLIER_PX * scale, 2.5 * np.median(res))
+        if keep.sum() < MIN_TRACKED or t[2, 0] <= 0:
+            continue
+        proj, _ = cv2.projectPoints(template[rigid], r, t, K, None)
+        if np.median(np.linalg.norm(proj[:, 0] - lms[i, rigid], axis=1)) > MAX_SHIFT * fh[i]:
+            continue
+        out.rv[i], out.tv[i], out.used[i], out.tracked[i] = r.ravel(), t.ravel(), True, int(keep.sum())
+    out.refinable = int(out.used.sum())
+    if out.refinable < MIN_SHARE * n:
+        out.rv, out.tv, out.used[:] = rv.copy(), tv.copy(), False
+    return out
