@@ -64,15 +64,51 @@ def test_bench_ingested_puts_the_two_folders_side_by_side(tmp_path):
     rows = {r["figure"]: r for r in got["rows"]}
     full, away = rows["PSNR dB"], rows["PSNR dB away from the head outlines (+-4 px)"]
     for r in (full, away):
-        assert r["generator"] > 25 and r["ingested"] > 20
+        assert r["generator"] > 25 and r["ingested"] > 20 and r["decoded"] > 20
         assert r["ingested - generator"] == pytest.approx(r["ingested"] - r["generator"])
+        assert r["ingested - decoded"] == pytest.approx(r["ingested"] - r["decoded"])
     # measured: full frame -4.3 dB, away from the outlines -0.4 dB (16 % of the pixels left out):
     # the ingest's frames and poses train as well as the generator's, the outlines differ
     assert abs(away["ingested - generator"]) < abs(full["ingested - generator"])
     assert "% of the test pixels left out" in away["note"]
     assert "head IoU" in got["ingest accuracy"]
     assert not Path(got["ingested"].split(" (")[0]).exists()  # the ingest is temporary
-    assert len(list((tmp_path / "res").rglob("*.json"))) >= 2
+    assert len(list((tmp_path / "res").rglob("*.json"))) >= 3  # generator, decoded, ingested
+
+
+def test_bench_ingested_on_hair_that_moves_with_the_head(tmp_path):
+    """``--hair head`` builds its own copy of the subject (hair moving with the head) in the
+    temporary folder, not under the data root."""
+    sets = [a for k, v in FAST.items() for a in ("--set", f"{k}={v}")]
+    rc, out, err = run_cli("bench", "ingested", "--hair", "head", "--size", "128", "--seconds", "2", *sets,
+                           "--data-root", str(tmp_path / "data"), "--json")
+    assert rc == 0, err
+    got = json.loads(out)
+    assert "all hair moving with the head" in got["subject"]
+    assert not Path(got["generator"]).exists() and not (tmp_path / "data").exists()
+    meta = {r["figure"]: r for r in got["rows"]}["PSNR dB"]
+    assert meta["generator"] > 25 and meta["decoded"] > 20 and meta["ingested"] > 20
+
+
+def test_decoded_copy_is_the_generators_folder_with_the_videos_frames(tmp_path):
+    from lmgs_eval.commands._bench_ingested import decoded_copy
+
+    truth, ing = tmp_path / "truth", tmp_path / "ing"
+    for root, val in ((truth, 10), (ing, 200)):
+        for d in ("ori_imgs", "gt_imgs", "parsing"):
+            (root / d).mkdir(parents=True)
+        for i in range(3):
+            for d in ("ori_imgs", "gt_imgs"):
+                (root / d / f"{i}.jpg").write_bytes(bytes([val + i]))
+            (root / "parsing" / f"{i}.png").write_bytes(bytes([val]))
+        (root / "bc.jpg").write_bytes(bytes([val]))
+    (truth / "astronaut.mp4").write_bytes(b"video")
+    out = decoded_copy(truth, ing, tmp_path / "dec")
+    for i in range(3):
+        for d in ("ori_imgs", "gt_imgs"):
+            assert (out / d / f"{i}.jpg").read_bytes() == bytes([200 + i])  # the ingest's decoded frame
+        assert (out / "parsing" / f"{i}.png").read_bytes() == bytes([10])  # the generator's own processing
+    assert (out / "bc.jpg").read_bytes() == bytes([10]) and not (out / "astronaut.mp4").exists()
 
 
 def test_bench_ingested_refuses_a_bad_band(tmp_path):

@@ -5,7 +5,10 @@ processing it made from its own knowledge (exact masks, poses, landmarks). Here 
 is ingested (``lmgs-eval ingest``, uncropped, at the subject's size) into a temporary data
 root, and the method is trained on both folders as ``bench stripped`` does
 (:mod:`lmgs_eval.commands._bench_pair`): each run is scored against its own folder's ground
-truth, as ``lmgs-eval self`` would score it.
+truth, as ``lmgs-eval self`` would score it. A third folder, ``decoded``, is the generator's
+processing with the decoded video's frames in place of its exact ones: the generator's folder
+holds frames no video carries (the raw video is H.264 at CRF 18, 4:2:0), so "ingested -
+decoded" is the gap the ingest's processing leaves, and "decoded - generator" the video's.
 
 Besides the full-frame figures, ``PSNR away from the head outline`` leaves out the pixels
 within ``--band`` pixels of either folder's head outline, in both runs. The outline decides
@@ -15,7 +18,7 @@ shows); the figure says how much of the full-frame difference lives there
 (``lmgs_eval/data/ingest/design.md``, "End to end").
 
 Defaults: the bundled 60 s at 256 px, the ``quick`` preset (an ingest of about a minute and
-two trainings of 4-10 minutes each on 2 cores).
+three trainings of 4-10 minutes each on 2 cores).
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ import tempfile
 import time
 from pathlib import Path
 
-IN_ALL = False  # an ingest and two trainings, not a speed benchmark: `bench all` leaves it out
+IN_ALL = False  # an ingest and three trainings, not a speed benchmark: `bench all` leaves it out
 HELP = "a method trained on a bundled subject and on the ingest of its raw video, side by side"
 BAND_PX = 4
 
@@ -36,8 +39,27 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     from lmgs_eval.commands._bench_pair import add_arguments as pair_arguments
 
     pair_arguments(p)
+    p.add_argument("--hair", choices=("layer", "head"), default="layer",
+                   help="layer: the bundled subject as built, whose hair beyond the head outline is a still layer the "
+                        "generator's parsing calls torso; head: a copy built (in the temporary folder) with all the hair "
+                        "moving with the head, as on a camera (default layer)")
     p.add_argument("--band", type=int, default=BAND_PX,
                    help=f"half width in pixels of the band around each head outline left out of the second PSNR (default {BAND_PX})")
+
+
+def decoded_copy(truth_root: Path, ing_root: Path, out: Path) -> Path:
+    """The generator's folder with the ingest's frames (the raw video decoded, uncropped, at the
+    same size) as its ``ori_imgs`` and ``gt_imgs``: the generator's exact processing fed what any
+    processing of the video starts from. Against it, the ingest's figures show its processing;
+    against the generator's own folder, the video's compression as well."""
+    import shutil
+
+    shutil.copytree(truth_root, out, ignore=shutil.ignore_patterns("*.jpg", "*.mp4", "cross"))
+    shutil.copy2(truth_root / "bc.jpg", out / "bc.jpg")
+    for src in (ing_root / "ori_imgs").glob("*.jpg"):
+        shutil.copy2(src, out / "ori_imgs" / src.name)
+        shutil.copy2(src, out / "gt_imgs" / src.name)
+    return out
 
 
 def run(args: argparse.Namespace) -> dict:
@@ -51,23 +73,33 @@ def run(args: argparse.Namespace) -> dict:
     if not 0 <= args.band <= 64:
         raise UserError(f"--band {args.band}: must be between 0 and 64 pixels")
     spec = pair.bundled_spec(args)
-    t0 = time.perf_counter()
-    truth_root = ensure_bundled(spec, args.data_root, progress=False)
-    build_s = time.perf_counter() - t0
     with tempfile.TemporaryDirectory(prefix="lmgs-bench-ingested-") as tmp:
         tmp = Path(tmp)
+        t0 = time.perf_counter()
+        if args.hair == "layer":
+            truth_root = ensure_bundled(spec, args.data_root, progress=False)
+        else:  # not a registry subject: built here, removed at the end
+            from lmgs_eval.data.bundled import build
+
+            truth_root = tmp / "truth" / f"{spec.folder}-hair"
+            truth_root.mkdir(parents=True)
+            build(spec.name, truth_root, size=spec.size, seconds=spec.seconds, seed=spec.seed, progress=False, hair="head")
+        build_s = time.perf_counter() - t0
         results = Path(args.results) if args.results else tmp / "results"
         t0 = time.perf_counter()
         ing_root = ingest(truth_root / f"{spec.name}.mp4", f"{spec.folder}-ingested", data_root=tmp / "data",
                           cfg=IngestConfig(size=spec.size, crop="none"), progress=False)
         ingest_s = time.perf_counter() - t0
         man = json.loads((ing_root / "manifest.json").read_text())
-        runs = {"generator": pair.prepare(truth_root), "ingested": pair.prepare(ing_root)}
-        gen, ing = runs["generator"], runs["ingested"]
-        if man["frames"]["first_source_frame"] != 0 or gen["subject"].n_frames != ing["subject"].n_frames:
+        n_truth = len(json.loads((truth_root / "transforms_train.json").read_text())["frames"]) + \
+            len(json.loads((truth_root / "transforms_val.json").read_text())["frames"])
+        if man["frames"]["first_source_frame"] != 0 or man["frames"]["kept"] != n_truth:
             raise UserError(f"{ing_root}: the ingest kept frames {man['frames']['first_source_frame']}.."
-                            f"{man['frames']['first_source_frame'] + man['frames']['kept'] - 1} of {gen['subject'].n_frames}: "
+                            f"{man['frames']['first_source_frame'] + man['frames']['kept'] - 1} of {n_truth}: "
                             "the two folders' frames do not line up")
+        dec_root = decoded_copy(truth_root, ing_root, tmp / "decoded" / f"{spec.folder}-decoded")
+        runs = {"generator": pair.prepare(truth_root), "decoded": pair.prepare(dec_root), "ingested": pair.prepare(ing_root)}
+        gen, dec, ing = runs["generator"], runs["decoded"], runs["ingested"]
         acc = compare(truth_root, ing_root)
         _, config_hash = pair.train_both(args, runs, tmp, results, "ingested")
         ids = gen["subject"].test_ids
@@ -76,14 +108,21 @@ def run(args: argparse.Namespace) -> dict:
         for label, r in runs.items():
             frames = r["method"].render(r["driving"])  # the frames fit_render_score scored (rendering is deterministic)
             away[label] = psnr_outside(frames, r["test"].frames, band)
-        rows = pair.rows(gen, ing, ("generator", "ingested"))
-        rows.insert(1, {"figure": f"PSNR dB away from the head outlines (+-{args.band} px)", "generator": away["generator"],
-                        "ingested": away["ingested"], "ingested - generator": away["ingested"] - away["generator"],
+        rows = []
+        for a, b in zip(pair.rows(gen, ing, ("generator", "ingested")), pair.rows(dec, ing, ("decoded", "ingested"))):
+            rows.append({"figure": a["figure"], "generator": a["generator"], "decoded": b["decoded"], "ingested": a["ingested"],
+                         "ingested - generator": a["ingested - generator"], "ingested - decoded": b["ingested - decoded"],
+                         "note": a["note"] or b["note"]})
+        rows.insert(1, {"figure": f"PSNR dB away from the head outlines (+-{args.band} px)", **away,
+                        "ingested - generator": away["ingested"] - away["generator"],
+                        "ingested - decoded": away["ingested"] - away["decoded"],
                         "note": f"{100 * band.mean():.1f} % of the test pixels left out"})
         rec = ing["record"]
         out = {
-            "subject": f"{spec.folder} ({spec.size} px, {spec.seconds:g} s, bundled; built in {build_s:.1f} s)",
+            "subject": (f"{spec.folder} ({spec.size} px, {spec.seconds:g} s, bundled"
+                        + (", all hair moving with the head" if args.hair == "head" else "") + f"; built in {build_s:.1f} s)"),
             "generator": str(truth_root),
+            "decoded": f"{dec_root}: the generator's folder with the video's decoded frames (the ingest's ori_imgs) as its frames",
             "ingested": f"{ing_root} (removed at the end; ingested in {ingest_s:.1f} s)",
             "ingest accuracy": (f"landmarks {acc['landmark_px']:.2f} px, rotation {acc['rotation_deg']:.2f} deg, "
                                 f"head IoU {acc['head_iou']:.3f}, plate {acc['plate_psnr']:.1f} dB"),
