@@ -19,16 +19,20 @@ The fit, in three steps:
    a generic template depth biases it towards long lenses (a flatter projection hides a depth
    error): on the bundled subjects (true focal 2.5 widths) the error falls steadily up to the
    range's end. The whole curve is stored in the manifest, and ``--focal`` overrides the search.
-3. **Pose, per frame**, with that focal, then smoothed over time (Gaussian, ``sigma`` frames).
+3. **Pose, per frame**, with that focal; given the frames, refined by corners of the upper
+   head tracked from a reference frame (:mod:`align`: every frame or none); then smoothed
+   over time (Gaussian, ``sigma`` frames).
 
 The head is the world (fixed at the origin, OpenGL axes: x right, y up, z towards the
 camera at rest); the camera moves: ``transform_matrix = c2w`` (ER-NeRF's convention).
 
 Against a 3DMM tracker (ER-NeRF's BFM fit): no identity or expression basis, so the template's
 depth is generic and expression is not separated from pose (a wide-open mouth pulls the pose
-a little); no photometric term, so the fit sees only 68 points; and jaw landmarks of a real
-face are silhouette points that slide under yaw, read here as fixed surface points. It needs
-no model download and runs at hundreds of frames a second.
+a little); the images enter only through the tracked corners of :mod:`align`, whose depth
+is a generic ellipsoid's, and not at all when the head turns far (the 68 points alone then);
+and jaw landmarks of a real face are silhouette points that slide under yaw, read here as
+fixed surface points. It needs no model download; the landmark fit runs at hundreds of frames
+a second, the tracking at about 250.
 """
 
 from __future__ import annotations
