@@ -87,64 +87,6 @@ def test_tracked_texture_refines_the_landmark_pose(truth, ingested):
     assert any(n.startswith(f"pose: {e.n_frames} of {e.n_frames} frames refined") for n in man["notes"]), man["notes"]
 
 
-def test_torso_layer_continues_the_neck_up_behind_the_head():
-    """``torso_imgs``: the frame's own neck and torso as filmed, and behind the head the neck's
-    colour continued straight up, darker as it goes (by hand: 0.98 per pixel at 512 px)."""
-    from lmgs_eval.data.ingest.parsing import NECK_PUSH, NECK_UP, Parts, torso_layer
-
-    size = 512
-    img = np.zeros((size, size, 3), np.uint8)
-    head = np.zeros((size, size), bool)
-    neck = np.zeros_like(head)
-    torso = np.zeros_like(head)
-    head[100:300, 150:350] = True
-    neck[300:400, 200:300] = True
-    torso[400:, :] = True
-    img[neck] = (200, 150, 100)
-    img[torso] = (10, 20, 30)
-    rgb, alpha = torso_layer(img, Parts(head, neck, torso))
-    assert np.array_equal(rgb[neck | torso], img[neck | torso]) and alpha[neck | torso].all()
-    up = alpha & head
-    cols = np.nonzero(up.any(0))[0]
-    assert cols.min() == 200 and cols.max() == 299  # the neck's columns only
-    # the neck is grown 3 px up, its colour taken NECK_PUSH px below that top and carried NECK_UP + NECK_PUSH + 1 px up
-    top = 300 - 3 + NECK_PUSH - (NECK_UP + NECK_PUSH)
-    assert not up[: top, 250].any() and up[top:300, 250].all()
-    rows = np.arange(299, 280, -1)  # above the neck, upwards
-    want = 200 * 0.98 ** (300 - 3 + NECK_PUSH - rows)  # darker by the pixels from the source row
-    np.testing.assert_allclose(rgb[rows, 250, 0], want, atol=1.0)  # blurred along the column: a linear ramp keeps its values
-    assert not alpha[head & ~up].any() and not alpha[~head & ~neck & ~torso].any()
-
-
-def test_template_is_the_frontal_layout_when_the_head_looks_aside(tmp_path):
-    """The pose template's layout comes from the frames nearest frontal: a head that turns from 0 to
-    30 deg and back (the generator's own 3D landmarks, projected) gives the frontal layout within
-    1.3 % of the jaw width; the median over every frame (a 20-deg face) was 4.7 % off."""
-    from lmgs_eval.data.bundled.generator import head_model
-    from lmgs_eval.data.ingest import pose
-
-    head = head_model("astronaut", SIZE)
-    pts = head._rest_face[:68] - head._rest_face[:68].mean(0)
-    f = 2.5 * SIZE
-
-    def project(yaw_deg):
-        out = []
-        for y in np.radians(yaw_deg):
-            rot = np.array([[np.cos(y), 0, np.sin(y)], [0, 1, 0], [-np.sin(y), 0, np.cos(y)]])
-            p = pts @ rot.T
-            z = head.D - p[:, 2]
-            out.append(np.stack([f * p[:, 0] / z + SIZE / 2, -f * p[:, 1] / z + SIZE / 2], 1))
-        return np.stack(out)
-
-    front = project([0.0])[0]
-    n = 75
-    lms = project(30 * np.sin(np.pi * (np.arange(n) + 0.5) / n))
-    assert abs(pose.yaw_asymmetry(front[None])[0]) < 0.05 and pose.yaw_asymmetry(lms).max() > 0.5
-    tmpl = pose.build_template(lms)
-    xy = pose._similarity(tmpl[:, :2] * [1, -1], front)
-    assert np.linalg.norm(xy - front, axis=1).mean() < 0.025 * np.linalg.norm(front[16] - front[0])
-
-
 def test_ingested_subject_reads_and_is_complete(ingested):
     from lmgs_eval.data.layout import read_subject
 

@@ -91,15 +91,15 @@ def run(args: argparse.Namespace) -> dict:
                           cfg=IngestConfig(size=spec.size, crop="none"), progress=False)
         ingest_s = time.perf_counter() - t0
         man = json.loads((ing_root / "manifest.json").read_text())
-        n_truth = len(json.loads((truth_root / "transforms_train.json").read_text())["frames"]) + \
-            len(json.loads((truth_root / "transforms_val.json").read_text())["frames"])
+        gen = pair.prepare(truth_root)
+        n_truth = gen["subject"].n_frames
         if man["frames"]["first_source_frame"] != 0 or man["frames"]["kept"] != n_truth:
             raise UserError(f"{ing_root}: the ingest kept frames {man['frames']['first_source_frame']}.."
                             f"{man['frames']['first_source_frame'] + man['frames']['kept'] - 1} of {n_truth}: "
                             "the two folders' frames do not line up")
         dec_root = decoded_copy(truth_root, ing_root, tmp / "decoded" / f"{spec.folder}-decoded")
-        runs = {"generator": pair.prepare(truth_root), "decoded": pair.prepare(dec_root), "ingested": pair.prepare(ing_root)}
-        gen, dec, ing = runs["generator"], runs["decoded"], runs["ingested"]
+        runs = {"generator": gen, "decoded": pair.prepare(dec_root), "ingested": pair.prepare(ing_root)}
+        dec, ing = runs["decoded"], runs["ingested"]
         acc = compare(truth_root, ing_root)
         _, config_hash = pair.train_both(args, runs, tmp, results, "ingested")
         ids = gen["subject"].test_ids

@@ -18,7 +18,7 @@ from lmgs_eval.data.bundled import articulation as art_mod
 from lmgs_eval.data.bundled import speech as sp_mod
 from lmgs_eval.data.bundled.head import HeadModel
 from lmgs_eval.data.bundled.motion import Motion
-from lmgs_eval.data.bundled.photo import HAIR, PHOTOS
+from lmgs_eval.data.bundled.photo import PHOTOS, check_hair
 from lmgs_eval.errors import UserError
 
 GENERATOR_VERSION = "2"  # 2: the head composited over the written plate, not the photo
@@ -227,8 +227,7 @@ def build(name: str, out_dir: Path, *, size: int = 256, seconds: float = 60.0, s
         the ``meta.json`` content.
     """
     _check(name, size, seed)
-    if hair not in HAIR:
-        raise UserError(f"hair {hair!r}: one of {', '.join(HAIR)}")
+    check_hair(hair)  # before the folder's checks
     motion = Motion.of(motion)
     if not (0.5 <= float(seconds) <= 3600):
         raise UserError(f"seconds {seconds:g}: must be between 0.5 and 3600")

@@ -179,6 +179,11 @@ def head_outline(lms: np.ndarray, spec: PhotoSpec, n: int = 72, jaw_out: float =
 HAIR = ("layer", "head")  # where the hair outside the head outline goes (:func:`portrait`)
 
 
+def check_hair(hair: str) -> None:
+    if hair not in HAIR:
+        raise UserError(f"hair {hair!r}: one of {', '.join(HAIR)}")
+
+
 @functools.lru_cache(maxsize=4)
 def portrait(name: str, hair: str = "layer") -> Portrait:
     """Load, crop and segment the photograph of bundled subject ``name`` (cached).
@@ -189,8 +194,7 @@ def portrait(name: str, hair: str = "layer") -> Portrait:
     head moves, and the subject's own parsing labels it torso. ``"head"`` makes all the hair
     above the jaw's lower half part of the head, as on a camera, where hair moves with the head.
     """
-    if hair not in HAIR:
-        raise UserError(f"hair {hair!r}: one of {', '.join(HAIR)}")
+    check_hair(hair)
     import cv2
 
     spec = PHOTOS.get(name)

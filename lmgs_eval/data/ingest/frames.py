@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from lmgs_eval.data import io
-from lmgs_eval.data.ingest.parsing import KEYFRAME, PARSING_COLOURS, Parts, mouth_mask, person_mask, split_parts, torso_layer
+from lmgs_eval.data.ingest.parsing import KEYFRAME, Parts, mouth_mask, person_mask, split_parts, torso_layer
 from lmgs_eval.errors import UserError
 
 CHUNK = 2 * KEYFRAME
@@ -62,11 +62,8 @@ def composite(sub: Path, a: int, b: int) -> None:
     bc = io.read_rgb_u8(sub / "bc.jpg")
     for i in range(a, b):
         img = io.read_rgb_u8(sub / "ori_imgs" / f"{i}.jpg")
-        p = io.read_rgb_u8(sub / "parsing" / f"{i}.png")
-        bg = np.all(p == 255, axis=-1)
-        io.write_rgb(sub / "gt_imgs" / f"{i}.jpg", np.where(bg[..., None], bc, img))
-        parts = Parts(np.all(p == PARSING_COLOURS["head"], axis=-1), np.all(p == PARSING_COLOURS["neck"], axis=-1),
-                      np.all(p == PARSING_COLOURS["torso"], axis=-1))
+        parts = Parts.from_colour_map(io.read_rgb_u8(sub / "parsing" / f"{i}.png"))
+        io.write_rgb(sub / "gt_imgs" / f"{i}.jpg", np.where(parts.person[..., None], img, bc))
         rgb, alpha = torso_layer(img, parts)
         png(sub / "torso_imgs" / f"{i}.png", np.concatenate([rgb, alpha[..., None].astype(np.uint8) * 255], -1))
 

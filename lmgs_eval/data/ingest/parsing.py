@@ -119,6 +119,11 @@ class Parts:
     neck: np.ndarray
     torso: np.ndarray
 
+    @classmethod
+    def from_colour_map(cls, p: np.ndarray) -> "Parts":
+        """The parts of a parsing image (uint8 RGB ``[H, W, 3]`` in ER-NeRF's colours)."""
+        return cls(*(np.all(p == PARSING_COLOURS[k], axis=-1) for k in ("head", "neck", "torso")))
+
     def colour_map(self) -> np.ndarray:
         """The parsing image, uint8 RGB ``[H, W, 3]`` in ER-NeRF's colours."""
         out = np.full(self.head.shape + (3,), 255, np.uint8)
