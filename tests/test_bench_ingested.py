@@ -81,13 +81,51 @@ def test_bench_ingested_on_hair_that_moves_with_the_head(tmp_path):
     temporary folder, not under the data root."""
     sets = [a for k, v in FAST.items() for a in ("--set", f"{k}={v}")]
     rc, out, err = run_cli("bench", "ingested", "--hair", "head", "--size", "128", "--seconds", "2", *sets,
-                           "--data-root", str(tmp_path / "data"), "--json")
+                           "--swap", "geometry", "--data-root", str(tmp_path / "data"), "--json")
     assert rc == 0, err
     got = json.loads(out)
     assert "all hair moving with the head" in got["subject"]
     assert not Path(got["generator"]).exists() and not (tmp_path / "data").exists()
     meta = {r["figure"]: r for r in got["rows"]}["PSNR dB"]
     assert meta["generator"] > 25 and meta["decoded"] > 20 and meta["ingested"] > 20
+    assert meta["ingested, generator's geometry"] > 20  # a fourth training, on the ingest with the generator's geometry
+    assert "depth and normal maps" in got["ingested, generator's geometry"]
+
+
+def test_swapped_copy_takes_the_generators_cameras_and_moves_the_depth(tmp_path):
+    from lmgs_eval.commands._bench_ingested import CAMERA_FILES, swapped_copy
+    from lmgs_eval.data import io
+
+    truth, ing = tmp_path / "truth", tmp_path / "ing"
+    z_truth = np.zeros((2, 6, 6))
+    z_truth[0, 1:5, 1:5], z_truth[1, 1:5, 1:5] = 1.00, 1.02  # the generator's camera 1 m from the head
+    z_ing = np.zeros((2, 6, 6))
+    z_ing[:, 2:5, 2:5] = 1.85  # the ingest's 1.85 m away, with a relief of its own
+    z_ing[:, 3, 3] = 1.80
+    for root, z, val in ((truth, z_truth, 1), (ing, z_ing, 2)):
+        for d in ("depth", "normal", "parsing"):
+            (root / d).mkdir(parents=True)
+        for i in range(2):
+            io.write_depth(root / "depth" / f"{i}.png", z[i], 10000.0)
+            (root / "normal" / f"{i}.png").write_bytes(bytes([val, i]))
+            (root / "parsing" / f"{i}.png").write_bytes(bytes([val]))
+        for name in CAMERA_FILES:
+            (root / name).write_bytes(bytes([val]))
+    (ing / "ing.mp4").write_bytes(b"video")
+    cams = swapped_copy(truth, ing, tmp_path / "cams", "cameras")
+    for name in CAMERA_FILES:
+        assert (cams / name).read_bytes() == bytes([1])  # the generator's cameras and 3D landmarks
+    for i, want_median in ((0, 1.00), (1, 1.02)):
+        got = io.read_depth(cams / "depth" / f"{i}.png", 10000.0)
+        want = np.where(z_ing[i] > 0, z_ing[i] - 1.85 + want_median, 0.0)  # the ingest's shape, the generator's distance
+        np.testing.assert_allclose(got, want, atol=1e-4)
+        assert (cams / "normal" / f"{i}.png").read_bytes() == bytes([2, i])  # its own normals
+    assert (cams / "parsing" / "0.png").read_bytes() == bytes([2]) and not (cams / "ing.mp4").exists()
+    geo = swapped_copy(truth, ing, tmp_path / "geo", "geometry")
+    for i in range(2):
+        assert (geo / "depth" / f"{i}.png").read_bytes() == (truth / "depth" / f"{i}.png").read_bytes()
+        assert (geo / "normal" / f"{i}.png").read_bytes() == bytes([1, i])
+    assert (geo / "parsing" / "0.png").read_bytes() == bytes([2])  # the ingest's own masks
 
 
 def test_decoded_copy_is_the_generators_folder_with_the_videos_frames(tmp_path):

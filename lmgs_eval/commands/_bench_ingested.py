@@ -17,6 +17,11 @@ the two folders draw it differently (the generator's head layer is narrower than
 shows); the figure says how much of the full-frame difference lives there
 (``lmgs_eval/data/ingest/design.md``, "End to end").
 
+``--swap cameras`` / ``--swap geometry`` add a folder each: the ingest with the generator's
+cameras and 3D landmarks (its depth maps moved to the generator's camera distance, their shape
+kept), or with those and the generator's depth and normal maps as well. They say how much of
+the gap the ingest's geometry leaves, and which part of it.
+
 Defaults: the bundled 60 s at 256 px, the ``quick`` preset (an ingest of about a minute and
 three trainings of 4-10 minutes each on 2 cores).
 """
@@ -30,9 +35,13 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 IN_ALL = False  # an ingest and three trainings, not a speed benchmark: `bench all` leaves it out
 HELP = "a method trained on a bundled subject and on the ingest of its raw video, side by side"
 BAND_PX = 4
+SWAPS = ("cameras", "geometry")
+CAMERA_FILES = ("transforms_train.json", "transforms_val.json", "track_params.pt", "lms3d.npy")  # one world frame
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -43,6 +52,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="layer: the bundled subject as built, whose hair beyond the head outline is a still layer the "
                         "generator's parsing calls torso; head: a copy built (in the temporary folder) with all the hair "
                         "moving with the head, as on a camera (default layer)")
+    p.add_argument("--swap", action="append", choices=SWAPS, default=[],
+                   help="also train on the ingest with the generator's cameras and 3D landmarks (cameras), or with those "
+                        "and its depth and normal maps (geometry); repeatable")
     p.add_argument("--band", type=int, default=BAND_PX,
                    help=f"half width in pixels of the band around each head outline left out of the second PSNR (default {BAND_PX})")
 
@@ -59,6 +71,34 @@ def decoded_copy(truth_root: Path, ing_root: Path, out: Path) -> Path:
     for src in (ing_root / "ori_imgs").glob("*.jpg"):
         shutil.copy2(src, out / "ori_imgs" / src.name)
         shutil.copy2(src, out / "gt_imgs" / src.name)
+    return out
+
+
+def swapped_copy(truth_root: Path, ing_root: Path, out: Path, part: str) -> Path:
+    """The ingest's folder with the generator's geometry: ``cameras``: its cameras and 3D landmarks
+    (which share its world frame), the ingest's depth maps shifted per frame so that their median
+    is the generator's (the two cameras stand at different distances); ``geometry``: its depth and
+    normal maps as well."""
+    import shutil
+
+    from lmgs_eval.data import io
+    from lmgs_eval.data.ingest.geometry import DEPTH_SCALE
+
+    if part not in SWAPS:
+        raise ValueError(f"part {part!r}: one of {SWAPS}")
+    shutil.copytree(ing_root, out, ignore=shutil.ignore_patterns("*.mp4"))
+    for name in CAMERA_FILES:
+        shutil.copy2(truth_root / name, out / name)
+    if part == "geometry":
+        for d in ("depth", "normal"):
+            shutil.rmtree(out / d)
+            shutil.copytree(truth_root / d, out / d)
+        return out
+    for path in sorted((out / "depth").glob("*.png")):
+        mine, theirs = io.read_depth(path, DEPTH_SCALE), io.read_depth(truth_root / "depth" / path.name, DEPTH_SCALE)
+        if (mine > 0).any() and (theirs > 0).any():
+            shift = np.median(theirs[theirs > 0]) - np.median(mine[mine > 0])
+            io.write_depth(path, np.where(mine > 0, np.maximum(mine + shift, 1.0 / DEPTH_SCALE), 0.0), DEPTH_SCALE)
     return out
 
 
@@ -99,6 +139,9 @@ def run(args: argparse.Namespace) -> dict:
                             "the two folders' frames do not line up")
         dec_root = decoded_copy(truth_root, ing_root, tmp / "decoded" / f"{spec.folder}-decoded")
         runs = {"generator": gen, "decoded": pair.prepare(dec_root), "ingested": pair.prepare(ing_root)}
+        swapped = {f"ingested, generator's {part}": swapped_copy(truth_root, ing_root, tmp / "swap" / f"{spec.folder}-{part}", part)
+                   for part in dict.fromkeys(args.swap)}
+        runs.update({label: pair.prepare(root) for label, root in swapped.items()})
         dec, ing = runs["decoded"], runs["ingested"]
         acc = compare(truth_root, ing_root)
         _, config_hash = pair.train_both(args, runs, tmp, results, "ingested")
@@ -108,14 +151,16 @@ def run(args: argparse.Namespace) -> dict:
         for label, r in runs.items():
             frames = r["method"].render(r["driving"])  # the frames fit_render_score scored (rendering is deterministic)
             away[label] = psnr_outside(frames, r["test"].frames, band)
+        swap_rows = {label: {r["figure"]: r[label] for r in pair.rows(ing, runs[label], ("ingested", label))} for label in swapped}
         rows = []
         for a, b in zip(pair.rows(gen, ing, ("generator", "ingested")), pair.rows(dec, ing, ("decoded", "ingested"))):
             rows.append({"figure": a["figure"], "generator": a["generator"], "decoded": b["decoded"], "ingested": a["ingested"],
                          "ingested - generator": a["ingested - generator"], "ingested - decoded": b["ingested - decoded"],
+                         **{label: swap_rows[label][a["figure"]] for label in swapped},
                          "note": a["note"] or b["note"]})
         rows.insert(1, {"figure": f"PSNR dB away from the head outlines (+-{args.band} px)", **away,
                         "ingested - generator": away["ingested"] - away["generator"],
-                        "ingested - decoded": away["ingested"] - away["decoded"],
+                        "ingested - decoded": away["ingested"] - away["decoded"], **{label: away[label] for label in swapped},
                         "note": f"{100 * band.mean():.1f} % of the test pixels left out"})
         rec = ing["record"]
         out = {
@@ -124,6 +169,10 @@ def run(args: argparse.Namespace) -> dict:
             "generator": str(truth_root),
             "decoded": f"{dec_root}: the generator's folder with the video's decoded frames (the ingest's ori_imgs) as its frames",
             "ingested": f"{ing_root} (removed at the end; ingested in {ingest_s:.1f} s)",
+            **{label: f"{root}: the ingest with the generator's " + ("cameras and 3D landmarks, its depth maps moved to "
+                                                                      "the generator's camera distance" if label.endswith("cameras")
+                                                                      else "cameras, 3D landmarks, depth and normal maps")
+               for label, root in swapped.items()},
             "ingest accuracy": (f"landmarks {acc['landmark_px']:.2f} px, rotation {acc['rotation_deg']:.2f} deg, "
                                 f"head IoU {acc['head_iou']:.3f}, plate {acc['plate_psnr']:.1f} dB"),
             "method": f"{args.method} (preset {args.preset}, config {config_hash}, seed {args.seed}"
