@@ -58,11 +58,13 @@ def test_ingest_matches_the_generators_truth(truth, ingested):
     assert got["plate_psnr"] > 32.0
     assert got["blink_corr"] > 0.7
     assert got["audio_snr_db"] > 30.0  # the video's own AAC track, decoded and resampled
-    # the depth / normal priors (a posed ellipsoid) against the rendered head's maps:
-    # measured 4.5 % median depth error, 9.5 deg mean normal error, 70 % of the head covered
-    assert got["depth_rel"] < 0.07
-    assert got["normal_deg"] < 14.0
-    assert got["geometry_cover"] > 0.6
+    # the depth / normal priors (a posed ellipsoid, and the sheet through its outline where the
+    # head mask reaches beyond it) against the rendered head's maps: measured 3.9 % median depth
+    # error, 14.1 deg mean normal error, 98 % of the head covered (the ellipsoid alone: 4.5 %,
+    # 9.5 deg over the 70 % it covers)
+    assert got["depth_rel"] < 0.06
+    assert got["normal_deg"] < 18.0
+    assert got["geometry_cover"] > 0.9
 
 
 def test_tracked_texture_refines_the_landmark_pose(truth, ingested):
@@ -352,11 +354,11 @@ def test_plain_folder_is_completed_outside_itself(truth, tmp_path):
     # Same cameras, same world: the derived landmarks sit on the true rays; their depth is the
     # world origin's (the field's head centre), which on the bundled heads lies behind the face.
     # Measured: 27 % of the jaw width (a near-constant offset along the view), depth 5.4 %,
-    # normals 10.4 deg, 74 % of the head covered.
+    # normals 13.9 deg, all of the head covered (the ellipsoid alone: 10.3 deg over 74 %).
     jaw = np.linalg.norm(t.landmarks3d[:, 0] - t.landmarks3d[:, 16], axis=1).mean()
     assert np.linalg.norm(s.landmarks3d - t.landmarks3d, axis=2).mean() < 0.4 * jaw
     g = geometry_error(t, s)
-    assert g["depth_rel"] < 0.08 and g["normal_deg"] < 15.0 and g["geometry_cover"] > 0.6
+    assert g["depth_rel"] < 0.08 and g["normal_deg"] < 18.0 and g["geometry_cover"] > 0.9
     # cached: a second read derives nothing again; the user's folder is unchanged
     cache = [n for n in s.notes if "cached at" in n][0].split("cached at ")[1].split(" (")[0]
     stamp = (Path(cache) / "lms3d.npy").stat().st_mtime_ns

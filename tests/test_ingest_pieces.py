@@ -1,9 +1,10 @@
 """Pieces of the ingest tested on their own, without a video: the pose template's layout and
-the torso layer behind the head."""
+the torso layer behind the head, the depth / normal priors."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 SIZE = 256
 
@@ -64,3 +65,39 @@ def test_torso_layer_continues_the_neck_up_behind_the_head():
     want = 200 * 0.98 ** (300 - 3 + NECK_PUSH - rows)  # darker by the pixels from the source row
     np.testing.assert_allclose(rgb[rows, 250, 0], want, atol=1.0)  # blurred along the column: a linear ramp keeps its values
     assert not alpha[head & ~up].any() and not alpha[~head & ~neck & ~torso].any()
+
+
+def test_depth_prior_is_the_ellipsoid_and_beyond_it_the_sheet_through_its_outline():
+    """A sphere of radius 0.1 m, 1 m in front of the camera (world = camera, OpenCV axes), seen at
+    focal 100 on a 41 px frame: a ray that meets it takes the nearer intersection, one that misses
+    takes its point nearest the centre, facing the camera; ``rim=False`` leaves it empty."""
+    from lmgs_eval.data.ingest.geometry import render_prior
+
+    f, w, r, dist = 100.0, 41, 0.1, 1.0
+    mask = np.ones((w, w), bool)
+    depth, normal = render_prior(np.eye(4), f, w, w, np.array([0.0, 0.0, dist]), np.full(3, r), mask)
+    bare, _ = render_prior(np.eye(4), f, w, w, np.array([0.0, 0.0, dist]), np.full(3, r), mask, rim=False)
+    seen = 0
+    for y in range(w):
+        for x in range(w):
+            d = np.array([(x + 0.5 - w / 2) / f, (y + 0.5 - w / 2) / f, 1.0])  # the ray, z = 1
+            c = np.array([0.0, 0.0, dist])
+            t_near = (d @ c) / (d @ d)  # the ray's point nearest the centre (its camera z)
+            miss2 = (c - t_near * d) @ (c - t_near * d) - r * r  # squared distance beyond the sphere
+            if miss2 < 0:  # a hit: the nearer root of |t d - c| = r
+                t = t_near - np.sqrt(-miss2 / (d @ d))
+                n = (t * d - c) / r
+                assert bare[y, x] == depth[y, x]
+                seen += 1
+            else:
+                t, n = t_near, -d / np.linalg.norm(d)
+                assert bare[y, x] == 0
+            assert depth[y, x] == pytest.approx(t, rel=1e-4), (y, x)  # float32; the depth PNG holds 0.1 mm
+            np.testing.assert_allclose(normal[y, x], n, atol=1e-3)
+    assert 0 < seen < w * w  # both kinds of pixel were in the frame
+    # the sheet meets the sphere at its outline without a step: along the row through the centre,
+    # from the outermost hit to the first sheet pixel the depth moves less than between the two
+    # outermost hits (the sphere's own steepness there)
+    row, hits = depth[w // 2], bare[w // 2] > 0
+    last = int(np.nonzero(hits)[0].max())
+    assert abs(row[last + 1] - row[last]) < abs(row[last] - row[last - 1])

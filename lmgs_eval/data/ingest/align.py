@@ -94,7 +94,7 @@ def refine(frame_paths: list[Path], lms: np.ndarray, rv: np.ndarray, tv: np.ndar
     g_ref = _grey(frame_paths[ref])
     mask = upper_head_mask(lms[ref], (h, w))
     centre, axes = head_ellipsoid(template)
-    depth, _ = render_prior(w2c_ref, focal, w, h, centre, axes, mask)
+    depth, _ = render_prior(w2c_ref, focal, w, h, centre, axes, mask, rim=False)  # corners on the surface only
     scale = max(h, w) / 256.0
     corners = cv2.goodFeaturesToTrack(g_ref, MAX_CORNERS, 0.01, max(2.0, 3 * scale), mask=(depth > 0).astype(np.uint8),
                                       blockSize=max(3, int(round(5 * scale)) | 1))

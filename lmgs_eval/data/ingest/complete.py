@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-DERIVED_VERSION = "1"
+DERIVED_VERSION = "2"  # 2: depth / normal priors cover the whole head mask (the sheet beyond the ellipsoid)
 
 # What a processed folder of the field holds (ER-NeRF's process.py, plus TalkingGaussian's
 # teeth masks): ``ori_imgs`` carries the frames and their ``.lms``. No 3D landmarks, no depth

@@ -4,8 +4,11 @@ The 3DGS methods place their first Gaussians by back-projecting the head's pixel
 map, and lmgs's Geometry Regularizer compares rendered depth and normals with the maps. A real
 video has neither. This writes the coarsest geometry the fit supports: an ellipsoid in the
 head's frame (centred behind the nose bridge, semi-axes from the jaw width, the proportions
-the bundled heads use), ray-cast per pixel of the head mask. It has no nose, lips or hair
-shape; it tells the methods where the head is and which way its surface faces, no more.
+the bundled heads use), ray-cast per pixel of the head mask. Hair and ears reach beyond the
+ellipsoid's outline; their pixels take the sheet through that outline (facing the camera), so
+the whole head mask has a depth and the methods place Gaussians on all of it. It has no nose,
+lips or hair shape; it tells the methods where the head is and which way its surface faces, no
+more.
 """
 
 from __future__ import annotations
@@ -28,9 +31,16 @@ def head_ellipsoid(template: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def render_prior(w2c: np.ndarray, focal: float, w: int, h: int, centre: np.ndarray, axes: np.ndarray,
-                 mask: np.ndarray, *, cx: float | None = None, cy: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 mask: np.ndarray, *, cx: float | None = None, cy: float | None = None,
+                 rim: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Depth ``[H, W]`` (camera z, 0 off the surface) and unit normals ``[H, W, 3]`` (OpenCV
-    camera axes, facing the camera) of the ellipsoid, inside ``mask`` only."""
+    camera axes, facing the camera) of the ellipsoid, inside ``mask`` only.
+
+    ``rim``: a pixel of the mask whose ray misses the ellipsoid (hair or ears beyond its outline)
+    takes the point of its ray nearest the ellipsoid's centre, in the ellipsoid's own metric: the
+    sheet through the outline, at the outline's depth, which meets the surface without a step
+    there, and faces the camera along the ray (the sheet's own normal, so that the two maps
+    agree). Without it such pixels stay 0."""
     ys, xs = np.nonzero(mask)
     depth = np.zeros((h, w), np.float32)
     normal = np.zeros((h, w, 3), np.float32)
@@ -52,13 +62,14 @@ def render_prior(w2c: np.ndarray, focal: float, w: int, h: int, centre: np.ndarr
     c = f32(o_s @ o_s - 1.0)
     disc = b * b - 4 * a * c
     hit = disc > 0
-    tt = (-b[hit] - np.sqrt(disc[hit])) / (2 * a[hit])  # camera z, since d_cam has z = 1
-    front = tt > 0
-    sel = np.nonzero(hit)[0][front]
-    tt = tt[front]
+    tt = np.where(hit, (-b - np.sqrt(np.maximum(disc, 0))) / (2 * a), -b / (2 * a))  # camera z, since d_cam has z = 1
+    sel = np.nonzero((tt > 0) & (hit | rim))[0]
+    tt = tt[sel]
     p_s = o_s + tt[:, None] * d_s[sel]  # the hit on the unit sphere; its world normal is p_s / axes
     n_c = (p_s / axes[None, :].astype(f32)) @ R.T.astype(f32)
     n_c /= np.sqrt(np.einsum("ij,ij->i", n_c, n_c))[:, None]
+    off = ~hit[sel]
+    n_c[off] = -d_cam[sel][off] / np.sqrt(np.einsum("ij,ij->i", d_cam[sel][off], d_cam[sel][off]))[:, None]
     depth[ys[sel], xs[sel]] = tt
     normal[ys[sel], xs[sel]] = n_c
     return depth, normal
