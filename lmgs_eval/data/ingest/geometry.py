@@ -69,7 +69,8 @@ def render_prior(w2c: np.ndarray, focal: float, w: int, h: int, centre: np.ndarr
     n_c = (p_s / axes[None, :].astype(f32)) @ R.T.astype(f32)
     n_c /= np.sqrt(np.einsum("ij,ij->i", n_c, n_c))[:, None]
     off = ~hit[sel]
-    n_c[off] = -d_cam[sel][off] / np.sqrt(np.einsum("ij,ij->i", d_cam[sel][off], d_cam[sel][off]))[:, None]
+    ray = d_cam[sel[off]]
+    n_c[off] = -ray / np.sqrt(np.einsum("ij,ij->i", ray, ray))[:, None]
     depth[ys[sel], xs[sel]] = tt
     normal[ys[sel], xs[sel]] = n_c
     return depth, normal

@@ -104,13 +104,14 @@ def pose(ctx, sel) -> None:
     s = ctx.cfg.size
     frames = [ctx.sub / "ori_imgs" / f"{i}.jpg" for i in range(len(lms))] if ctx.cfg.pose_refine else None
     fit = pose_mod.fit_poses(lms, s, s, focal=ctx.cfg.focal, sigma=ctx.cfg.pose_sigma, frames=frames)
+    ref = fit.reference + int(sel["first"])  # in the source's frame numbers
     if fit.aligned is not None and fit.aligned.any():
         ctx.log.append(f"pose: {int(fit.aligned.sum())} of {len(lms)} frames refined by the upper head's texture tracked "
-                       f"from frame {fit.reference + int(sel['first'])} (the rest keep their landmark pose)")
+                       f"from frame {ref} (the rest keep their landmark pose)")
     elif fit.aligned is not None:
         ctx.log.append(f"pose: the landmark poses are kept: the upper head's texture could refine {fit.refinable} of {len(lms)} "
-                       f"frames, fewer than {100 * MIN_SHARE:.0f} % (the head turns too far from frame "
-                       f"{fit.reference + int(sel['first'])}, or too little texture follows)")
+                       f"frames, fewer than {100 * MIN_SHARE:.0f} % (the head turns too far from frame {ref}, or too little "
+                       "texture follows)")
     lo, hi = pose_mod.FOCAL_RANGE
     if fit.focal_curve and (fit.focal >= 0.99 * hi * s or fit.focal <= 1.01 * lo * s):
         ctx.log.append(f"the focal search ended at its range's edge ({fit.focal / s:.2f} frame widths): the head turns too little "
