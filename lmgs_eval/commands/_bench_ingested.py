@@ -40,7 +40,10 @@ import numpy as np
 IN_ALL = False  # an ingest and three trainings, not a speed benchmark: `bench all` leaves it out
 HELP = "a method trained on a bundled subject and on the ingest of its raw video, side by side"
 BAND_PX = 4
-SWAPS = ("cameras", "geometry")
+SWAPS = {  # what each --swap folder takes from the generator
+    "cameras": "cameras and 3D landmarks, its depth maps moved to the generator's camera distance",
+    "geometry": "cameras, 3D landmarks, depth and normal maps",
+}
 CAMERA_FILES = ("transforms_train.json", "transforms_val.json", "track_params.pt", "lms3d.npy")  # one world frame
 
 
@@ -85,7 +88,7 @@ def swapped_copy(truth_root: Path, ing_root: Path, out: Path, part: str) -> Path
     from lmgs_eval.data.ingest.geometry import DEPTH_SCALE
 
     if part not in SWAPS:
-        raise ValueError(f"part {part!r}: one of {SWAPS}")
+        raise ValueError(f"part {part!r}: one of {tuple(SWAPS)}")
     shutil.copytree(ing_root, out, ignore=shutil.ignore_patterns("*.mp4"))
     for name in CAMERA_FILES:
         shutil.copy2(truth_root / name, out / name)
@@ -139,8 +142,9 @@ def run(args: argparse.Namespace) -> dict:
                             "the two folders' frames do not line up")
         dec_root = decoded_copy(truth_root, ing_root, tmp / "decoded" / f"{spec.folder}-decoded")
         runs = {"generator": gen, "decoded": pair.prepare(dec_root), "ingested": pair.prepare(ing_root)}
-        swapped = {f"ingested, generator's {part}": swapped_copy(truth_root, ing_root, tmp / "swap" / f"{spec.folder}-{part}", part)
-                   for part in dict.fromkeys(args.swap)}
+        parts = {f"ingested, generator's {part}": part for part in dict.fromkeys(args.swap)}
+        swapped = {label: swapped_copy(truth_root, ing_root, tmp / "swap" / f"{spec.folder}-{part}", part)
+                   for label, part in parts.items()}
         runs.update({label: pair.prepare(root) for label, root in swapped.items()})
         dec, ing = runs["decoded"], runs["ingested"]
         acc = compare(truth_root, ing_root)
@@ -169,10 +173,7 @@ def run(args: argparse.Namespace) -> dict:
             "generator": str(truth_root),
             "decoded": f"{dec_root}: the generator's folder with the video's decoded frames (the ingest's ori_imgs) as its frames",
             "ingested": f"{ing_root} (removed at the end; ingested in {ingest_s:.1f} s)",
-            **{label: f"{root}: the ingest with the generator's " + ("cameras and 3D landmarks, its depth maps moved to "
-                                                                      "the generator's camera distance" if label.endswith("cameras")
-                                                                      else "cameras, 3D landmarks, depth and normal maps")
-               for label, root in swapped.items()},
+            **{label: f"{root}: the ingest with the generator's {SWAPS[parts[label]]}" for label, root in swapped.items()},
             "ingest accuracy": (f"landmarks {acc['landmark_px']:.2f} px, rotation {acc['rotation_deg']:.2f} deg, "
                                 f"head IoU {acc['head_iou']:.3f}, plate {acc['plate_psnr']:.1f} dB"),
             "method": f"{args.method} (preset {args.preset}, config {config_hash}, seed {args.seed}"
