@@ -96,8 +96,9 @@ def rasterize(
             (default: the largest :math:`d` with :math:`(d+1)^2 = K`); the 3DGS
             convention :math:`c = \\max(0, \\mathrm{SH}(v) + 0.5)`.
         backend: ``"numba"`` (fast CPU path), ``"torch"`` (pure-torch tiled compositor,
-            slow), ``"gsplat"`` (CUDA, ``pip install .[cuda]``), or ``"auto"``: gsplat
-            for CUDA tensors when it is installed, else numba. The numba path projects in
+            slow), ``"gsplat"`` (CUDA, ``pip install .[cuda]``), or ``"auto"``: numba
+            for CPU tensors, gsplat for CUDA tensors when it is installed, else the
+            pure-torch compositor (which runs on any device). The numba path projects in
             numba too (float64, the formulas of ``project``, with a hand-written backward;
             tests hold both equal to torch autograd of ``project``), except when the
             camera's ``world_to_camera`` needs a gradient: then the projection is torch.
@@ -168,7 +169,11 @@ def _choose_backend(backend: str, device: torch.device) -> str:
     if backend not in BACKENDS:
         raise InputError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if backend == "auto":
-        return "gsplat" if device.type == "cuda" and gsplat_available() else "numba"
+        if device.type == "cpu":
+            return "numba"
+        return "gsplat" if device.type == "cuda" and gsplat_available() else "torch"
+    if backend == "numba" and device.type != "cpu":
+        raise InputError(f"backend='numba' needs CPU tensors, got {device.type}; use 'auto' (gsplat or torch there)")
     if backend == "gsplat":
         if device.type != "cuda":
             raise InputError("backend='gsplat' needs CUDA tensors; use 'numba' (or 'auto') on the CPU")
