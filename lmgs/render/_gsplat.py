@@ -4,10 +4,14 @@ gsplat composites arbitrary channels, so the same seven per-Gaussian features as
 path (rgb, camera z, camera-space normal, from :func:`lmgs.render._projection.project`)
 are passed as ``colors`` and gsplat's own projection and tile kernels do the rest, with
 the 3DGS settings (``eps2d=0.3``, ``near_plane=0.01``, 16 px tiles, classic mode).
-Differences to the CPU path: gsplat caps alpha at 0.999, not 0.99.
+Differences to the CPU path: gsplat caps alpha at 0.999, not 0.99. ``means2d`` is a view of
+gsplat's batched ``[1, N, 2]`` tensor; its ``.grad`` (what densification reads) is filled by a
+hook on that tensor.
 """
 
 from __future__ import annotations
+
+import functools
 
 import torch
 
@@ -52,4 +56,15 @@ def rasterize_gsplat(
     radii = meta["radii"][0]
     if radii.dim() == 2:  # gsplat >= 1.3 returns per-axis radii
         radii = radii.max(dim=-1).values
-    return img[0], alpha[0], meta["means2d"][0], radii.to(torch.int32)
+    batched = meta["means2d"]  # [1, N, 2]: the tensor the tile rasterizer read
+    means2d = batched[0]
+    if batched.requires_grad:
+        # The loss reaches ``batched``, not this view of it, so a retained gradient on the view
+        # would stay None and densification would never see one: hand the batch's gradient on.
+        batched.register_hook(functools.partial(_hand_on, means2d))
+    return img[0], alpha[0], means2d, radii.to(torch.int32)
+
+
+def _hand_on(view: torch.Tensor, grad: torch.Tensor) -> None:
+    """Backward hook: the ``[1, N, 2]`` gradient of gsplat's ``means2d`` as ``view.grad`` ``[N, 2]``."""
+    view.grad = grad[0].detach()
