@@ -1,4 +1,5 @@
-"""``lmgs-eval bench raster``: the fast CPU rasterizer and the pure-torch anchor side by side.
+"""``lmgs-eval bench raster``: the fast CPU rasterizer and the pure-torch anchor side by side
+(and gsplat on the same scenes when a CUDA device and gsplat are present).
 
 Each row is measured in a fresh worker process (``python -m lmgs.render.bench --worker``)
 so that its peak memory is its own: ``peak_mb`` is the growth of the process's peak
@@ -67,15 +68,25 @@ def head_scene(n: int, res: int, seed: int = 0, requires_grad: bool = True):
     return params, cam
 
 
-def _measure(backend: str, res: int, n: int, repeats: int) -> dict:
-    """One row, in this process (called in the worker)."""
+def _on(params, cam, device: str):
+    """The scene's leaf tensors and camera on ``device`` (leaves again, needing a gradient)."""
+    if device == "cpu":
+        return params, cam
+    return [t.detach().to(device).requires_grad_(t.requires_grad) for t in params], cam.to(device)
+
+
+def _measure(backend: str, res: int, n: int, repeats: int, device: str = "cpu") -> dict:
+    """One row, in this process (called in the worker). On CUDA each timed call ends with a
+    device synchronisation and ``peak_mb`` is the growth of the allocator's peak."""
     import torch
 
     from lmgs.render import rasterize
 
-    params, cam = head_scene(n, res)
-    bg = torch.tensor([0.2, 0.3, 0.4])
-    tiny, tiny_cam = head_scene(64, 32, seed=1)
+    cuda = device != "cpu"
+    sync = torch.cuda.synchronize if cuda else (lambda: None)
+    params, cam = _on(*head_scene(n, res), device)
+    bg = torch.tensor([0.2, 0.3, 0.4], device=device)
+    tiny, tiny_cam = _on(*head_scene(64, 32, seed=1), device)
 
     def fwd(p, c):
         return rasterize(*p, c, bg, backend=backend)
@@ -87,17 +98,26 @@ def _measure(backend: str, res: int, n: int, repeats: int) -> dict:
             t.grad = None
 
     fwd_bwd(tiny, tiny_cam)  # loads the compiled kernels
-    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    if cuda:
+        sync()
+        torch.cuda.reset_peak_memory_stats(device)
+        base = torch.cuda.max_memory_allocated(device) / 1024
+    else:
+        base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     fwd_bwd(params, cam)
-    peak_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - base
+    sync()
+    peak_kb = (torch.cuda.max_memory_allocated(device) / 1024 if cuda
+               else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) - base
     with torch.no_grad():
         n_visible = int(fwd(params, cam).visible.sum())
 
     def timed(fn) -> float:
         ts = []
         for _ in range(repeats):
+            sync()
             t0 = time.perf_counter()
             fn()
+            sync()
             ts.append(time.perf_counter() - t0)
         ts.sort()
         return 1e3 * ts[len(ts) // 2], 1e3 * ts[0]
@@ -111,6 +131,7 @@ def _measure(backend: str, res: int, n: int, repeats: int) -> dict:
         fwd_rgb_ms, _ = timed(lambda: rasterize(*params, cam, bg, backend=backend, render_mode="RGB"))
     row = {
         "backend": backend,
+        "device": torch.cuda.get_device_name(device) if cuda else "cpu",
         "res": f"{res}x{res}",
         "n_gaussians": n,
         "n_visible": n_visible,
@@ -189,8 +210,8 @@ def kernel_profile(params, cam, repeats: int) -> dict:
     }
 
 
-def _worker_row(backend: str, res: int, n: int, repeats: int) -> dict:
-    cmd = [sys.executable, "-m", "lmgs.render.bench", "--worker", json.dumps([backend, res, n, repeats])]
+def _worker_row(backend: str, res: int, n: int, repeats: int, device: str = "cpu") -> dict:
+    cmd = [sys.executable, "-m", "lmgs.render.bench", "--worker", json.dumps([backend, res, n, repeats, device])]
     proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
     if proc.returncode != 0:
         raise RuntimeError(f"benchmark worker {backend} {res} {n} failed:\n{proc.stderr[-2000:]}")
@@ -225,10 +246,16 @@ def run(args: argparse.Namespace) -> dict:
     sizes = [256] if args.quick else list(args.sizes)
     counts = [10_000] if args.quick else list(args.counts)
     repeats = 3 if args.quick else int(args.repeats)
-    rows = []
+    gpu = _gpu_backends()
+    rows, gpu_rows = [], []
     for res in sizes:
         for n in counts:
             fast = _worker_row(FAST, res, n, repeats)
+            for backend in gpu:
+                row = _worker_row(backend, res, n, max(repeats, 20), "cuda")
+                row["fwd_ratio_vs_numba"] = fast["fwd_ms"] / row["fwd_ms"]
+                row["fwd_bwd_ratio_vs_numba"] = fast["fwd_bwd_ms"] / row["fwd_bwd_ms"]
+                gpu_rows.append(row)
             anchor = None if args.no_anchor else _worker_row(ANCHOR, res, n, 2 if not args.quick else 1)
             for row in (fast, anchor):
                 if row is None:
@@ -236,7 +263,7 @@ def run(args: argparse.Namespace) -> dict:
                 row["fwd_ratio_vs_anchor"] = anchor["fwd_ms"] / row["fwd_ms"] if anchor else None
                 row["fwd_bwd_ratio_vs_anchor"] = anchor["fwd_bwd_ms"] / row["fwd_bwd_ms"] if anchor else None
                 rows.append(row)
-    return {
+    out = {
         "rows": rows,
         "peak_mb": "growth of ru_maxrss over the warmed-up worker during one fwd+bwd (fresh process per row)",
         "ratio": "anchor median time / this backend's median time, same run, same scene",
@@ -254,11 +281,28 @@ def run(args: argparse.Namespace) -> dict:
         "machine": f"{platform.machine()} {platform.processor() or ''}".strip(),
         "first_call": first_call_seconds(),
     }
+    if gpu_rows:
+        out["gpu_rows"] = gpu_rows
+        out["gpu"] = ("the same scenes on the CUDA device (peak_mb: growth of the allocator's peak); "
+                      "ratio_vs_numba = the numba row's median time on this machine's CPU / this row's, same run")
+    else:
+        out["gpu"] = "no CUDA rows: " + ("gsplat is not installed (pip install 'lmgs[cuda]')"
+                                         if torch.cuda.is_available() else "no CUDA device")
+    return out
+
+
+def _gpu_backends() -> list[str]:
+    """The CUDA rows to measure: gsplat when a CUDA device and gsplat are present, else none."""
+    import torch
+
+    from lmgs.render.rasterize import gsplat_available
+
+    return ["gsplat"] if torch.cuda.is_available() and gsplat_available() else []
 
 
 if __name__ == "__main__":
     if len(sys.argv) == 3 and sys.argv[1] == "--worker":
-        b, r, n_, rep = json.loads(sys.argv[2])
-        print(json.dumps(_measure(b, int(r), int(n_), int(rep))))
+        b, r, n_, rep, dev = json.loads(sys.argv[2])
+        print(json.dumps(_measure(b, int(r), int(n_), int(rep), dev)))
     else:
         raise SystemExit("usage: lmgs-eval bench raster (this module's main is the per-row worker)")
