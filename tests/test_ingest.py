@@ -389,6 +389,32 @@ def test_two_faces_track_the_central_one_and_say_so(truth, tmp_path):
     assert man["window"]["x0"] >= SIZE * 0.9  # the window is on the right-hand face
 
 
+def test_a_briefly_hidden_face_is_not_swapped_for_another(truth, tmp_path):
+    """The tracked face is hidden for three frames at a re-detection frame while another face
+    stays in view: the hidden frames are interpolated and the track stays on its face (taking
+    the other one there would carry the track, the crop and every later frame to it)."""
+    from lmgs_eval.data import io
+    from lmgs_eval.data.ingest.track import REDETECT
+
+    n, hidden = 2 * REDETECT, range(REDETECT, REDETECT + 3)
+    frames = []
+    for i in range(n):
+        face = io.read_rgb_u8(truth / "ori_imgs" / f"{i}.jpg")
+        pad = np.full((SIZE, 64, 3), 128, np.uint8)
+        mine = np.full_like(face, 128) if i in hidden else face
+        # the right-hand face is nearer the frame's centre: it is the one tracked
+        frames.append(np.concatenate([face[:, ::-1], mine, pad], axis=1))
+    audio, _ = io.load_audio(truth / "aud.wav")
+    io.write_video(tmp_path / "hide.mp4", np.stack(frames), 25, audio[: n * 640])
+    root = tmp_path / "data"
+    rc, out, err = run_cli("ingest", str(tmp_path / "hide.mp4"), "--size", "128", "--data-root", str(root), "--quiet")
+    assert rc == 0, err
+    man = json.loads((root / "hide" / "manifest.json").read_text())
+    assert man["window"]["x0"] >= SIZE * 0.9  # the window is still on the right-hand face
+    assert f"frames {hidden[0]}-{hidden[-1]}" in man["flags"]["interpolated"]
+    assert "other than the tracked one" in man["flags"]["several_faces"] and f"{hidden[0]}-" in man["flags"]["several_faces"]
+
+
 def test_moving_camera_is_flagged_with_its_frames(truth, tmp_path):
     import cv2
 

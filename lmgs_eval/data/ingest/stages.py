@@ -42,9 +42,13 @@ def track(ctx, info: decode.VideoInfo) -> None:
         raise UserError(f"{ctx.video}: {len(cuts)} scene cut(s) at frame {at}; ingest one shot at a time "
                         f"(cut the video there, e.g. ffmpeg -ss/-to)")
     many = tr.faces.max(initial=0)
-    if many > 1:
-        ctx.warn("several_faces", f"{ctx.video}: up to {many} faces in one frame; tracked the largest, most central one")
-    save_npz(ctx.work / "track.npz", lms=tr.lms, faces=tr.faces, detected=tr.detected)
+    other = np.nonzero(tr.others > 0)[0]
+    if many > 1 or len(other):
+        seen = [f"up to {many} faces in one frame"] if many > 1 else []
+        if len(other):
+            seen.append(f"a face other than the tracked one in frames {_ranges(other.tolist())}, left alone")
+        ctx.warn("several_faces", f"{ctx.video}: {'; '.join(seen)}; tracked the largest, most central face and kept to it")
+    save_npz(ctx.work / "track.npz", lms=tr.lms, faces=tr.faces, detected=tr.detected, others=tr.others)
 
 
 def frames(ctx, info: decode.VideoInfo, tr, audio: np.ndarray) -> None:

@@ -31,11 +31,13 @@ class Track:
         lms: ``[N, 68, 2]`` float64, NaN where no face was found.
         faces: ``[N]`` faces the detector saw (-1 on frames where it did not run).
         detected: ``[N]`` bool, the detector ran on this frame.
+        others: ``[N]`` faces the detector saw that were not the tracked one.
     """
 
     lms: np.ndarray
     faces: np.ndarray
     detected: np.ndarray
+    others: np.ndarray
 
     @property
     def found(self) -> np.ndarray:
@@ -60,8 +62,15 @@ def _shape(sp, img, box) -> np.ndarray:
     return np.array([[p.x + 0.5, p.y + 0.5] for p in s.parts()], np.float64)
 
 
-def _detect(det, grey: np.ndarray, prev_box) -> tuple[list, int]:
-    """Face boxes ``(l, t, r, b)`` in ``grey``'s pixels, best first, and how many were seen."""
+def _detect(det, grey: np.ndarray, prev_box, lost: int = 0) -> tuple[list, int]:
+    """Face boxes ``(l, t, r, b)`` in ``grey``'s pixels, best first, and how many were seen.
+
+    With a track (``prev_box``, the tracked face's box, last seen ``lost`` frames ago) only
+    boxes that can be that face are returned, nearest first: a size within 1.5x of it and a
+    centre within a box width of it, and two more per second it has been lost. Another face
+    (a second person, a face on a poster or a screen) is never taken over when the tracked
+    one is briefly missed (a hand before it, a turn away): the frame goes without a face.
+    """
     import cv2
 
     h, w = grey.shape
@@ -74,10 +83,19 @@ def _detect(det, grey: np.ndarray, prev_box) -> tuple[list, int]:
     if not boxes:
         return [], 0
 
+    if prev_box is not None:  # stay with the face being tracked
+        size = prev_box[2] - prev_box[0]
+        reach = size * (1.0 + 2.0 * lost / 25)
+        centre = np.array([(prev_box[0] + prev_box[2]) / 2, (prev_box[1] + prev_box[3]) / 2])
+
+        def dist(b):
+            return float(np.hypot((b[0] + b[2]) / 2 - centre[0], (b[1] + b[3]) / 2 - centre[1]))
+
+        same = [b for b in boxes if 1 / 1.5 < (b[2] - b[0]) / size < 1.5 and dist(b) < reach]
+        return sorted(same, key=dist), len(boxes)
+
     def score(b):
         area = (b[2] - b[0]) * (b[3] - b[1])
-        if prev_box is not None:  # stay with the face being tracked
-            return _iou(b, prev_box) * 1e9 + area
         cx, cy = (b[0] + b[2]) / 2 / w - 0.5, (b[1] + b[3]) / 2 / h - 0.5
         return area * (1.0 - min(0.9, np.hypot(cx, cy)))  # largest, most central
 
@@ -100,6 +118,8 @@ def track_faces(frames: Iterable[tuple[int, np.ndarray]], n: int, progress=None)
     lms = np.full((n, 68, 2), np.nan)
     faces = np.full(n, -1, np.int64)
     detected = np.zeros(n, bool)
+    others = np.zeros(n, np.int64)
+    lost = 0  # frames since the tracked face was last found
     prev = None  # landmarks of the previous frame
     rel = None  # box relative to the landmarks: (dx, dy, half size) in units of their spread
     box = None
@@ -116,8 +136,8 @@ def track_faces(frames: Iterable[tuple[int, np.ndarray]], n: int, progress=None)
             if jump < 0.25 and 0.85 < ratio < 1.18:
                 cur = cand
         if cur is None:
-            boxes, count = _detect(det, grey, box)
-            detected[k], faces[k] = True, count
+            boxes, count = _detect(det, grey, box, lost)
+            detected[k], faces[k], others[k] = True, count, count - min(1, len(boxes))
             if boxes:
                 box = boxes[0]
                 cur = _shape(sp, grey, box)
@@ -126,10 +146,11 @@ def track_faces(frames: Iterable[tuple[int, np.ndarray]], n: int, progress=None)
                 rel = ((bc[0] - c[0]) / s, (bc[1] - c[1]) / s, (box[2] - box[0]) / 2 / s)
         if cur is not None:
             lms[k] = cur
+        lost = 0 if cur is not None else lost + 1
         prev = cur
         if progress is not None:
             progress.update(1)
-    return Track(lms, faces, detected)
+    return Track(lms, faces, detected, others)
 
 
 @dataclass(frozen=True)
