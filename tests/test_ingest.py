@@ -415,6 +415,47 @@ def test_a_briefly_hidden_face_is_not_swapped_for_another(truth, tmp_path):
     assert "other than the tracked one" in man["flags"]["several_faces"] and f"{hidden[0]}-" in man["flags"]["several_faces"]
 
 
+def test_a_long_faceless_stretch_is_left_out_with_its_audio(truth, tmp_path):
+    """The face hidden for 20 frames (longer than interpolation bridges) in the middle: those
+    frames and their audio are left out, listed, and the frames after them follow on."""
+    from conftest import write_pcm_wav
+    from lmgs_eval.data import io
+    from lmgs_eval.data.ingest.track import MAX_GAP
+    from lmgs_eval.data.layout import read_subject
+
+    n, hidden = 60, range(20, 40)
+    assert len(hidden) > MAX_GAP
+    truth_frames = [io.read_rgb_u8(truth / "ori_imgs" / f"{i}.jpg") for i in range(n)]
+    frames = []
+    for i, f in enumerate(truth_frames):
+        if i in hidden:  # a hand before the face: its landmarks' box, filled with skin colour
+            lm = np.loadtxt(truth / "ori_imgs" / f"{i}.lms")
+            (x0, y0), (x1, y1) = lm.min(0).astype(int) - 4, lm.max(0).astype(int) + 4
+            f = f.copy()
+            f[max(y0, 0) : y1, max(x0, 0) : x1] = (200, 150, 120)
+        frames.append(f)
+    audio, _ = io.load_audio(truth / "aud.wav")
+    io.write_video(tmp_path / "away.mp4", np.stack(frames), 25, audio[: n * 640])
+    write_pcm_wav(tmp_path / "away.wav", audio[: n * 640], 16000)  # given, so the samples can be compared exactly
+    root = tmp_path / "data"
+    rc, out, err = run_cli("ingest", str(tmp_path / "away.mp4"), "--audio", str(tmp_path / "away.wav"), "--size", str(SIZE),
+                           "--data-root", str(root), "--quiet")
+    assert rc == 0, err
+    man = json.loads((root / "away" / "manifest.json").read_text())
+    assert man["frames"]["kept"] == n - len(hidden)
+    assert man["frames"]["source_runs"] == [[0, hidden[0]], [hidden[-1] + 1, n]]
+    assert f"frames {hidden[0]}-{hidden[-1]}" in man["flags"]["faceless_gaps"]
+    s = read_subject(root / "away")
+    assert s.n_frames == n - len(hidden)
+    # the audio of the kept frames, joined (two 16-bit round trips)
+    kept = np.concatenate([audio[: hidden[0] * 640], audio[(hidden[-1] + 1) * 640 : n * 640]])
+    np.testing.assert_allclose(s.audio, kept, atol=3 / 32767)
+    # subject frame 20 is source frame 40: the frame after the gap, not the hidden one
+    after = s.frame(hidden[0])
+    assert np.abs(after - truth_frames[hidden[-1] + 1] / 255.0).mean() < 0.03
+    assert np.abs(after - truth_frames[hidden[-1]] / 255.0).mean() > np.abs(after - truth_frames[hidden[-1] + 1] / 255.0).mean()
+
+
 def test_moving_camera_is_flagged_with_its_frames(truth, tmp_path):
     import cv2
 

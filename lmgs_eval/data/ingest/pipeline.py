@@ -208,16 +208,19 @@ def _run(ctx: _Ctx, key: dict) -> None:
     stages.finish(ctx, info, sel, audio, source, key)
 
 
-def check_frames(ctx: _Ctx, info: decode.VideoInfo, n_audio_frames: int, first: int, last: int) -> tuple[int, int]:
-    """The frame range kept after the face coverage and the audio's length are taken into account."""
+def check_frames(ctx: _Ctx, info: decode.VideoInfo, n_audio_frames: int, first: int, last: int,
+                 left_out: tuple[int, ...] = ()) -> tuple[int, int]:
+    """The frame range kept after the face coverage and the audio's length are taken into account
+    (``left_out``: frames inside it without a face, which do not count towards the clip's length)."""
     if n_audio_frames < last:
         short = last - n_audio_frames
         if n_audio_frames - first < 1:
             raise UserError(f"{ctx.audio or ctx.video}: the audio ({n_audio_frames / 25:.2f} s) ends before the first frame with a face")
         ctx.warn("audio_shorter", f"the audio is {short} frames ({short / 25:.2f} s) shorter than the video; the last {short} frames are dropped")
         last = n_audio_frames
-    if (last - first) / 25 < MIN_SECONDS:
-        ctx.warn("short_clip", f"{ctx.video}: {(last - first) / 25:.1f} s with a face: too short to train a model well (at least {MIN_SECONDS:g} s; the field uses 3-5 min)")
+    kept = last - first - sum(1 for k in left_out if k < last)
+    if kept / 25 < MIN_SECONDS:
+        ctx.warn("short_clip", f"{ctx.video}: {kept / 25:.1f} s with a face: too short to train a model well (at least {MIN_SECONDS:g} s; the field uses 3-5 min)")
     return first, last
 
 

@@ -55,10 +55,15 @@ def frames(ctx, info: decode.VideoInfo, tr, audio: np.ndarray) -> None:
     """Checks (coverage, size, audio length), the crop window, the frames and their landmarks."""
     t0 = time.perf_counter()
     lms, cov = track_mod.fill_gaps(tr["lms"], str(ctx.video))
-    first, last = check_frames(ctx, info, len(audio) // SPF, cov.first, cov.last)
-    lms = lms[: last - cov.first]
+    first, last = check_frames(ctx, info, len(audio) // SPF, cov.first, cov.last, cov.dropped)
+    source = cov.kept[cov.kept < last]  # the source frame of each subject frame
+    lms = lms[: len(source)]
     if cov.cut:
         ctx.warn("faceless_ends", f"{len(cov.cut)} frames without a face at the start/end were cut (frames {_ranges(cov.cut)})")
+    gone = [k for k in cov.dropped if k < last]
+    if gone:
+        ctx.warn("faceless_gaps", f"{len(gone)} frames without a face for more than {track_mod.MAX_GAP} in a row were left out "
+                 f"(frames {_ranges(gone)}; {len(gone) / 25:.1f} s): the subject's frames and audio jump over them, as at a cut")
     missing = [k for k in cov.missing if k < last]
     if missing:
         ctx.warn("interpolated", f"{len(missing)} frames without a detected face were interpolated from their neighbours (frames {_ranges(missing)})")
@@ -67,29 +72,36 @@ def frames(ctx, info: decode.VideoInfo, tr, audio: np.ndarray) -> None:
         ctx.warn("small_face", f"{ctx.video}: the face is small ({jaw:.0f} px between the jaw corners; at least {MIN_FACE_PX} px advised): landmarks and frames will be coarse")
     win, notes = choose_window(lms, info.width, info.height, ctx.cfg.size, ctx.cfg.crop)
     ctx.log += notes
-    n = last - first
+    n = len(source)
+    at = {int(k): i for i, k in enumerate(source)}
     out = ctx.sub / "ori_imgs"
     out.mkdir(exist_ok=True)
     bar = ctx.bar(n, "crop + frames")
     for k, img in decode.frames_25fps(info):
-        if k < first:
-            continue
         if k >= last:
             break
-        io.write_rgb(out / f"{k - first}.jpg", win.apply(img))
-        if bar is not None:
-            bar.update(1)
+        if k in at:
+            io.write_rgb(out / f"{at[k]}.jpg", win.apply(img))
+            if bar is not None:
+                bar.update(1)
     if bar is not None:
         bar.close()
     lms_out = win.to_out(lms)
-    smooth = track_mod.smooth_landmarks(lms_out, ctx.cfg.smooth_window) if ctx.cfg.smooth_window > 1 else lms_out
+    smooth = lms_out.copy()
+    if ctx.cfg.smooth_window > 1:  # each run of consecutive frames alone: no smoothing across a left-out gap
+        for seg in track_mod.segments(source):
+            smooth[seg] = track_mod.smooth_landmarks(lms_out[seg], ctx.cfg.smooth_window)
     for i in range(n):
         writer.write_lms(out / f"{i}.lms", smooth[i])
-    found = np.ones(n, bool)
-    found[[k - first for k in missing]] = False
-    save_npz(ctx.work / "frames.npz", lms=smooth, raw=lms_out, found=found, first=first, last=last,
+    found = ~np.isin(source, missing)
+    save_npz(ctx.work / "frames.npz", lms=smooth, raw=lms_out, found=found, first=first, last=last, source=source,
              window=json.dumps(win.to_json()), jaw_px=jaw)
     ctx.timed("crop_frames", t0, n)
+
+
+def source_frames(sel) -> np.ndarray:
+    """The source video's frame number of each subject frame (``frames.npz``)."""
+    return sel["source"] if "source" in sel.files else np.arange(int(sel["first"]), int(sel["last"]))
 
 
 def _ranges(ks) -> str:
@@ -108,7 +120,7 @@ def pose(ctx, sel) -> None:
     s = ctx.cfg.size
     frames = [ctx.sub / "ori_imgs" / f"{i}.jpg" for i in range(len(lms))] if ctx.cfg.pose_refine else None
     fit = pose_mod.fit_poses(lms, s, s, focal=ctx.cfg.focal, sigma=ctx.cfg.pose_sigma, frames=frames)
-    ref = fit.reference + int(sel["first"])  # in the source's frame numbers
+    ref = int(source_frames(sel)[fit.reference])  # in the source's frame numbers
     if fit.aligned is not None and fit.aligned.any():
         ctx.log.append(f"pose: {int(fit.aligned.sum())} of {len(lms)} frames refined by the upper head's texture tracked "
                        f"from frame {ref} (the rest keep their landmark pose)")
@@ -158,7 +170,8 @@ def parsing(ctx, sel) -> None:
     io.write_rgb(ctx.sub / "bc.jpg", bc)
     ctx.log.append(f"plate: {100 * seen.mean():.1f} % of its pixels seen behind the person, the rest inpainted; the background "
                    f"differs from it by {np.median(resid):.1f} grey levels in the median frame ({max(resid):.1f} at most)")
-    moving = [k + int(sel["first"]) for k, r in zip(plate.ids, resid) if r > STATIC_LEVELS]
+    src = source_frames(sel)
+    moving = [int(src[k]) for k, r in zip(plate.ids, resid) if r > STATIC_LEVELS]
     if len(moving) > MOVING_SHARE * len(resid) + 1:
         ctx.warn("moving_camera", f"{ctx.video}: the background differs from the plate by more than {STATIC_LEVELS:g} grey levels "
                  f"in {len(moving)} of {len(resid)} sampled frames (video frames {_ranges(moving)}): a moving camera or changing "
@@ -199,9 +212,9 @@ def composites(ctx, sel) -> None:
 def finish(ctx, info: decode.VideoInfo, sel, audio: np.ndarray, source: str, key: dict) -> None:
     """Audio, action units, the 25 fps video, meta.json and manifest.json."""
     t0 = time.perf_counter()
-    first, last = int(sel["first"]), int(sel["last"])
-    n = last - first
-    aud = audio[first * SPF : last * SPF]
+    src = source_frames(sel)
+    n = len(src)
+    aud = np.concatenate([audio[int(src[g.start]) * SPF : (int(src[g.stop - 1]) + 1) * SPF] for g in track_mod.segments(src)])
     io.write_wav(ctx.sub / "aud.wav", aud)
     aus = writer.action_units(sel["lms"])
     writer.write_au_csv(ctx.sub / "au.csv", aus, sel["found"])
@@ -233,7 +246,8 @@ def finish(ctx, info: decode.VideoInfo, sel, audio: np.ndarray, source: str, key
         "audio": {"source": source, "sha256": key["audio_sha256"], "seconds": round(len(aud) / 16000, 3)},
         "parameters": key["config"],
         "tools": writer.tool_versions(),
-        "frames": {"kept": n, "first_source_frame": first, "of": info.n_frames, "without_face": int((~sel["found"]).sum())},
+        "frames": {"kept": n, "first_source_frame": int(src[0]), "of": info.n_frames, "without_face": int((~sel["found"]).sum()),
+                   "source_runs": [[int(src[g.start]), int(src[g.stop - 1]) + 1] for g in track_mod.segments(src)]},
         "window": json.loads(str(sel["window"])),
         "pose": {"focal": float(pz["focal"]), "focal_widths": float(pz["focal"]) / ctx.cfg.size,
                  "focal_search": pz["curve"].tolist(), "reprojection_px_mean": float(pz["reproj"].mean()),
