@@ -38,6 +38,34 @@ def test_template_is_the_frontal_layout_when_the_head_looks_aside(tmp_path):
     assert np.linalg.norm(xy - front, axis=1).mean() < 0.025 * np.linalg.norm(front[16] - front[0])
 
 
+def test_poses_are_smoothed_within_runs_not_across_a_left_out_gap():
+    """Two runs of frames (a faceless stretch left out between them), the head still at 0 deg
+    yaw in the first and at 20 deg in the second: smoothed run by run each keeps its own pose
+    up to the seam; smoothed as one clip the frames by the seam blend the two."""
+    from lmgs_eval.data.bundled.generator import head_model
+    from lmgs_eval.data.ingest import pose
+
+    head = head_model("astronaut", SIZE)
+    pts = head._rest_face[:68] - head._rest_face[:68].mean(0)
+    f = 2.5 * SIZE
+
+    def project(y):
+        rot = np.array([[np.cos(y), 0, np.sin(y)], [0, 1, 0], [-np.sin(y), 0, np.cos(y)]])
+        p = pts @ rot.T
+        z = head.D - p[:, 2]
+        return np.stack([f * p[:, 0] / z + SIZE / 2, -f * p[:, 1] / z + SIZE / 2], 1)
+
+    lms = np.stack([project(0.0)] * 20 + [project(np.radians(20.0))] * 20)
+    runs = [slice(0, 20), slice(20, 40)]
+    apart = np.degrees(pose.fit_poses(lms, SIZE, SIZE, focal=f, runs=runs).euler[:, 1])
+    joined = np.degrees(pose.fit_poses(lms, SIZE, SIZE, focal=f).euler[:, 1])
+    raw = np.degrees(pose.fit_poses(lms, SIZE, SIZE, focal=f, sigma=0).euler[:, 1])
+    step = apart[20] - apart[19]
+    assert abs(step - (raw[20] - raw[19])) < 0.1 and abs(step) > 15  # the whole turn at the seam
+    assert np.ptp(apart[:20]) < 0.1 and np.ptp(apart[20:]) < 0.1
+    assert abs(joined[20] - joined[19]) < 0.5 * abs(step)  # one clip: the seam is smeared
+
+
 def test_torso_layer_continues_the_neck_up_behind_the_head():
     """``torso_imgs``: the frame's own neck and torso as filmed, and behind the head the neck's
     colour continued straight up, darker as it goes (by hand: 0.98 per pixel at 512 px)."""

@@ -192,11 +192,13 @@ def euler_pyr(R: np.ndarray) -> np.ndarray:
 
 
 def fit_poses(lms: np.ndarray, w: int, h: int, *, focal: float | None = None, sigma: float = 2.0,
-              frames: list | None = None) -> PoseFit:
+              frames: list | None = None, runs: list[slice] | None = None) -> PoseFit:
     """Template, focal and smoothed per-frame poses for landmarks ``[N, 68, 2]`` (output pixels).
 
     ``frames``: the frames' image paths; with them each landmark pose is refined by the upper
     head's texture tracked from a reference frame (:mod:`align`) before the smoothing.
+    ``runs``: runs of consecutive source frames (where frames were left out between them),
+    each smoothed on its own; default one run.
     """
     from scipy.ndimage import gaussian_filter1d
     from scipy.spatial.transform import Rotation
@@ -222,9 +224,10 @@ def fit_poses(lms: np.ndarray, w: int, h: int, *, focal: float | None = None, si
     rots = Rotation.from_rotvec(rv)
     mean = rots.mean()
     rel = (mean.inv() * rots).as_rotvec()
-    if sigma > 0 and n > 2:
-        rel = gaussian_filter1d(rel, sigma, axis=0, mode="nearest")
-        tv = gaussian_filter1d(tv, sigma, axis=0, mode="nearest")
+    for run in runs or [slice(0, n)]:
+        if sigma > 0 and run.stop - run.start > 2:
+            rel[run] = gaussian_filter1d(rel[run], sigma, axis=0, mode="nearest")
+            tv[run] = gaussian_filter1d(tv[run], sigma, axis=0, mode="nearest")
     R = (mean * Rotation.from_rotvec(rel)).as_matrix()
     w2c = np.tile(np.eye(4), (n, 1, 1))
     w2c[:, :3, :3], w2c[:, :3, 3] = R, tv

@@ -119,7 +119,8 @@ def pose(ctx, sel) -> None:
     lms = sel["lms"]
     s = ctx.cfg.size
     frames = [ctx.sub / "ori_imgs" / f"{i}.jpg" for i in range(len(lms))] if ctx.cfg.pose_refine else None
-    fit = pose_mod.fit_poses(lms, s, s, focal=ctx.cfg.focal, sigma=ctx.cfg.pose_sigma, frames=frames)
+    fit = pose_mod.fit_poses(lms, s, s, focal=ctx.cfg.focal, sigma=ctx.cfg.pose_sigma, frames=frames,
+                             runs=track_mod.segments(source_frames(sel)))
     ref = int(source_frames(sel)[fit.reference])  # in the source's frame numbers
     if fit.aligned is not None and fit.aligned.any():
         ctx.log.append(f"pose: {int(fit.aligned.sum())} of {len(lms)} frames refined by the upper head's texture tracked "
