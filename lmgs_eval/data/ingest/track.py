@@ -5,7 +5,9 @@ dlib's HOG detector (its 68-point shape predictor's own detector, from
 the track is lost; in between, the box for frame ``k`` comes from the landmarks of frame
 ``k - 1`` (the box-to-landmark relation measured at the last detection), so the predictor
 follows the face at a few milliseconds a frame. A tracked shape is rejected (and the face
-re-detected) when it jumps or changes scale more than a head can between two frames.
+re-detected) when it jumps or changes scale more than a head can between two frames, or when its
+upper face no longer looks like the last detection's (something before the face). After the
+first detection the track keeps to its face: see :func:`_detect`.
 """
 
 from __future__ import annotations
@@ -126,14 +128,6 @@ def _detect(det, grey: np.ndarray, prev_box, lost: int = 0, size: float | None =
     return sorted(boxes, key=score, reverse=True), len(boxes)
 
 
-def _iou(a, b) -> float:
-    ix = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
-    iy = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
-    inter = ix * iy
-    u = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
-    return inter / u if u > 0 else 0.0
-
-
 def track_faces(frames: Iterable[tuple[int, np.ndarray]], n: int, progress=None) -> Track:
     """Track one face through ``frames`` (``(k, rgb uint8)`` for ``k = 0..n-1``)."""
     import cv2
@@ -231,7 +225,7 @@ def fill_gaps(lms: np.ndarray, video: str) -> tuple[np.ndarray, Coverage]:
         starts, ends = np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]
         long = [(a, b) for a, b in zip(starts, ends) if b - a > MAX_GAP]
         dropped = tuple(int(k) + first for a, b in long for k in range(a, b))
-        missing = tuple(int(k) + first for k in np.nonzero(bad)[0] if int(k) + first not in set(dropped))
+        missing = tuple(sorted(set(int(k) + first for k in np.nonzero(bad)[0]) - set(dropped)))
         good = np.nonzero(~bad)[0]
         flat = out.reshape(len(out), -1)
         for j in range(flat.shape[1]):
