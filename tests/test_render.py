@@ -307,6 +307,33 @@ def test_expected_depth():
     torch.testing.assert_close(out.expected_depth[m], (out.depth / out.alpha)[m])
 
 
+@pytest.mark.parametrize("kernels", [None, "built"])
+def test_gsplat_without_its_kernels_is_not_used(monkeypatch, kernels):
+    """gsplat installed but its CUDA kernels not built (no toolkit: gsplat's ``_C`` is None) is
+    not available, with a warning, so ``auto`` takes the torch compositor on CUDA; with the
+    kernels it is. (Stand-in modules: the real gsplat needs CUDA.)"""
+    import importlib
+    import sys
+    import types
+
+    r = importlib.import_module("lmgs.render.rasterize")  # the module (the package exports the function)
+
+    backend = types.ModuleType("gsplat.cuda._backend")
+    backend._C = None if kernels is None else object()
+    for name, mod in (("gsplat", types.ModuleType("gsplat")), ("gsplat.cuda", types.ModuleType("gsplat.cuda")),
+                      ("gsplat.cuda._backend", backend)):
+        monkeypatch.setitem(sys.modules, name, mod)
+    r.gsplat_available.cache_clear()
+    try:
+        if kernels is None:
+            with pytest.warns(RuntimeWarning, match="CUDA kernels could not be built"):
+                assert r.gsplat_available() is False
+        else:
+            assert r.gsplat_available() is True
+    finally:
+        r.gsplat_available.cache_clear()
+
+
 def _outputs_and_gradients(params, cam, backend, device):
     """Forward outputs, parameter gradients and the 2D positional gradient of one render."""
     ps = [t.detach().to(device).clone().requires_grad_() for t in params]

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+import warnings
 from dataclasses import dataclass
 from typing import Literal
 
@@ -156,11 +158,25 @@ def rasterize(
     )
 
 
+@functools.lru_cache(maxsize=1)
 def gsplat_available() -> bool:
-    """True when gsplat imports (it is only used on CUDA tensors)."""
+    """True when gsplat imports and its CUDA kernels are there (it is only used on CUDA tensors).
+
+    gsplat builds its kernels on first use (a minute or more, once); without a CUDA toolkit it
+    imports but leaves them out (``gsplat.cuda._backend._C is None``), and every call would fail:
+    then this is False, with a warning, and ``"auto"`` takes the pure-torch compositor.
+    """
     try:
         import gsplat  # noqa: F401
     except ImportError:
+        return False
+    try:
+        from gsplat.cuda._backend import _C
+    except ImportError:  # another layout of gsplat's internals: trust the import
+        return True
+    if _C is None:
+        warnings.warn("gsplat is installed but its CUDA kernels could not be built (no CUDA toolkit found); "
+                      "rasterizing on CUDA with the pure-torch compositor instead", RuntimeWarning, stacklevel=2)
         return False
     return True
 
@@ -178,5 +194,6 @@ def _choose_backend(backend: str, device: torch.device) -> str:
         if device.type != "cuda":
             raise InputError("backend='gsplat' needs CUDA tensors; use 'numba' (or 'auto') on the CPU")
         if not gsplat_available():
-            raise InputError("backend='gsplat' needs the gsplat package: pip install 'lmgs[cuda]'")
+            raise InputError("backend='gsplat' needs gsplat with its CUDA kernels: pip install 'lmgs[cuda]', "
+                             "and a CUDA toolkit (nvcc) for their build on first use")
     return backend
