@@ -290,6 +290,27 @@ def test_scene_cut_is_refused_with_its_frame(truth, tmp_path):
     assert _entries(root) == []
 
 
+def test_a_sudden_change_of_light_is_refused_as_such(truth, tmp_path):
+    """The same picture 40 % brighter from frame 18 (a lamp switched on) is not called a scene
+    cut but a change of light, with its frame; a cut to another picture still is a cut."""
+    from lmgs_eval.data import io
+    from lmgs_eval.data.ingest import decode
+
+    frames = np.stack([io.read_rgb_u8(truth / "ori_imgs" / f"{i}.jpg") for i in range(30)])
+    lit = frames.copy()
+    lit[18:] = np.clip(lit[18:].astype(np.float32) * 1.4, 0, 255).astype(np.uint8)
+    thumbs = lambda x: np.stack([f.mean(-1)[::4, ::4] / 255.0 for f in x])  # noqa: E731
+    assert decode.scene_cuts(thumbs(lit)) == [18] and decode.light_jumps(thumbs(lit), [18]) == [18]
+    cut = frames.copy()
+    cut[18:] = cut[18:, ::-1, ::-1] // 3
+    assert decode.scene_cuts(thumbs(cut)) == [18] and decode.light_jumps(thumbs(cut), [18]) == []
+    io.write_video(tmp_path / "lamp.mp4", lit, 25, np.zeros(30 * 640, np.float32))
+    root = tmp_path / "data"
+    rc, _, err = run_cli("ingest", str(tmp_path / "lamp.mp4"), "--data-root", str(root), "--quiet")
+    _one_error_line(rc, err, "lamp.mp4", "the light changes at once", "frame 18")
+    assert "scene cut" not in err and _entries(root) == []
+
+
 def test_existing_subject_needs_force(ingested, truth):
     folder, _ = ingested
     rc, _, err = run_cli("ingest", str(truth / "astronaut.mp4"), "--name", "ast", "--data-root", str(folder.parent), "--quiet")

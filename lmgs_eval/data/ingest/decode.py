@@ -224,3 +224,17 @@ def scene_cuts(small: np.ndarray, *, floor: float = 0.12, factor: float = 8.0) -
     d = np.abs(np.diff(small.astype(np.float32), axis=0)).mean(axis=(1, 2))
     thr = max(floor, factor * float(np.median(d)))
     return [int(k) + 1 for k in np.nonzero(d > thr)[0]]
+
+
+def light_jumps(small: np.ndarray, cuts: list[int], *, same: float = 0.9) -> list[int]:
+    """Of the ``cuts`` (:func:`scene_cuts`), those where the picture stays the same and only its
+    light changes (a lamp switched, an exposure jump): the two thumbnails, each brought to zero
+    mean and unit spread, correlate above ``same``."""
+    out = []
+    for k in cuts:
+        a, b = (small[i].astype(np.float64).ravel() for i in (k - 1, k))
+        a, b = a - a.mean(), b - b.mean()
+        r = float(a @ b / max(np.linalg.norm(a) * np.linalg.norm(b), 1e-12))
+        if r > same:
+            out.append(k)
+    return out

@@ -36,11 +36,17 @@ def track(ctx, info: decode.VideoInfo) -> None:
     if bar is not None:
         bar.close()
     ctx.timed("decode_track", t0, info.n_frames)
-    cuts = decode.scene_cuts(thumbs)
+    jumps = decode.scene_cuts(thumbs)
+    light = decode.light_jumps(thumbs, jumps)
+    cuts = [k for k in jumps if k not in light]
     if cuts:
         at = ", ".join(f"{k} ({k / 25:.2f} s)" for k in cuts[:5])
         raise UserError(f"{ctx.video}: {len(cuts)} scene cut(s) at frame {at}; ingest one shot at a time "
                         f"(cut the video there, e.g. ffmpeg -ss/-to)")
+    if light:
+        at = ", ".join(f"{k} ({k / 25:.2f} s)" for k in light[:5])
+        raise UserError(f"{ctx.video}: the light changes at once at frame {at} (the same picture, brighter or darker); "
+                        f"the plate and the colours assume one lighting: ingest the parts apart (cut the video there, e.g. ffmpeg -ss/-to)")
     many = tr.faces.max(initial=0)
     other = np.nonzero(tr.others > 0)[0]
     if many > 1 or len(other):
