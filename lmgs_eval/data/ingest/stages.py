@@ -125,9 +125,10 @@ def pose(ctx, sel) -> None:
     lms = sel["lms"]
     s = ctx.cfg.size
     frames = [ctx.sub / "ori_imgs" / f"{i}.jpg" for i in range(len(lms))] if ctx.cfg.pose_refine else None
+    src = source_frames(sel)
     fit = pose_mod.fit_poses(lms, s, s, focal=ctx.cfg.focal, sigma=ctx.cfg.pose_sigma, frames=frames,
-                             runs=track_mod.segments(source_frames(sel)))
-    ref = int(source_frames(sel)[fit.reference])  # in the source's frame numbers
+                             runs=track_mod.segments(src))
+    ref = int(src[fit.reference])  # in the source's frame numbers
     if fit.aligned is not None and fit.aligned.any():
         ctx.log.append(f"pose: {int(fit.aligned.sum())} of {len(lms)} frames refined by the upper head's texture tracked "
                        f"from frame {ref} (the rest keep their landmark pose)")
@@ -221,7 +222,8 @@ def finish(ctx, info: decode.VideoInfo, sel, audio: np.ndarray, source: str, key
     t0 = time.perf_counter()
     src = source_frames(sel)
     n = len(src)
-    aud = np.concatenate([audio[int(src[g.start]) * SPF : (int(src[g.stop - 1]) + 1) * SPF] for g in track_mod.segments(src)])
+    runs = [(int(src[g.start]), int(src[g.stop - 1]) + 1) for g in track_mod.segments(src)]  # [a, b) source frames
+    aud = np.concatenate([audio[a * SPF : b * SPF] for a, b in runs])
     io.write_wav(ctx.sub / "aud.wav", aud)
     aus = writer.action_units(sel["lms"])
     writer.write_au_csv(ctx.sub / "au.csv", aus, sel["found"])
@@ -254,7 +256,7 @@ def finish(ctx, info: decode.VideoInfo, sel, audio: np.ndarray, source: str, key
         "parameters": key["config"],
         "tools": writer.tool_versions(),
         "frames": {"kept": n, "first_source_frame": int(src[0]), "of": info.n_frames, "without_face": int((~sel["found"]).sum()),
-                   "source_runs": [[int(src[g.start]), int(src[g.stop - 1]) + 1] for g in track_mod.segments(src)]},
+                   "source_runs": [list(r) for r in runs]},
         "window": json.loads(str(sel["window"])),
         "pose": {"focal": float(pz["focal"]), "focal_widths": float(pz["focal"]) / ctx.cfg.size,
                  "focal_search": pz["curve"].tolist(), "reprojection_px_mean": float(pz["reproj"].mean()),
