@@ -1,4 +1,5 @@
-"""Shared fixtures: a small hand-made folder in the ER-NeRF/TalkingGaussian layout."""
+"""Shared fixtures: a small hand-made folder in the ER-NeRF/TalkingGaussian layout, the bundled
+subject the ingest tests read, and the checks of a command's one-line error."""
 
 from __future__ import annotations
 
@@ -113,3 +114,40 @@ def run_cli(*argv: str) -> tuple[int, str, str]:
             rc = int(exc.code or 0)
     return rc, out.getvalue(), err.getvalue()
 
+
+
+def one_line_error(rc: int, out: str, err: str, *words: str) -> str:
+    """Exit 2, no traceback, and one error line (progress lines before it, e.g. the subject read, are not errors)."""
+    assert rc == 2, (rc, out, err)
+    assert "Traceback" not in err
+    lines = [ln for ln in err.splitlines() if "error:" in ln]
+    assert len(lines) == 1, err
+    for w in words:
+        assert w in lines[0], (w, lines[0])
+    return lines[0]
+
+
+def ingest_error_line(rc: int, err: str, *words: str) -> None:
+    """:func:`one_line_error` of ``lmgs-eval ingest``, the line starting with its name."""
+    line = one_line_error(rc, "", err, *words)
+    assert line.startswith("lmgs-eval ingest: error:"), line
+
+
+def entries(root: Path) -> list[str]:
+    """What a data root holds (nothing half-written may be left there)."""
+    return sorted(p.name for p in root.iterdir()) if root.exists() else []
+
+
+TRUTH_SIZE, TRUTH_SECONDS = 256, 3.0
+
+
+@pytest.fixture(scope="session")
+def truth(tmp_path_factory) -> Path:
+    """The bundled astronaut at 256 px for 3 s, built once: the ingest tests read its raw video
+    (``astronaut.mp4``) or its frames and hold what they make against the rest."""
+    from lmgs_eval.data import bundled
+
+    out = tmp_path_factory.mktemp("truth") / "astronaut"
+    out.mkdir()
+    bundled.build("astronaut", out, size=TRUTH_SIZE, seconds=TRUTH_SECONDS, seed=0, progress=False)
+    return out

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import make_ernerf_folder, run_cli, write_pcm_wav
+from conftest import make_ernerf_folder, one_line_error, run_cli, write_pcm_wav
 
 
 def tree(*roots: Path) -> dict[str, tuple[int, int]]:
@@ -38,17 +38,6 @@ def world(tmp_path):
     cache = Path(os.environ["XDG_CACHE_HOME"])
     cache.mkdir(parents=True, exist_ok=True)
     return tmp_path, res, lambda: tree(res, cache)
-
-
-def one_line_error(rc: int, out: str, err: str, *words: str) -> str:
-    """Exit 2, no traceback, and one error line (progress lines before it, e.g. the subject read, are not errors)."""
-    assert rc == 2, (rc, out, err)
-    assert "Traceback" not in err
-    lines = [ln for ln in err.splitlines() if "error:" in ln]
-    assert len(lines) == 1, err
-    for w in words:
-        assert w in lines[0], (w, lines[0])
-    return lines[0]
 
 
 def write_frames(folder: Path, numbers, size: int = 16) -> None:
