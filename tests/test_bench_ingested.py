@@ -81,13 +81,15 @@ def test_bench_ingested_on_hair_that_moves_with_the_head(tmp_path):
     temporary folder, not under the data root."""
     sets = [a for k, v in FAST.items() for a in ("--set", f"{k}={v}")]
     rc, out, err = run_cli("bench", "ingested", "--hair", "head", "--size", "128", "--seconds", "2", *sets,
-                           "--swap", "geometry", "--data-root", str(tmp_path / "data"), "--json")
+                           "--swap", "geometry", "--video", "lossless", "--data-root", str(tmp_path / "data"), "--json")
     assert rc == 0, err
     got = json.loads(out)
     assert "all hair moving with the head" in got["subject"]
     assert not Path(got["generator"]).exists() and not (tmp_path / "data").exists()
+    assert "without loss" in got["video"] and "decoded" not in got  # the decoded folder would be the generator's
     meta = {r["figure"]: r for r in got["rows"]}["PSNR dB"]
-    assert meta["generator"] > 25 and meta["decoded"] > 20 and meta["ingested"] > 20
+    assert meta["generator"] > 25 and meta["ingested"] > 20 and "decoded" not in meta
+    assert meta["ingested - generator"] == pytest.approx(meta["ingested"] - meta["generator"])
     assert meta["ingested, generator's geometry"] > 20  # a fourth training, on the ingest with the generator's geometry
     assert "depth and normal maps" in got["ingested, generator's geometry"]
 
@@ -147,6 +149,27 @@ def test_decoded_copy_is_the_generators_folder_with_the_videos_frames(tmp_path):
             assert (out / d / f"{i}.jpg").read_bytes() == bytes([200 + i])  # the ingest's decoded frame
         assert (out / "parsing" / f"{i}.png").read_bytes() == bytes([10])  # the generator's own processing
     assert (out / "bc.jpg").read_bytes() == bytes([10]) and not (out / "astronaut.mp4").exists()
+
+
+def test_lossless_video_holds_the_generators_frames_exactly(tmp_path):
+    from lmgs_eval.commands._bench_ingested import lossless_video
+    from lmgs_eval.data import io
+
+    rng = np.random.default_rng(0)
+    truth = tmp_path / "truth"
+    (truth / "ori_imgs").mkdir(parents=True)
+    frames = rng.integers(0, 256, (4, 32, 48, 3), dtype=np.uint8)  # noise: what a lossy codec loses most
+    for i, f in enumerate(frames):
+        io.write_rgb(truth / "ori_imgs" / f"{i}.jpg", f)
+    audio = 0.3 * np.sin(2 * np.pi * 440 * np.arange(6400) / 16000)
+    io.write_wav(truth / "aud.wav", audio)
+    want = np.stack([io.read_rgb_u8(truth / "ori_imgs" / f"{i}.jpg") for i in range(4)])
+    got, fps, sound, sr = io.read_video(lossless_video(truth, tmp_path / "v" / "x.mp4"))
+    assert fps == 25 and np.array_equal(np.rint(got * 255).astype(np.uint8), want)  # every RGB value
+    assert sr == 16000 and np.corrcoef(sound[:6000, 0], audio[:6000])[0, 1] > 0.99  # AAC, as the raw video's
+    io.write_video(tmp_path / "lossy.mp4", want)  # the raw video's own settings lose some of them
+    lossy = np.rint(io.read_video(tmp_path / "lossy.mp4")[0] * 255)
+    assert np.abs(lossy - want).mean() > 5
 
 
 def test_bench_ingested_refuses_a_bad_band(tmp_path):

@@ -22,6 +22,11 @@ cameras and 3D landmarks (its depth maps moved to the generator's camera distanc
 kept), or with those and the generator's depth and normal maps as well. They say how much of
 the gap the ingest's geometry leaves, and which part of it.
 
+``--video lossless`` ingests, instead of the raw video, the generator's frames (``ori_imgs``)
+and audio encoded without loss (x264's RGB encoder at quantiser 0): the ingest then starts from
+exactly the frames the generator's folder holds, "ingested - generator" is its processing alone,
+and the ``decoded`` folder, which would be the generator's own, is not trained.
+
 Defaults: the bundled 60 s at 256 px, the ``quick`` preset (an ingest of about a minute and
 three trainings of 4-10 minutes each on 2 cores).
 """
@@ -58,6 +63,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--swap", action="append", choices=SWAPS, default=[],
                    help="also train on the ingest with the generator's cameras and 3D landmarks (cameras), or with those "
                         "and its depth and normal maps (geometry); repeatable")
+    p.add_argument("--video", choices=("h264", "lossless"), default="h264",
+                   help="h264: ingest the generator's raw video (CRF 18, 4:2:0) as a camera's would come; lossless: its "
+                        "frames and audio re-encoded without loss, so that only the ingest's processing differs "
+                        "(default h264)")
     p.add_argument("--band", type=int, default=BAND_PX,
                    help=f"half width in pixels of the band around each head outline left out of the second PSNR (default {BAND_PX})")
 
@@ -74,6 +83,17 @@ def decoded_copy(truth_root: Path, ing_root: Path, out: Path) -> Path:
     for src in (ing_root / "ori_imgs").glob("*.jpg"):
         shutil.copy2(src, out / "ori_imgs" / src.name)
         shutil.copy2(src, out / "gt_imgs" / src.name)
+    return out
+
+
+def lossless_video(truth_root: Path, out: Path) -> Path:
+    """The generator's frames (``ori_imgs``, every RGB value kept) and ``aud.wav`` as a lossless mp4."""
+    from lmgs_eval.data import io
+
+    n = len(list((truth_root / "ori_imgs").glob("*.jpg")))
+    frames = np.stack([io.read_rgb_u8(truth_root / "ori_imgs" / f"{i}.jpg") for i in range(n)])
+    audio, sr = io.read_wav(truth_root / "aud.wav")
+    io.write_video(out, frames, 25, audio[:, 0], sr, lossless=True)  # the generator writes mono
     return out
 
 
@@ -129,8 +149,11 @@ def run(args: argparse.Namespace) -> dict:
             build(spec.name, truth_root, size=spec.size, seconds=spec.seconds, seed=spec.seed, progress=False, hair="head")
         build_s = time.perf_counter() - t0
         results = Path(args.results) if args.results else tmp / "results"
+        video = truth_root / f"{spec.name}.mp4"
+        if args.video == "lossless":
+            video = lossless_video(truth_root, tmp / "lossless" / video.name)
         t0 = time.perf_counter()
-        ing_root = ingest(truth_root / f"{spec.name}.mp4", f"{spec.folder}-ingested", data_root=tmp / "data",
+        ing_root = ingest(video, f"{spec.folder}-ingested", data_root=tmp / "data",
                           cfg=IngestConfig(size=spec.size, crop="none"), progress=False)
         ingest_s = time.perf_counter() - t0
         man = json.loads((ing_root / "manifest.json").read_text())
@@ -140,13 +163,17 @@ def run(args: argparse.Namespace) -> dict:
             raise UserError(f"{ing_root}: the ingest kept frames {man['frames']['first_source_frame']}.."
                             f"{man['frames']['first_source_frame'] + man['frames']['kept'] - 1} of {n_truth}: "
                             "the two folders' frames do not line up")
-        dec_root = decoded_copy(truth_root, ing_root, tmp / "decoded" / f"{spec.folder}-decoded")
-        runs = {"generator": gen, "decoded": pair.prepare(dec_root), "ingested": pair.prepare(ing_root)}
+        runs = {"generator": gen}
+        if args.video == "h264":
+            dec_root = decoded_copy(truth_root, ing_root, tmp / "decoded" / f"{spec.folder}-decoded")
+            runs["decoded"] = pair.prepare(dec_root)
+        runs["ingested"] = pair.prepare(ing_root)
         parts = {f"ingested, generator's {part}": part for part in dict.fromkeys(args.swap)}
         swapped = {label: swapped_copy(truth_root, ing_root, tmp / "swap" / f"{spec.folder}-{part}", part)
                    for label, part in parts.items()}
         runs.update({label: pair.prepare(root) for label, root in swapped.items()})
-        dec, ing = runs["decoded"], runs["ingested"]
+        ing = runs["ingested"]
+        bases = [label for label in ("generator", "decoded") if label in runs]
         acc = compare(truth_root, ing_root)
         _, config_hash = pair.train_both(args, runs, tmp, results, "ingested")
         ids = gen["subject"].test_ids
@@ -157,21 +184,26 @@ def run(args: argparse.Namespace) -> dict:
             away[label] = psnr_outside(frames, r["test"].frames, band)
         swap_rows = {label: {r["figure"]: r[label] for r in pair.rows(ing, runs[label], ("ingested", label))} for label in swapped}
         rows = []
-        for a, b in zip(pair.rows(gen, ing, ("generator", "ingested")), pair.rows(dec, ing, ("decoded", "ingested"))):
-            rows.append({"figure": a["figure"], "generator": a["generator"], "decoded": b["decoded"], "ingested": a["ingested"],
-                         "ingested - generator": a["ingested - generator"], "ingested - decoded": b["ingested - decoded"],
-                         **{label: swap_rows[label][a["figure"]] for label in swapped},
-                         "note": a["note"] or b["note"]})
-        rows.insert(1, {"figure": f"PSNR dB away from the head outlines (+-{args.band} px)", **away,
-                        "ingested - generator": away["ingested"] - away["generator"],
-                        "ingested - decoded": away["ingested"] - away["decoded"], **{label: away[label] for label in swapped},
+        for pairs in zip(*(pair.rows(runs[b], ing, (b, "ingested")) for b in bases)):
+            rows.append({"figure": pairs[0]["figure"], **{b: p[b] for b, p in zip(bases, pairs)},
+                         "ingested": pairs[0]["ingested"],
+                         **{f"ingested - {b}": p[f"ingested - {b}"] for b, p in zip(bases, pairs)},
+                         **{label: swap_rows[label][pairs[0]["figure"]] for label in swapped},
+                         "note": next((p["note"] for p in pairs if p["note"]), "")})
+        rows.insert(1, {"figure": f"PSNR dB away from the head outlines (+-{args.band} px)",
+                        **{label: away[label] for label in (*bases, "ingested")},
+                        **{f"ingested - {b}": away["ingested"] - away[b] for b in bases},
+                        **{label: away[label] for label in swapped},
                         "note": f"{100 * band.mean():.1f} % of the test pixels left out"})
         rec = ing["record"]
         out = {
             "subject": (f"{spec.folder} ({spec.size} px, {spec.seconds:g} s, bundled"
                         + (", all hair moving with the head" if args.hair == "head" else "") + f"; built in {build_s:.1f} s)"),
             "generator": str(truth_root),
-            "decoded": f"{dec_root}: the generator's folder with the video's decoded frames (the ingest's ori_imgs) as its frames",
+            "video": (f"{video.name}: the generator's raw video (H.264 CRF 18, 4:2:0)" if args.video == "h264" else
+                      f"{video.name}: the generator's frames and audio re-encoded without loss (H.264 RGB, quantiser 0)"),
+            **({"decoded": f"{dec_root}: the generator's folder with the video's decoded frames (the ingest's ori_imgs) as "
+                           "its frames"} if "decoded" in runs else {}),
             "ingested": f"{ing_root} (removed at the end; ingested in {ingest_s:.1f} s)",
             **{label: f"{root}: the ingest with the generator's {SWAPS[parts[label]]}" for label, root in swapped.items()},
             "ingest accuracy": (f"landmarks {acc['landmark_px']:.2f} px, rotation {acc['rotation_deg']:.2f} deg, "

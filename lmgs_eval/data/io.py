@@ -278,21 +278,24 @@ def read_video(path: Path) -> tuple[np.ndarray, float, np.ndarray | None, int | 
     return np.stack(frames).astype(np.float32) / 255.0, fps, audio, sr
 
 
-def write_video(path: Path, frames: np.ndarray, fps: int = 25, audio: np.ndarray | None = None, sr: int = 16000) -> None:
+def write_video(path: Path, frames: np.ndarray, fps: int = 25, audio: np.ndarray | None = None, sr: int = 16000,
+                lossless: bool = False) -> None:
     """Encode ``[T, H, W, 3]`` frames (float [0,1] or uint8) as H.264 mp4, with mono audio (AAC).
 
-    Written to a temporary file and renamed, so a reader never sees half a video.
+    By default as a camera or a renderer's output is stored (CRF 18, 4:2:0 chroma); ``lossless``
+    keeps every RGB value (x264's RGB encoder at quantiser 0), for footage whose processing is
+    to be measured apart from its compression. Written to a temporary file and renamed, so a
+    reader never sees half a video.
     """
     import av
-
 
     frames = to_u8(np.asarray(frames))
     t, h, w, _ = frames.shape
     with atomic_path(path) as tmp, av.open(str(tmp), "w", format="mp4") as c:
-        vs = c.add_stream("libx264", rate=int(fps))
+        vs = c.add_stream("libx264rgb" if lossless else "libx264", rate=int(fps))
         vs.width, vs.height = w - w % 2, h - h % 2
-        vs.pix_fmt = "yuv420p"
-        vs.options = {"crf": "18", "preset": "veryfast"}
+        vs.pix_fmt = "rgb24" if lossless else "yuv420p"
+        vs.options = {"qp": "0", "preset": "veryfast"} if lossless else {"crf": "18", "preset": "veryfast"}
         as_ = None
         if audio is not None and len(audio):
             as_ = c.add_stream("aac", rate=int(sr))
