@@ -129,3 +129,18 @@ def test_depth_prior_is_the_ellipsoid_and_beyond_it_the_sheet_through_its_outlin
     row, hits = depth[w // 2], bare[w // 2] > 0
     last = int(np.nonzero(hits)[0].max())
     assert abs(row[last + 1] - row[last]) < abs(row[last] - row[last - 1])
+
+
+def _die(a, b):  # a chunk whose worker process ends without a Python error, as one killed for memory
+    import os
+
+    os._exit(1)
+
+
+def test_a_worker_that_dies_is_one_clear_error_not_a_broken_pool():
+    from lmgs_eval.data.ingest.frames import CHUNK, run_chunks
+    from lmgs_eval.errors import UserError
+
+    with pytest.raises(UserError, match=r"_die: a worker process of the 2 stopped abruptly .* --jobs 1"):
+        run_chunks(_die, 2 * CHUNK, ((), ()), jobs=2)
+    assert run_chunks(lambda a, b: (a, b), 2 * CHUNK, ((), ()), jobs=1) == [(0, CHUNK), (CHUNK, 2 * CHUNK)]

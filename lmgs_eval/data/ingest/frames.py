@@ -81,12 +81,20 @@ def run_chunks(fn: Callable, n: int, args: tuple, jobs: int, bar=None) -> list:
         return out
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
+    from concurrent.futures.process import BrokenProcessPool
 
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as ex:
-        futs = [ex.submit(fn, *args[0], a, b, *args[1]) for a, b in spans]
-        out = []
-        for (a, b), f in zip(spans, futs):
-            out.append(f.result())
-            if bar is not None:
-                bar.update(b - a)
+    try:
+        with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as ex:
+            futs = [ex.submit(fn, *args[0], a, b, *args[1]) for a, b in spans]
+            out = []
+            for (a, b), f in zip(spans, futs):
+                out.append(f.result())
+                if bar is not None:
+                    bar.update(b - a)
+    except BrokenProcessPool:
+        # a spawned worker died without a Python error: killed for memory, or it re-ran a script
+        # that calls the ingest at its top level (spawn imports the main module again)
+        raise UserError(f"{fn.__name__}: a worker process of the {jobs} stopped abruptly (out of memory, or a script "
+                        "calling ingest() outside `if __name__ == \"__main__\":`); run again with --jobs 1 (jobs=1): "
+                        "the ingest resumes after its last finished stage") from None
     return out
