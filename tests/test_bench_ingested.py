@@ -67,6 +67,9 @@ def test_bench_ingested_puts_the_two_folders_side_by_side(tmp_path):
         assert r["generator"] > 25 and r["ingested"] > 20 and r["decoded"] > 20
         assert r["ingested - generator"] == pytest.approx(r["ingested"] - r["generator"])
         assert r["ingested - decoded"] == pytest.approx(r["ingested"] - r["decoded"])
+    true = rows["PSNR dB against the generator's frames"]
+    assert true["generator"] == pytest.approx(full["generator"], abs=0.01)  # the generator's ground truth is its frames
+    assert 20 < true["ingested"] and true["ingested - decoded"] == pytest.approx(true["ingested"] - true["decoded"])
     # measured: full frame -4.3 dB, away from the outlines -0.4 dB (16 % of the pixels left out):
     # the ingest's frames and poses train as well as the generator's, the outlines differ
     assert abs(away["ingested - generator"]) < abs(full["ingested - generator"])
