@@ -7,8 +7,10 @@ root, and the method is trained on both folders as ``bench stripped`` does
 (:mod:`lmgs_eval.commands._bench_pair`): each run is scored against its own folder's ground
 truth, as ``lmgs-eval self`` would score it. A third folder, ``decoded``, is the generator's
 processing with the decoded video's frames in place of its exact ones: the generator's folder
-holds frames no video carries (the raw video is H.264 at CRF 18, 4:2:0), so "ingested -
-decoded" is the gap the ingest's processing leaves, and "decoded - generator" the video's.
+holds frames no video carries (the raw video is H.264 at CRF 18, 4:2:0), and "decoded -
+generator" is what the video costs the generator's processing. It is not the same for the
+ingest's, whose ``gt_imgs`` replace the codec's noise outside the person with its plate: to
+measure the processing alone, use ``--video lossless`` (below).
 
 Each folder's ground truth is its own: the ingest's ``gt_imgs`` hold its plate outside the
 person (as ER-NeRF's processing writes them), the generator's the frames themselves. ``PSNR
