@@ -40,12 +40,10 @@ def track(ctx, info: decode.VideoInfo) -> None:
     light = decode.light_jumps(thumbs, jumps)
     cuts = [k for k in jumps if k not in light]
     if cuts:
-        at = ", ".join(f"{k} ({k / 25:.2f} s)" for k in cuts[:5])
-        raise UserError(f"{ctx.video}: {len(cuts)} scene cut(s) at frame {at}; ingest one shot at a time "
+        raise UserError(f"{ctx.video}: {len(cuts)} scene cut(s) at frame {_when(cuts)}; ingest one shot at a time "
                         f"(cut the video there, e.g. ffmpeg -ss/-to)")
     if light:
-        at = ", ".join(f"{k} ({k / 25:.2f} s)" for k in light[:5])
-        raise UserError(f"{ctx.video}: the light changes at once at frame {at} (the same picture, brighter or darker); "
+        raise UserError(f"{ctx.video}: the light changes at once at frame {_when(light)} (the same picture, brighter or darker); "
                         f"the plate and the colours assume one lighting: ingest the parts apart (cut the video there, e.g. ffmpeg -ss/-to)")
     many = tr.faces.max(initial=0)
     other = np.nonzero(tr.others > 0)[0]
@@ -108,6 +106,11 @@ def frames(ctx, info: decode.VideoInfo, tr, audio: np.ndarray) -> None:
 def source_frames(sel) -> np.ndarray:
     """The source video's frame number of each subject frame (``frames.npz``)."""
     return sel["source"] if "source" in sel.files else np.arange(int(sel["first"]), int(sel["last"]))
+
+
+def _when(ks: list[int]) -> str:
+    """The first five source frames of ``ks`` with their times, for a one-line error."""
+    return ", ".join(f"{k} ({k / 25:.2f} s)" for k in ks[:5])
 
 
 def _ranges(ks) -> str:
