@@ -1,5 +1,6 @@
 """Pieces of the ingest tested on their own, without a video: the pose template's layout and
-the torso layer behind the head, the depth / normal priors."""
+the torso layer behind the head, the depth / normal priors, the person mask's holes and its
+growth against the plate."""
 
 from __future__ import annotations
 
@@ -93,6 +94,55 @@ def test_torso_layer_continues_the_neck_up_behind_the_head():
     want = 200 * 0.98 ** (300 - 3 + NECK_PUSH - rows)  # darker by the pixels from the source row
     np.testing.assert_allclose(rgb[rows, 250, 0], want, atol=1.0)  # blurred along the column: a linear ramp keeps its values
     assert not alpha[head & ~up].any() and not alpha[~head & ~neck & ~torso].any()
+
+
+def test_a_head_touching_the_top_edge_leaves_the_background_beside_it_background():
+    """The person is one blob with its holes filled; but background cut off from the first corner
+    by a head that reaches the top edge is not a hole (it reaches the edge elsewhere)."""
+    from lmgs_eval.data.ingest.parsing import one_blob
+
+    m = np.zeros((100, 100), bool)
+    m[0:60, 40:60] = True  # a head touching the top edge
+    m[60:, 20:80] = True  # the shoulders, down to the bottom edge
+    m[70:80, 45:55] = False  # a hole inside the person
+    m[5:8, 5:8] = True  # a speck apart from the person
+    got = one_blob(m)
+    want = m.copy()
+    want[70:80, 45:55] = True
+    want[5:8, 5:8] = False
+    assert np.array_equal(got, want)  # the background right of the head (cut off from (0, 0)) stays background
+
+
+def test_the_person_grows_against_the_plate_into_the_edge_grabcut_missed():
+    """A person whose soft edge GrabCut's reduced copy missed: the mask grows back to where the
+    frame differs from the plate, and no further into a noisy background."""
+    import cv2
+
+    from lmgs_eval.data.ingest.parsing import GROW_REACH, refine_person
+
+    rng = np.random.default_rng(0)
+    size = 200
+    yy, xx = np.mgrid[0:size, 0:size] + 0.5
+    r = np.hypot(yy - 130, xx - 100)
+    alpha = np.clip(61.0 - r, 0, 1)  # a disc of radius 60 px, its edge one pixel soft
+    plate = np.stack([70 + 0.3 * xx, 90 + 0.2 * yy, np.full_like(xx, 120.0)], -1)
+    frame = plate * (1 - alpha[..., None]) + np.array([200.0, 150, 110]) * alpha[..., None]
+    frame = np.clip(np.rint(frame + rng.normal(0, 2.0, frame.shape)), 0, 255).astype(np.uint8)
+    plate = np.rint(plate).astype(np.uint8)
+    truth = alpha >= 0.5
+    short = r < 56  # GrabCut's outline four pixels inside
+    got = refine_person(short, frame, plate)
+    assert (truth & ~got).sum() == 0  # every pixel of the person found
+    # beyond the half-covered edge, only pixels the person's colour mixes into (its soft rim) join
+    assert (got & ~truth).any() and not (got & (alpha == 0)).any()
+    # a plate wrong in a wide ring round the person (a shadow, say) lets it grow GROW_REACH of the side, no more
+    wrong = plate.copy()
+    wrong[(r > 50) & (r < 90)] = 0
+    far = refine_person(short, frame, wrong)
+    reach = round(GROW_REACH * size)
+    assert np.array_equal(far, cv2.dilate(short.astype(np.uint8), np.ones((2 * reach + 1,) * 2, np.uint8)) > 0)
+    # a plate that matches nowhere (a moving camera) sets the noise level so high that nothing grows
+    assert np.array_equal(refine_person(short, frame, np.zeros_like(plate)), short)
 
 
 def test_depth_prior_is_the_ellipsoid_and_beyond_it_the_sheet_through_its_outline():

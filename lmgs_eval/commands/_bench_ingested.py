@@ -221,7 +221,8 @@ def run(args: argparse.Namespace) -> dict:
             "ingested": f"{ing_root} (removed at the end; ingested in {ingest_s:.1f} s)",
             **{label: f"{root}: the ingest with the generator's {SWAPS[parts[label]]}" for label, root in swapped.items()},
             "ingest accuracy": (f"landmarks {acc['landmark_px']:.2f} px, rotation {acc['rotation_deg']:.2f} deg, "
-                                f"head IoU {acc['head_iou']:.3f}, plate {acc['plate_psnr']:.1f} dB"),
+                                f"head IoU {acc['head_iou']:.3f}, person IoU {acc['person_iou']:.3f}, plate {acc['plate_psnr']:.1f} dB, "
+                                f"gt_imgs against the true frames {acc['gt_psnr']:.1f} dB"),
             "method": f"{args.method} (preset {args.preset}, config {config_hash}, seed {args.seed}"
                       + (f", --set {' '.join(args.overrides)}" if args.overrides else "") + ")",
             "frames": f"{len(gen['train'])} train / {len(gen['test'])} test, {gen['subject'].width} px",

@@ -16,7 +16,10 @@ was rendered from; ingesting that video and comparing gives the figures of ``des
   ``focal_range_true``, the truth's focal range relative to its mean, and
   ``distance_zoom_slope``, the slope of the per-frame distance error on the relative focal
   change (-1: a fit with one focal length put the whole zoom into the camera's distance);
-* ``head_iou``: intersection over union of the head parsing masks, mean over frames;
+* ``head_iou`` and ``person_iou``: intersection over union of the head parsing masks and of the
+  whole person's, mean over frames; ``gt_psnr``: the ``gt_imgs`` against the truth's (the true
+  frames), mean PSNR over frames: what the masks and the plate lose (and the codec, for a lossy
+  video);
 * ``depth_rel``, ``normal_deg``, ``geometry_cover``: the depth / normal priors against the
   truth's maps (:func:`geometry_error`);
 * ``plate_psnr``: PSNR of ``bc.jpg`` over the pixels that are background in every frame of
@@ -76,16 +79,24 @@ def zoom_error(c2w_true: np.ndarray, c2w_est: np.ndarray, focals: np.ndarray) ->
             "distance_zoom_slope": float((x - x.mean()) @ (y - y.mean()) / ((x - x.mean()) @ (x - x.mean())))}
 
 
-def head_iou(true_dir: Path, est_dir: Path, n: int) -> float:
-    from lmgs_eval.data.io import read_rgb_u8
+def masks_and_frames(true_dir: Path, est_dir: Path, n: int) -> dict[str, float]:
+    """``head_iou`` and ``person_iou`` (intersection over union of the parsing's head, and of all
+    it does not call background), mean over frames; ``gt_psnr``: PSNR (dB) of the ``gt_imgs``
+    against the truth's, mean over frames."""
+    from lmgs_eval.data.io import read_rgb, read_rgb_u8
 
-    ious = []
-    for i in range(n):
-        a = np.all(read_rgb_u8(true_dir / "parsing" / f"{i}.png") == (255, 0, 0), axis=-1)
-        b = np.all(read_rgb_u8(est_dir / "parsing" / f"{i}.png") == (255, 0, 0), axis=-1)
+    def iou(a, b):
         u = (a | b).sum()
-        ious.append((a & b).sum() / u if u else 1.0)
-    return float(np.mean(ious))
+        return (a & b).sum() / u if u else 1.0
+
+    head, person, gt = [], [], []
+    for i in range(n):
+        pa, pb = (read_rgb_u8(d / "parsing" / f"{i}.png") for d in (true_dir, est_dir))
+        head.append(iou(*(np.all(p == (255, 0, 0), axis=-1) for p in (pa, pb))))
+        person.append(iou(*(~np.all(p == 255, axis=-1) for p in (pa, pb))))
+        ga, gb = (read_rgb(d / "gt_imgs" / f"{i}.jpg") for d in (true_dir, est_dir))
+        gt.append(-10 * np.log10(max(float(np.mean((ga - gb) ** 2)), 1e-12)))
+    return {"head_iou": float(np.mean(head)), "person_iou": float(np.mean(person)), "gt_psnr": float(np.mean(gt))}
 
 
 def head_masks(folder: Path, ids) -> np.ndarray:
@@ -166,7 +177,7 @@ def compare(true_dir: str | Path, est_dir: str | Path) -> dict[str, float]:
         "rotation_spread_deg": spread,
         "translation_rel": distance_error_rel(t.c2w, e.c2w),
         "focal_rel": float(e.focal / t.focal),
-        "head_iou": head_iou(t.root, e.root, n),
+        **masks_and_frames(t.root, e.root, n),
         "plate_psnr": psnr,
         "plate_visible": vis,
         "blink_corr": float(np.corrcoef(t.blink, e.blink)[0, 1]) if t.blink.std() > 0 and e.blink.std() > 0 else float("nan"),

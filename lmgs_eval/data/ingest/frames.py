@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from lmgs_eval.data import io
-from lmgs_eval.data.ingest.parsing import KEYFRAME, Parts, mouth_mask, person_mask, split_parts, torso_layer
+from lmgs_eval.data.ingest.parsing import KEYFRAME, Parts, mouth_mask, person_mask, refine_person, split_parts, torso_layer
 from lmgs_eval.errors import UserError
 
 CHUNK = 2 * KEYFRAME
@@ -29,19 +29,38 @@ def png(path, img: np.ndarray) -> None:
         raise UserError(f"{path}: could not write image")
 
 
-def parse(sub: Path, lms: np.ndarray, a: int, b: int, keep: frozenset) -> list[tuple[int, np.ndarray, np.ndarray]]:
-    """Parsing maps and mouth masks of frames ``[a, b)``; returns ``(k, frame, person)`` of the
-    frames in ``keep`` (the plate's samples)."""
+def _mask_png(path: Path, mask: np.ndarray) -> None:
+    import cv2
+
+    if not cv2.imwrite(str(path), mask.astype(np.uint8) * 255, [cv2.IMWRITE_PNG_COMPRESSION, 1]):
+        raise UserError(f"{path}: could not write image")
+
+
+def parse(sub: Path, masks: Path, lms: np.ndarray, a: int, b: int, keep: frozenset) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """GrabCut's person masks of frames ``[a, b)``, written into ``masks``; returns ``(k, frame,
+    person)`` of the frames in ``keep`` (the plate's samples)."""
     out, model = [], None
     for i in range(a, b):
         img = io.read_rgb_u8(sub / "ori_imgs" / f"{i}.jpg")
         person, model = person_mask(img, lms[i], None if i % KEYFRAME == 0 or model is None else model)
+        _mask_png(masks / f"{i}.png", person)
+        if i in keep:
+            out.append((i, img, person))
+    return out
+
+
+def refine(sub: Path, masks: Path, lms: np.ndarray, a: int, b: int) -> None:
+    """Parsing maps and mouth masks of frames ``[a, b)``: GrabCut's person grown against the
+    plate (``bc.jpg``), then split into head, neck and torso."""
+    import cv2
+
+    bc = io.read_rgb_u8(sub / "bc.jpg")
+    for i in range(a, b):
+        img = io.read_rgb_u8(sub / "ori_imgs" / f"{i}.jpg")
+        person = refine_person(cv2.imread(str(masks / f"{i}.png"), cv2.IMREAD_GRAYSCALE) > 127, img, bc)
         parts = split_parts(person, lms[i])
         png(sub / "parsing" / f"{i}.png", parts.colour_map())
         np.save(sub / "teeth_mask" / f"{i}.npy", mouth_mask(lms[i], img.shape[:2]) & parts.head)
-        if i in keep:
-            out.append((i, img, parts.person))
-    return out
 
 
 def geometry(sub: Path, w2c: np.ndarray, focal: float, centre: np.ndarray, axes: np.ndarray, a: int, b: int) -> None:

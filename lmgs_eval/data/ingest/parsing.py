@@ -18,6 +18,9 @@ neck) is found only where its colour differs from the background's.
 The plate (``bc.jpg``) assumes a static camera: each pixel is the median of the frames where
 it is background (the person dilated away); pixels the person never uncovers are inpainted
 (OpenCV Telea). The residual of the background against the plate is the static-camera check.
+With the plate known, each frame's person is grown at full resolution into the pixels next to
+it that differ from the plate (:func:`refine_person`): GrabCut's reduced copy misses the soft
+rim of the outline, whose pixels would otherwise take the plate's colour in ``gt_imgs``.
 """
 
 from __future__ import annotations
@@ -32,6 +35,8 @@ KEYFRAME = 25  # frames between GrabCut's colour-model updates (frozen models in
 HAIR_UP = 0.85  # head prior: its top above the brows, in face heights (brow to chin)
 HEAD_WIDE = 1.55  # head prior: half width in jaw half widths
 PLATE_MARGIN = 0.012  # the person grown by this fraction of the frame before its pixels count as background
+GROW_REACH = 0.025  # against the plate, the person grows by at most this fraction of the frame side...
+DIFF_FLOOR, NOISE_K = 10.0, 5.0  # ...into pixels that differ from it by over max(DIFF_FLOOR, NOISE_K x the background's median difference)
 
 
 def _poly(pts: np.ndarray, shape) -> np.ndarray:
@@ -50,6 +55,21 @@ def head_outline(lms: np.ndarray, hair_up: float = HAIR_UP, head_wide: float = H
     from lmgs_eval.data.bundled.photo import head_outline as outline
 
     return outline(lms, PhotoSpec("", "", 0.0, 0.0, hair_up, head_wide), n, jaw_out)
+
+
+def one_blob(mask: np.ndarray) -> np.ndarray:
+    """The largest 8-connected region of ``mask`` with its holes filled. A hole is background
+    that does not reach the frame's edge: background cut off from one corner by a head that
+    touches the top edge is still background."""
+    import cv2
+
+    m = mask.astype(np.uint8)
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(m, 8)
+    if n > 1:
+        m = (lab == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))).astype(np.uint8)
+    out = np.pad(m, 1)  # a ring of background joins every stretch of background on the edge
+    cv2.floodFill(out, None, (0, 0), 2)
+    return (out[1:-1, 1:-1] != 2)
 
 
 def person_mask(img: np.ndarray, lms: np.ndarray, model: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, tuple]:
@@ -99,16 +119,44 @@ def person_mask(img: np.ndarray, lms: np.ndarray, model: tuple[np.ndarray, np.nd
         gc = seeds
     fg = ((gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD)).astype(np.uint8)
     fg = cv2.morphologyEx(fg, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
-    n, lab, stats, _ = cv2.connectedComponentsWithStats(fg, 8)
-    if n > 1:
-        fg = (lab == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))).astype(np.uint8)
-    # fill holes: the person is one blob without inner background
-    filled = fg.copy()
-    ff = np.zeros((sh + 2, sw + 2), np.uint8)
-    cv2.floodFill(filled, ff, (0, 0), 2)
-    fg = ((filled != 2) | (fg == 1)).astype(np.float32)
+    fg = one_blob(fg.astype(bool)).astype(np.float32)
     big = cv2.resize(cv2.GaussianBlur(fg, (0, 0), 0.7), (w, h), interpolation=cv2.INTER_LINEAR)
     return (big >= 0.5) | _poly(np.concatenate([lms[:17], lms[26:16:-1]]), (h, w)), model
+
+
+def plate_difference(img: np.ndarray, plate: np.ndarray) -> np.ndarray:
+    """Per pixel, the largest channel difference (grey levels) between the frame and the plate,
+    float32 ``[H, W]``."""
+    return np.abs(img.astype(np.float32) - plate.astype(np.float32)).max(-1)
+
+
+def refine_person(person: np.ndarray, img: np.ndarray, plate: np.ndarray) -> np.ndarray:
+    """The person of :func:`person_mask` grown, at full resolution, into the pixels next to it
+    that differ from the plate.
+
+    GrabCut cuts a reduced copy of the frame, so its outline can miss a pixel or two of the
+    person all round, and more where hair or a collar meets a background of like colour; those
+    pixels would take the plate's colour in ``gt_imgs``. Where the camera is still, what differs
+    from the plate is the person: the mask grows one pixel at a time into pixels that differ by
+    more than the noise (the floor or a multiple of the median difference away from the person,
+    whichever is larger), at most :data:`GROW_REACH` of the frame side out.
+    """
+    import cv2
+
+    h, w = person.shape
+    reach = max(1, int(round(GROW_REACH * max(h, w))))
+    d = plate_difference(img, plate)
+    away = ~cv2.dilate(person.astype(np.uint8), np.ones((2 * reach + 1, 2 * reach + 1), np.uint8)).astype(bool)
+    tau = max(DIFF_FLOOR, NOISE_K * float(np.median(d[away]))) if away.any() else DIFF_FLOOR
+    differs = (d > tau).astype(np.uint8)
+    m = person.astype(np.uint8)
+    step = np.ones((3, 3), np.uint8)
+    for _ in range(reach):
+        grown = cv2.dilate(m, step) & (differs | m)
+        if np.array_equal(grown, m):
+            break
+        m = grown
+    return m.astype(bool)
 
 
 @dataclass(frozen=True)

@@ -25,7 +25,7 @@ import numpy as np
 from lmgs_eval.data.ingest import decode, writer
 from lmgs_eval.errors import UserError
 
-INGEST_VERSION = "5"  # 2: depth / normal priors; 3: the zoom check (pose.scale in the manifest); 4: head label on the jaw line, neck continued behind the head in torso_imgs, poses refined by tracked texture; 5: depth / normal priors cover the whole head mask
+INGEST_VERSION = "6"  # 2: depth / normal priors; 3: the zoom check (pose.scale in the manifest); 4: head label on the jaw line, neck continued behind the head in torso_imgs, poses refined by tracked texture; 5: depth / normal priors cover the whole head mask; 6: the person's holes only where background does not reach the edge, the person grown against the plate
 MIN_SECONDS = 10.0  # shorter clips are ingested with a warning: too little to train on
 MIN_FACE_PX = 100  # jaw width in source pixels under which the face is flagged as small
 MOVING_SHARE = 0.02  # moving-camera flag: background residual above STATIC_LEVELS in more than this share...

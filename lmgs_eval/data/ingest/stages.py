@@ -164,21 +164,28 @@ def pose(ctx, sel) -> None:
 
 
 def parsing(ctx, sel) -> None:
-    """Per-frame parsing maps and mouth masks; the plate from the background pixels."""
+    """Per-frame person masks (GrabCut); the plate from their background pixels; then the parsing
+    maps and mouth masks, each person grown against the plate where GrabCut's outline fell short."""
     t0 = time.perf_counter()
     lms = sel["lms"]
     n, s = len(lms), ctx.cfg.size
     for d in ("parsing", "teeth_mask"):
         (ctx.sub / d).mkdir(exist_ok=True)
     plate = PlateBuilder(s, s, ctx.cfg.plate_frames, n)
+    masks = ctx.work / "person"
+    masks.mkdir(exist_ok=True)
     bar = ctx.bar(n, "parsing")
-    for chunk in frames_mod.run_chunks(frames_mod.parse, n, ((ctx.sub, lms), (frozenset(plate.keep),)), ctx.jobs, bar):
+    for chunk in frames_mod.run_chunks(frames_mod.parse, n, ((ctx.sub, masks, lms), (frozenset(plate.keep),)), ctx.jobs, bar):
         for k, img, person in chunk:
             plate.add(k, img, person)
     if bar is not None:
         bar.close()
     bc, seen, resid = plate.plate()
     io.write_rgb(ctx.sub / "bc.jpg", bc)
+    bar = ctx.bar(n, "parsing against the plate")
+    frames_mod.run_chunks(frames_mod.refine, n, ((ctx.sub, masks, lms), ()), ctx.jobs, bar)
+    if bar is not None:
+        bar.close()
     ctx.log.append(f"plate: {100 * seen.mean():.1f} % of its pixels seen behind the person, the rest inpainted; the background "
                    f"differs from it by {np.median(resid):.1f} grey levels in the median frame ({max(resid):.1f} at most)")
     src = source_frames(sel)
