@@ -93,17 +93,6 @@ def decoded_copy(truth_root: Path, ing_root: Path, out: Path) -> Path:
     return out
 
 
-def lossless_video(truth_root: Path, out: Path) -> Path:
-    """The generator's frames (``ori_imgs``, every RGB value kept) and ``aud.wav`` as a lossless mp4."""
-    from lmgs_eval.data import io
-
-    n = len(list((truth_root / "ori_imgs").glob("*.jpg")))
-    frames = np.stack([io.read_rgb_u8(truth_root / "ori_imgs" / f"{i}.jpg") for i in range(n)])
-    audio, sr = io.read_wav(truth_root / "aud.wav")
-    io.write_video(out, frames, 25, audio[:, 0], sr, lossless=True)  # the generator writes mono
-    return out
-
-
 def swapped_copy(truth_root: Path, ing_root: Path, out: Path, part: str) -> Path:
     """The ingest's folder with the generator's geometry: ``cameras``: its cameras and 3D landmarks
     (which share its world frame), the ingest's depth maps shifted per frame so that their median
@@ -135,8 +124,7 @@ def swapped_copy(truth_root: Path, ing_root: Path, out: Path, part: str) -> Path
 def run(args: argparse.Namespace) -> dict:
     from lmgs_eval.commands import _bench_pair as pair
     from lmgs_eval.data.ingest import IngestConfig, ingest
-    from lmgs_eval.data.ingest.compare import compare, edge_band, head_masks
-    from lmgs_eval.data.registry import ensure_bundled
+    from lmgs_eval.data.ingest.compare import bundled_truth, compare, edge_band, head_masks, lossless_video
     from lmgs_eval.errors import UserError
     from lmgs_eval.metrics.image import psnr_outside
 
@@ -146,14 +134,7 @@ def run(args: argparse.Namespace) -> dict:
     with tempfile.TemporaryDirectory(prefix="lmgs-bench-ingested-") as tmp:
         tmp = Path(tmp)
         t0 = time.perf_counter()
-        if args.hair == "layer":
-            truth_root = ensure_bundled(spec, args.data_root, progress=False)
-        else:  # not a registry subject: built here, removed at the end
-            from lmgs_eval.data.bundled import build
-
-            truth_root = tmp / "truth" / f"{spec.folder}-hair"
-            truth_root.mkdir(parents=True)
-            build(spec.name, truth_root, size=spec.size, seconds=spec.seconds, seed=spec.seed, progress=False, hair="head")
+        truth_root = bundled_truth(spec, args.hair, tmp, args.data_root)
         build_s = time.perf_counter() - t0
         results = Path(args.results) if args.results else tmp / "results"
         video = truth_root / f"{spec.name}.mp4"

@@ -186,3 +186,31 @@ def compare(true_dir: str | Path, est_dir: str | Path) -> dict[str, float]:
         **geometry_error(t, e),
         **(zoom_error(t.c2w, e.c2w, np.load(t.root / "focal_per_frame.npy")) if (t.root / "focal_per_frame.npy").is_file() else {}),
     }
+
+
+def lossless_video(truth_root: Path, out: Path) -> Path:
+    """A bundled subject's frames (``ori_imgs``, every RGB value kept) and ``aud.wav`` as a lossless
+    mp4 (x264's RGB encoder at quantiser 0): an ingest of it starts from exactly the truth's frames."""
+    from lmgs_eval.data import io
+
+    n = len(list((truth_root / "ori_imgs").glob("*.jpg")))
+    frames = np.stack([io.read_rgb_u8(truth_root / "ori_imgs" / f"{i}.jpg") for i in range(n)])
+    audio, sr = io.read_wav(truth_root / "aud.wav")
+    io.write_video(out, frames, 25, audio[:, 0], sr, lossless=True)  # the generator writes mono
+    return out
+
+
+def bundled_truth(spec, hair: str, tmp: Path, data_root=None) -> Path:
+    """The bundled subject ``spec`` (a ``BundledSpec``): ``hair="layer"`` as the registry builds it
+    (cached under the data root), ``"head"`` a copy built under ``tmp`` whose hair all moves with
+    the head (not a registry subject: it goes with ``tmp``)."""
+    from lmgs_eval.data.registry import ensure_bundled
+
+    if hair == "layer":
+        return ensure_bundled(spec, data_root, progress=False)
+    from lmgs_eval.data.bundled import build
+
+    root = Path(tmp) / "truth" / f"{spec.folder}-hair"
+    root.mkdir(parents=True)
+    build(spec.name, root, size=spec.size, seconds=spec.seconds, seed=spec.seed, progress=False, hair="head")
+    return root
