@@ -21,18 +21,11 @@ CHUNK = 2 * KEYFRAME
 
 
 def png(path, img: np.ndarray) -> None:
-    """An RGB or RGBA uint8 PNG at zlib level 1 (lossless like any level; 3-4x faster to write)."""
+    """A grey, RGB or RGBA uint8 PNG at zlib level 1 (lossless like any level; 3-4x faster to write)."""
     import cv2
 
-    order = [2, 1, 0, 3][: img.shape[2]]
-    if not cv2.imwrite(str(path), np.ascontiguousarray(img[:, :, order]), [cv2.IMWRITE_PNG_COMPRESSION, 1]):
-        raise UserError(f"{path}: could not write image")
-
-
-def _mask_png(path: Path, mask: np.ndarray) -> None:
-    import cv2
-
-    if not cv2.imwrite(str(path), mask.astype(np.uint8) * 255, [cv2.IMWRITE_PNG_COMPRESSION, 1]):
+    data = img if img.ndim == 2 else img[:, :, [2, 1, 0, 3][: img.shape[2]]]
+    if not cv2.imwrite(str(path), np.ascontiguousarray(data), [cv2.IMWRITE_PNG_COMPRESSION, 1]):
         raise UserError(f"{path}: could not write image")
 
 
@@ -43,7 +36,7 @@ def parse(sub: Path, masks: Path, lms: np.ndarray, a: int, b: int, keep: frozens
     for i in range(a, b):
         img = io.read_rgb_u8(sub / "ori_imgs" / f"{i}.jpg")
         person, model = person_mask(img, lms[i], None if i % KEYFRAME == 0 or model is None else model)
-        _mask_png(masks / f"{i}.png", person)
+        png(masks / f"{i}.png", person.astype(np.uint8) * 255)
         if i in keep:
             out.append((i, img, person))
     return out
@@ -52,12 +45,10 @@ def parse(sub: Path, masks: Path, lms: np.ndarray, a: int, b: int, keep: frozens
 def refine(sub: Path, masks: Path, lms: np.ndarray, a: int, b: int) -> None:
     """Parsing maps and mouth masks of frames ``[a, b)``: GrabCut's person grown against the
     plate (``bc.jpg``), then split into head, neck and torso."""
-    import cv2
-
     bc = io.read_rgb_u8(sub / "bc.jpg")
     for i in range(a, b):
         img = io.read_rgb_u8(sub / "ori_imgs" / f"{i}.jpg")
-        person = refine_person(cv2.imread(str(masks / f"{i}.png"), cv2.IMREAD_GRAYSCALE) > 127, img, bc)
+        person = refine_person(io.read_rgb_u8(masks / f"{i}.png")[..., 0] > 127, img, bc)
         parts = split_parts(person, lms[i])
         png(sub / "parsing" / f"{i}.png", parts.colour_map())
         np.save(sub / "teeth_mask" / f"{i}.npy", mouth_mask(lms[i], img.shape[:2]) & parts.head)
