@@ -89,18 +89,28 @@ def test_any_audio_length_and_silence(trained, clip, seconds):
     assert _psnr_u8(out, np.repeat(clip.frames[:1], n, 0)) > 25
 
 
-def test_clipped_audio_renders_what_unclipped_audio_renders(trained, clip):
-    # Gain x50, hard-clipped at +-1: the features saturate, but the render stays within a
-    # bound of the unclipped render: measured 51 dB apart with the fp64 compositing kernels and
-    # 36.3 dB with the fp32 ones (the toy model trains to other weights); silence renders 41 dB
-    # from it and loud white noise 34 dB.
+def test_clipped_audio_renders_the_fitted_head(trained, clip):
+    # Gain x50, hard-clipped at +-1: the front end clips floats beyond [-1, 1] itself, so the
+    # clipped and the unclipped loud waveform give the same features (exactly), and those
+    # features stay finite although they lie far outside the training range.
+    from lmgs.audio.features import waveform_features
+
     model, _ = trained
     loud = np.clip(clip.audio * 50, -1, 1)
+    kind = model.cfg.audio.frontend
+    np.testing.assert_array_equal(waveform_features(clip.audio * 50, kind), waveform_features(loud, kind))
+    assert np.isfinite(waveform_features(loud, kind)).all()
     out = model.render(DrivingAudio(audio=loud, w2c=clip.w2c))
     ref = model.render(DrivingAudio(audio=clip.audio, w2c=clip.w2c))
     assert out.shape == ref.shape == clip.frames.shape
-    assert _psnr_u8(out, ref) > 33
-    assert _psnr_u8(out, clip.frames) > 28  # and it is still the fitted head
+    # How far the saturated features move the head is extrapolation, and it varies with the
+    # weights the toy model trains to, which the float rounding of the host's instruction set
+    # sets: the clipped render lies 36.3 dB from the unclipped one on an AVX-512 host and
+    # 26.3 dB on an AVX2-only one (AMD EPYC Zen 3); against the ground truth 25.3 dB there,
+    # loud white noise 23.1 dB, the unclipped audio 33.7 dB. What must hold on any host: it is
+    # still the fitted head (the background alone scores under 18 dB, a blank or exploded
+    # render far less).
+    assert _psnr_u8(out, clip.frames) > 22
 
 
 def _alter_loss_after(monkeypatch, n: int, change):
@@ -216,8 +226,14 @@ def test_without_audio_encoder_the_window_is_averaged(clip):
     model, _ = fit(clip, _tiny_cfg(**{"audio.use_encoder": False}), seed=0, progress=False)
     enc = model.audio_net.encoder
     assert not any(isinstance(m, torch.nn.Conv1d) for m in enc.modules())
+    # the encoder is exactly "standardise, mean over the window, one linear layer"
+    x = torch.randn(5, enc.window, enc.in_channels)
+    want = enc.proj(((x - enc.mean) / enc.std).mean(dim=1))
+    torch.testing.assert_close(enc(x), want)
+    assert not torch.equal(enc.std, torch.ones_like(enc.std))  # the standardisation was fitted
+    # and the model it drives still reconstructs its training frames (the background alone: < 18 dB)
     out = model.render(DrivingAudio(audio=clip.audio, w2c=model.train_w2c.numpy()))
-    assert out.shape[0] == len(clip.frames) and np.isfinite(out).all()
+    assert out.shape == clip.frames.shape and _psnr_u8(out, clip.frames) > 26
 
 
 def test_gr_warmup_ramps_the_geometry_weights_in_and_leaves_the_hash_when_off(clip, monkeypatch):
