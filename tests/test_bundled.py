@@ -162,8 +162,21 @@ def _cameras(folder: Path) -> np.ndarray:
 
 
 def test_default_build_has_no_motion(tiny):
+    from lmgs_eval.data.bundled.articulation import COLUMNS
+
     assert "motion" not in json.loads((tiny / "meta.json").read_text())
     assert not (tiny / "focal_per_frame.npy").exists()
+    # one focal for the clip: every frame's 2D landmarks are its 3D ones projected with it
+    # (measured 5e-5 px); the head keeps to the speech motion (yaw 0.9 deg, pitch 3.1 deg over
+    # the clip) and the cameras hardly turn (0.9 deg; a turning build: over 50)
+    c2w, lms3d = _cameras(tiny), np.load(tiny / "lms3d.npy")
+    focal = json.loads((tiny / "transforms_train.json").read_text())["focal_len"]
+    for i in range(len(c2w)):
+        np.testing.assert_allclose(_project(c2w[i], focal, lms3d[i]), np.loadtxt(tiny / "ori_imgs" / f"{i}.lms"), atol=0.01)
+    art = np.load(tiny / "articulation.npy")
+    assert np.ptp(art[:, COLUMNS.index("yaw")]) < 4.0 and np.ptp(art[:, COLUMNS.index("pitch")]) < 6.0
+    fwd = -c2w[:, :3, 2]
+    assert np.ptp(np.degrees(np.arctan2(fwd[:, 0], -fwd[:, 2]))) < 4.0
 
 
 def test_turning_head(tmp_path, tiny):
@@ -233,9 +246,35 @@ def test_motion_is_checked():
 def test_layout_reader_reads_it(tiny):
     from lmgs_eval.data.layout import read_subject
 
+    import cv2
+
     s = read_subject(tiny)
     assert s.n_frames == int(SECONDS * 25) and s.bundled and s.landmarks3d is not None
-    assert s.depth(0) is not None and s.normal(0).shape == (SIZE, SIZE, 3)
+    scale = json.loads((tiny / "meta.json").read_text())["depth_scale"]
+    yy, xx = np.mgrid[0:SIZE, 0:SIZE] + 0.5
+    ray = np.stack([(xx - s.cx) / s.focal, (yy - s.cy) / s.focal, np.ones_like(xx)], -1)
+    for i in (0, s.n_frames - 1):
+        np.testing.assert_array_equal(s.landmarks[i], np.loadtxt(tiny / "ori_imgs" / f"{i}.lms"))
+        # depth: the 16-bit PNG over the folder's scale (camera z)
+        raw = cv2.imread(str(tiny / "depth" / f"{i}.png"), cv2.IMREAD_UNCHANGED)
+        d = s.depth(i)
+        np.testing.assert_array_equal(d, raw.astype(np.float32) / np.float32(scale))
+        surface = d > 0
+        assert 0.1 < surface.mean() < 0.5
+        # on the surface: unit normals that face the camera
+        n = s.normal(i)[surface]
+        np.testing.assert_allclose(np.linalg.norm(n, axis=-1), 1.0, atol=1e-5)
+        assert np.all((n * ray[surface]).sum(-1) < 0)
+        # the 3D landmarks lie on that surface: their camera z is the depth at their pixel
+        # (measured 0.2 % median, 1.1 % at most)
+        w2c = s.camera(i).world_to_camera.numpy().astype(np.float64)
+        z = (s.landmarks3d[i] @ w2c[:3, :3].T + w2c[:3, 3])[:, 2]
+        px = np.floor(s.landmarks[i]).astype(int)
+        at = d[px[:, 1].clip(0, SIZE - 1), px[:, 0].clip(0, SIZE - 1)]
+        on = at > 0
+        assert on.mean() > 0.85
+        rel = np.abs(at[on] - z[on]) / z[on]
+        assert np.median(rel) < 0.005 and rel.max() < 0.03, (np.median(rel), rel.max())
 
 
 def test_bad_input_names_the_value(tmp_path):
@@ -343,3 +382,97 @@ def test_hair_layer_or_head(tiny, tmp_path):
     test_frames_outside_the_head_are_the_plate_the_files_carry(out)
     with pytest.raises(UserError, match="hair 'wig'"):
         bundled.build("astronaut", tmp_path, size=SIZE, seconds=SECONDS, hair="wig")
+
+
+# ----------------------------------------------------------------------------- the same bytes on every host
+# The manifest sha256 of the `tiny` build (astronaut, 64 px, 2 s, seed 0): records are matched on a
+# subject's manifest hash, so any change to a bundled subject's bytes must be deliberate. When the
+# generator is changed on purpose, bump ``GENERATOR_VERSION`` (generator.py) and put the new hash
+# here (``sha256(manifest.json)`` of a fresh tiny build); the default builds' records are then
+# made again. Pinned 2026-11-27 on an AVX2 host; the default 256 px / 60 s astronaut build of
+# that code is 8ee56a46c4d0297e..., as the records in tables/records name it.
+TINY_MANIFEST_SHA256 = "772b3d845e471f19c6311e6acf6128a1cce571a747a2e9d0e341568cb21b80e6"
+
+# The SIMD targets numpy dispatches to on this CPU (switched off for the forced-path build).
+_NUMPY_SIMD_HERE = "import numpy as np; from numpy._core import _multiarray_umath as m; " \
+                "print(' '.join(f for f in m.__cpu_dispatch__ if m.__cpu_features__.get(f)))"
+
+
+def _manifest_sha(folder: Path) -> str:
+    import hashlib
+
+    return hashlib.sha256((folder / "manifest.json").read_bytes()).hexdigest()
+
+
+def test_tiny_build_has_the_pinned_manifest(tiny):
+    assert _manifest_sha(tiny) == TINY_MANIFEST_SHA256, (
+        "the bundled generator's output changed: if deliberate, bump GENERATOR_VERSION and re-pin TINY_MANIFEST_SHA256")
+
+
+@pytest.mark.slow
+def test_tiny_build_is_the_same_on_other_code_paths(tmp_path):
+    """The same build in a process whose libraries run other kernels than this CPU's best (numpy
+    without its SIMD loops, OpenBLAS's SSE3 kernels, IPP's SSE4.2 kernels, numba for a generic
+    x86-64 CPU, torch's scalar kernels): where an AVX-512 host's kernels differ from this one's,
+    the generator must not depend on them."""
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ)
+    dispatched = subprocess.run([sys.executable, "-c", _NUMPY_SIMD_HERE], capture_output=True, text=True, check=True).stdout.split()
+    env.update({"NPY_DISABLE_CPU_FEATURES": " ".join(dispatched), "OPENBLAS_CORETYPE": "Prescott", "OPENCV_IPP": "sse42",
+                "NUMBA_CPU_NAME": "generic", "ATEN_CPU_CAPABILITY": "default"})
+    out = tmp_path / "forced"
+    out.mkdir()
+    code = ("import sys; from pathlib import Path; from lmgs_eval.data import bundled; "
+            f"bundled.build('astronaut', Path(sys.argv[1]), size={SIZE}, seconds={SECONDS}, seed=0, progress=False)")
+    res = subprocess.run([sys.executable, "-c", code, str(out)], env=env, capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert _manifest_sha(out) == TINY_MANIFEST_SHA256
+
+
+def test_exact_arithmetic_matches_numpy_here():
+    """The generator's CPU-independent arithmetic (exact.py) gives what numpy gives on an AVX2
+    host with OpenBLAS's Haswell kernels, so the bytes built before it was introduced stay valid.
+    Only checkable on such a host; elsewhere numpy is the side that differs."""
+    from lmgs_eval.data.bundled import exact
+
+    from numpy._core import _multiarray_umath as m
+
+    if not m.__cpu_features__.get("X86_V3") or m.__cpu_features__.get("X86_V4"):
+        pytest.skip("numpy's reference kernels here are not the AVX2 ones")
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        a, b, m4, v = rng.standard_normal((3, 3)), rng.standard_normal((3, 3)), rng.standard_normal((4, 4)), rng.standard_normal(3)
+        np.testing.assert_array_equal(exact.matmul(a, b), a @ b)
+        np.testing.assert_array_equal(exact.matvec3(a, v), a @ v)
+        np.testing.assert_array_equal(exact.inv4(m4), np.linalg.inv(m4))
+        assert exact.norm3(v) == np.linalg.norm(v)
+    x = rng.uniform(-20, 20, 10000)
+    np.testing.assert_array_equal(exact.sin(x), np.sin(x))
+    np.testing.assert_array_equal(exact.cos(x), np.cos(x))
+    np.testing.assert_array_equal(exact.exp(x), np.exp(x))
+    s = (rng.uniform(size=500) > 0.5).astype(float)
+    np.testing.assert_array_equal(exact.box5(s), np.convolve(s, np.ones(5) / 5, mode="same"))
+
+
+def test_subject_video_does_not_depend_on_the_cpu_count(tmp_path):
+    """x264 left to itself encodes with as many slices as the host has CPUs (a 256 px frame: up to
+    4); the generator fixes two, so a one-CPU process writes the same mp4 as this one."""
+    import os
+    import subprocess
+    import sys
+
+    if not hasattr(os, "sched_setaffinity") or len(os.sched_getaffinity(0)) < 2:
+        pytest.skip("needs two CPUs to compare against one")
+    code = ("import os, sys, numpy as np; from pathlib import Path; from lmgs_eval.data.bundled import generator as g; "
+            "os.sched_setaffinity(0, {min(os.sched_getaffinity(0))}) if sys.argv[2] == '1' else None; "
+            "r = np.random.default_rng(0); f = np.clip(r.normal(128, 40, (12, 128, 128, 3)).cumsum(0) / 4, 0, 255).astype(np.uint8); "
+            "g._write_video(Path(sys.argv[1]), f, (r.standard_normal(12 * 640) * 0.1).astype(np.float32))")
+    paths = []
+    for cpus in ("all", "1"):
+        p = tmp_path / f"{cpus}.mp4"
+        subprocess.run([sys.executable, "-c", code, str(p), cpus], check=True)
+        paths.append(p.read_bytes())
+    assert paths[0] == paths[1]

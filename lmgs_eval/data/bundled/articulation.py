@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from lmgs_eval.data.bundled import exact
 from lmgs_eval.data.bundled.speech import Phone
 
 COLUMNS = (
@@ -76,7 +77,7 @@ def mouth_tracks(phones: tuple[Phone, ...] | list[Phone], times: np.ndarray) -> 
         lo, hi = np.searchsorted(times, [p.start - 8 * TAU, p.end + 8 * TAU])
         if hi <= lo:
             continue
-        d = np.exp(-np.maximum(0.0, np.abs(times[lo:hi] - c) - half) / TAU)[:, None] * np.asarray(dom)[None]
+        d = exact.exp(-np.maximum(0.0, np.abs(times[lo:hi] - c) - half) / TAU)[:, None] * np.asarray(dom)[None]
         num[lo:hi] += d * np.asarray(tgt)[None]
         den[lo:hi] += d
     return (num / den).astype(np.float32)
@@ -87,7 +88,7 @@ def _smooth_process(rng: np.random.Generator, t: np.ndarray, amp: float, fmin: f
     f = rng.uniform(fmin, fmax, k)
     ph = rng.uniform(0, 2 * np.pi, k)
     a = rng.uniform(0.5, 1.0, k)
-    x = (a[None] * np.sin(2 * np.pi * f[None] * t[:, None] + ph[None])).sum(1)
+    x = (a[None] * exact.sin(2 * np.pi * f[None] * t[:, None] + ph[None])).sum(1)
     return amp * x / (a.sum() * 0.75)
 
 
@@ -125,8 +126,7 @@ def _speaking(phones, t: np.ndarray) -> np.ndarray:
     for p in phones:
         if p.viseme != "sil":
             s[(t >= p.start - 0.1) & (t < p.end + 0.1)] = 1.0
-    k = np.ones(5) / 5
-    return np.convolve(s, k, mode="same") if len(s) >= 5 else s
+    return exact.box5(s) if len(s) >= 5 else s  # a 5-frame moving average
 
 
 def action_units(art: np.ndarray, lip_gap: np.ndarray) -> dict[str, np.ndarray]:

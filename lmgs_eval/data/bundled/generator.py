@@ -204,6 +204,54 @@ def _track_params(path: Path, art: np.ndarray, head: HeadModel, focal: float | N
     path.write_bytes(buf.getvalue())
 
 
+# x264 as the subjects' mp4 is encoded on every host. Left to itself it runs as many slice threads
+# as the host has CPUs (up to one per 4 macroblock rows), and every slice count is another
+# bitstream; and it picks its kernels by the CPU, some of which (the AVX-512 ones among them)
+# compute its macroblock-tree costs in floating point with other roundings. Two slice threads and
+# the kernels up to SSE4.2 are what a 2-CPU AVX2 host gave (checked equal on the default builds).
+X264_THREADS = 2
+X264_ASM = "MMX2,SSE,SSE2,SSE3,SSSE3,SSE4.1,SSE4.2"
+
+
+def _write_video(path: Path, frames: np.ndarray, audio: np.ndarray) -> None:
+    """The subject's raw video: :func:`lmgs_eval.data.io.write_video`'s H.264 (CRF 18, veryfast,
+    4:2:0) and AAC, with the encoder's threads and kernels fixed (above), so the bytes do not
+    depend on the host. Kept here, not in the shared writer, because it is part of the generator's
+    output (a change is a new :data:`GENERATOR_VERSION`)."""
+    import av
+
+    from lmgs.fileio import atomic_path
+
+    t, h, w, _ = frames.shape
+    with atomic_path(path) as tmp, av.open(str(tmp), "w", format="mp4") as c:
+        vs = c.add_stream("libx264", rate=FPS)
+        vs.width, vs.height = w - w % 2, h - h % 2
+        vs.pix_fmt = "yuv420p"
+        vs.options = {"crf": "18", "preset": "veryfast", "x264-params": f"asm={X264_ASM}"}
+        vs.codec_context.thread_count = X264_THREADS
+        vs.codec_context.thread_type = "SLICE"
+        as_ = None
+        if len(audio):
+            as_ = c.add_stream("aac", rate=sp_mod.SAMPLE_RATE)
+            as_.layout = "mono"
+        for i in range(t):
+            fr = av.VideoFrame.from_ndarray(np.ascontiguousarray(frames[i, : vs.height, : vs.width]), format="rgb24")
+            for p in vs.encode(fr):
+                c.mux(p)
+        for p in vs.encode():
+            c.mux(p)
+        if as_ is not None:
+            pcm = np.clip(np.rint(np.asarray(audio, np.float64) * 32767), -32768, 32767).astype(np.int16)
+            for k in range(0, len(pcm), 1024):
+                af = av.AudioFrame.from_ndarray(pcm[None, k : k + 1024], format="s16", layout="mono")
+                af.sample_rate = sp_mod.SAMPLE_RATE
+                af.pts = k
+                for p in as_.encode(af):
+                    c.mux(p)
+            for p in as_.encode():
+                c.mux(p)
+
+
 def _cross_seconds(seconds: float) -> float:
     return float(min(9.0, max(2.0, seconds / 6.5)))
 
@@ -300,7 +348,7 @@ def build(name: str, out_dir: Path, *, size: int = 256, seconds: float = 60.0, s
             bar.update(1)
 
     io.write_wav(out / "aud.wav", speech.audio)
-    io.write_video(out / f"{name}.mp4", frames, FPS, speech.audio)
+    _write_video(out / f"{name}.mp4", frames, speech.audio)
     cut = int(n * 10 / 11)
     focal = head.focal if focals is None else float(focals.mean())
     _write_json(out / "transforms_train.json", _transforms(c2w, range(cut), focal, size))

@@ -10,11 +10,12 @@ rest pose reproduces the photo.
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
-from lmgs_eval.data.bundled import raster
+from lmgs_eval.data.bundled import exact, raster
 from lmgs_eval.data.bundled.articulation import COLUMNS
 from lmgs_eval.data.bundled.photo import TEX, Portrait, portrait
 
@@ -49,7 +50,7 @@ def _atlas(tex: np.ndarray) -> np.ndarray:
     rows = np.zeros((ATLAS_ROWS, TEX, 3), np.float32)
     x = np.arange(128) + 0.5
     # teeth: ivory with darker gaps every 16 px and a darker gum line at the top
-    gap = 1.0 - 0.35 * np.exp(-(((x % 16) - 8.0) / 1.3) ** 2 * 0.5)
+    gap = 1.0 - 0.35 * exact.exp(-(((x % 16) - 8.0) / 1.3) ** 2 * 0.5)
     y = np.arange(ATLAS_ROWS)[:, None] + 0.5
     teeth = np.array([0.93, 0.89, 0.80], np.float32)[None, None] * gap[None, :, None] * (0.85 + 0.15 * (y / ATLAS_ROWS))[:, :, None]
     rows[:, 0:128] = teeth
@@ -191,7 +192,7 @@ class HeadModel:
         # --- deformation weights (from rest positions)
         L = verts[:68]
         self.mouth_c = L[60:68].mean(0)
-        hw = 0.5 * np.linalg.norm(L[54] - L[48])
+        hw = 0.5 * exact.norm3(L[54] - L[48])
         self.mouth_hw = hw
         fh = (lms[8, 1] - lms[17:27, 1].mean()) * self.k
         self.face_h = fh
@@ -205,7 +206,7 @@ class HeadModel:
 
         def g(centres, sigma):
             dd = np.linalg.norm(verts[:, None, :2] - centres[None, :, :2], axis=2).min(1)
-            return np.exp(-0.5 * (dd / sigma) ** 2)
+            return exact.exp(-0.5 * (dd / sigma) ** 2)
 
         self.w_corner = g(L[[48, 54]], 0.35 * hw)
         self.w_lips = g(L[48:68], 0.18 * hw)
@@ -320,7 +321,7 @@ class HeadModel:
         wj = self.w_jaw_all * np.where(self.w_jaw_all > 0, lower_free, 1.0)
         rel = v - self.jaw_pivot
         ang = th * wj
-        cs, sn = np.cos(ang), np.sin(ang)
+        cs, sn = exact.cos(ang), exact.sin(ang)
         y = rel[:, 1] * cs - rel[:, 2] * sn
         z = rel[:, 1] * sn + rel[:, 2] * cs
         # the lips and interior follow fully; teeth and tongue keep their shape (rigid jaw)
@@ -344,15 +345,15 @@ class HeadModel:
         """The head's rigid motion ``H`` ``[4, 4]`` (rotation about the neck pivot, then translation)."""
         c = dict(zip(COLUMNS, map(float, a)))
         yaw, pitch, roll = np.deg2rad([c["yaw"], c["pitch"], c["roll"]])
-        cy, sy, cp, sp, cr, sr = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
+        cy, sy, cp, sp, cr, sr = (f(float(x)) for x in (yaw, pitch, roll) for f in (math.cos, math.sin))
         Ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
         Rx = np.array([[1, 0, 0], [0, cp, -sp], [0, sp, cp]])
         Rz = np.array([[cr, -sr, 0], [sr, cr, 0], [0, 0, 1]])
-        R = Ry @ Rx @ Rz
+        R = exact.matmul(exact.matmul(Ry, Rx), Rz)
         piv = self.neck_pivot()
         H = np.eye(4)
         H[:3, :3] = R
-        H[:3, 3] = piv - R @ piv + np.array([c["tx"], c["ty"], c["tz"]])
+        H[:3, 3] = piv - exact.matvec3(R, piv) + np.array([c["tx"], c["ty"], c["tz"]])
         return H
 
     def neck_pivot(self) -> np.ndarray:
@@ -361,7 +362,7 @@ class HeadModel:
 
     def c2w(self, a: np.ndarray) -> np.ndarray:
         """Camera-to-world (OpenGL) of a frame: the head motion turned into camera motion."""
-        return np.linalg.inv(self.head_pose(a)) @ self.c2w0()
+        return exact.matmul(exact.inv4(self.head_pose(a)), self.c2w0())
 
     # ------------------------------------------------------------------ rendering
     @functools.cached_property
@@ -405,8 +406,8 @@ class HeadModel:
         :attr:`focal` renders a zoomed camera: the head projected with it, over the plate
         scaled by the same ratio."""
         v = self.deform(a)
-        w2c = np.linalg.inv(self.c2w(a) @ _GL_TO_CV)
-        pc = v @ w2c[:3, :3].T + w2c[:3, 3]
+        w2c = exact.inv4(exact.matmul(self.c2w(a), _GL_TO_CV))
+        pc = exact.matmul(v, w2c[:3, :3].T) + w2c[:3, 3]
         s = self.size
         f = self.focal if focal is None else float(focal)
         xy = np.stack([f * pc[:, 0] / pc[:, 2] + s / 2, f * pc[:, 1] / pc[:, 2] + s / 2], 1)
@@ -422,11 +423,11 @@ class HeadModel:
             prem = rgb * alpha[:, :, None]
         under = self._under[0] if f == self.focal else self.zoomed(self._under[0], f / self.focal)
         out = prem + (1.0 - alpha[:, :, None]) * under
-        lip_gap = float(np.linalg.norm(v[62] - v[66]))
+        lip_gap = exact.norm3(v[62] - v[66])
         if not geometry:
             return Frame(out.astype(np.float32), alpha.astype(np.float32), None, None, None, xy[:68].copy(), v[:68].copy(), lip_gap)
         n = self._normals(v)
-        ncam = n @ w2c[:3, :3].T
+        ncam = exact.matmul(n, w2c[:3, :3].T)
         flip = np.sum(ncam * pc, axis=1) > 0  # make normals face the camera
         ncam[flip] *= -1
         attr1 = np.concatenate([attr, ncam], 1)

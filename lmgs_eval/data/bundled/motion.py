@@ -22,6 +22,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from lmgs_eval.data.bundled import exact
 from lmgs_eval.errors import UserError
 
 KINDS = ("turn", "zoom")
@@ -73,15 +74,15 @@ class Motion:
         out = np.array(art, copy=True)
         if self.kind == "turn":
             ph = self._phase(len(art), fps)
-            out[:, COLUMNS.index("yaw")] += (self.yaw_deg * np.sin(ph)).astype(out.dtype)
-            out[:, COLUMNS.index("pitch")] += (self.pitch_deg * np.sin(2 * ph)).astype(out.dtype)
+            out[:, COLUMNS.index("yaw")] += (self.yaw_deg * exact.sin(ph)).astype(out.dtype)
+            out[:, COLUMNS.index("pitch")] += (self.pitch_deg * exact.sin(2 * ph)).astype(out.dtype)
         return out
 
     def focals(self, n: int, fps: int, focal: float) -> np.ndarray | None:
         """Focal length per frame ``[N]`` (pixels) for a zoom; None when the focal is fixed."""
         if self.kind != "zoom":
             return None
-        return float(focal) * (1.0 + self.zoom * np.sin(self._phase(n, fps)))
+        return float(focal) * (1.0 + self.zoom * exact.sin(self._phase(n, fps)))
 
     def to_json(self) -> dict:
         return asdict(self)

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lmgs_eval.data.bundled import exact
 from lmgs_eval.errors import UserError
 
 TEX = 512
@@ -144,6 +145,36 @@ def _crop(img: np.ndarray, x0: float, y0: float, size: float) -> np.ndarray:
     return cv2.warpAffine(img, m, (TEX, TEX), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
 
 
+# OpenCV hands a bicubic resize of 8-bit images to Intel IPP, whose kernels are chosen by the
+# CPU (AVX2: l9, AVX-512: k0) and round a few values differently. OpenCV's own fixed-point bicubic
+# (IPP off) gives the same bytes on every CPU (checked with its AVX2, AVX and FMA3 code paths
+# disabled). The subjects of generator 2 were made with IPP's AVX2 kernel, which differs from
+# OpenCV's own at these values of the two bundled backgrounds; they are put back, so every CPU
+# builds those bytes. Keyed by the sha256 of OpenCV's own result: any other image is left as is.
+_IPP_AVX2_CUBIC = {
+    "0af2e81378d4d05996ee423327230b477d96968ef3d75f8343b9ab4ceba92438":  # astronaut
+        ((118, 407, 0, 203), (264, 245, 0, 214), (425, 384, 2, 230), (493, 501, 1, 210), (494, 506, 0, 209)),
+    "e7d78aa0b4559b5a1f2a6f29abf0c8e1530dd2bf224ccf7f268cca5069fbe1b8": ((282, 403, 1, 141),),  # hopper
+}
+
+
+def _upsample_cubic(img: np.ndarray) -> np.ndarray:
+    """``img`` (uint8) resized bicubically to ``TEX`` x ``TEX``, the same bytes on every CPU."""
+    import hashlib
+
+    import cv2
+
+    was = cv2.ipp.useIPP()
+    cv2.ipp.setUseIPP(False)
+    try:
+        out = cv2.resize(img, (TEX, TEX), interpolation=cv2.INTER_CUBIC)
+    finally:
+        cv2.ipp.setUseIPP(was)
+    for y, x, c, v in _IPP_AVX2_CUBIC.get(hashlib.sha256(out.tobytes()).hexdigest(), ()):
+        out[y, x, c] = v
+    return out
+
+
 def _poly_mask(pts: np.ndarray, shape=(TEX, TEX)) -> np.ndarray:
     import cv2
 
@@ -168,7 +199,7 @@ def head_outline(lms: np.ndarray, spec: PhotoSpec, n: int = 72, jaw_out: float =
     ear_y = 0.5 * (jaw[0, 1] + jaw[16, 1])
     # upper part: half ellipse from the right ear over the top to the left ear
     ang = np.linspace(0.0, np.pi, n // 2)
-    upper = np.stack([cx + half * np.cos(ang), ear_y - (ear_y - top) * np.sin(ang)], 1)
+    upper = np.stack([cx + half * exact.cos(ang), ear_y - (ear_y - top) * exact.sin(ang)], 1)
     # lower part: from the left ear down along the jaw (a little outside it) to the right ear
     c = jaw.mean(0)
     lower = c + (jaw - c) * (1.0 + jaw_out) + np.array([0.0, 0.5 * jaw_out * fh])
@@ -259,7 +290,7 @@ def portrait(name: str, hair: str = "layer") -> Portrait:
     small = cv2.resize(u8, (TEX // 4, TEX // 4), interpolation=cv2.INTER_AREA)
     hole_s = cv2.resize(hole, (TEX // 4, TEX // 4), interpolation=cv2.INTER_NEAREST)
     bg_s = cv2.inpaint(small, hole_s, 5, cv2.INPAINT_TELEA)
-    bg = cv2.resize(bg_s, (TEX, TEX), interpolation=cv2.INTER_CUBIC)
+    bg = _upsample_cubic(bg_s)
     bg = np.where(hole[:, :, None].astype(bool), bg, u8)[:, :, ::-1].astype(np.float32) / 255.0
 
     # --- under the head: torso as in the photo, the neck continued upwards behind the chin

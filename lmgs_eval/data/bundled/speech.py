@@ -99,11 +99,31 @@ def _split_vowels(ph: str, start: float, end: float) -> list[Phone]:
     return [Phone(c, start + k * step, start + (k + 1) * step, viseme_of(c)) for k, c in enumerate(parts)]
 
 
+@functools.lru_cache(maxsize=8)
+def _lowpass(up: int, down: int) -> np.ndarray:
+    """The FIR filter ``scipy.signal.resample_poly`` designs for ``up / down`` (``firwin`` with its
+    Kaiser window, beta 5), with the C library's ``sin`` in place of numpy's, whose kernels differ
+    on AVX-512 CPUs (the same taps as scipy's on an AVX2 CPU)."""
+    from scipy.signal import get_window
+
+    from lmgs_eval.data.bundled import exact
+
+    max_rate = max(up, down)
+    f_c = 1.0 / max_rate
+    numtaps = 2 * (10 * max_rate) + 1
+    m = np.arange(0, numtaps, dtype=np.float64) - 0.5 * (numtaps - 1)
+    h = f_c * exact.sinc(f_c * m)  # the pass band [0, f_c]
+    h *= get_window(("kaiser", 5.0), numtaps, fftbins=False)
+    h /= np.sum(h * 1.0)  # the passband's gain at frequency 0 (cos 0 = 1)
+    return h
+
+
 def _resample_to_16k(x: np.ndarray, sr: int) -> np.ndarray:
     from scipy.signal import resample_poly
 
     f = Fraction(SAMPLE_RATE, int(sr))
-    return resample_poly(np.asarray(x, np.float64), f.numerator, f.denominator).astype(np.float32)
+    up, down = f.numerator, f.denominator
+    return resample_poly(np.asarray(x, np.float64), up, down, window=_lowpass(up, down)).astype(np.float32)
 
 
 # ----------------------------------------------------------------------------- piper
