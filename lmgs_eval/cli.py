@@ -42,8 +42,17 @@ def _available_commands() -> dict[str, object]:
     return {name: importlib.import_module(path) for name, path in COMMANDS.items()}
 
 
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line, as every other error of the command line:
+    ``lmgs-eval CMD: error: MSG`` on stderr, exit code 2 (``--help`` still prints the usage).
+    Subparsers are made of the same class."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="lmgs-eval",
         description="Evaluate audio-driven talking heads; every number says how it was made.",
     )

@@ -11,8 +11,8 @@ from pathlib import Path
 
 from lmgs.fileio import atomic_path, atomic_write_bytes, public_mode
 
-__all__ = ["atomic_dir", "atomic_path", "atomic_write_bytes", "atomic_write_text", "cache_root", "claim", "data_root",
-           "public_mode"]
+__all__ = ["atomic_dir", "atomic_path", "atomic_write_bytes", "atomic_write_text", "cache_root", "check_out_dir", "claim",
+           "data_root", "public_mode"]
 
 
 def cache_root() -> Path:
@@ -29,6 +29,36 @@ def data_root(explicit: str | os.PathLike | None = None) -> Path:
     if env:
         return Path(env).expanduser()
     return cache_root() / "data"
+
+
+def check_out_dir(out: Path, flag: str) -> None:
+    """An output folder must be a folder this user can write, or one that can be made; checked before any
+    file is written (and nothing is made here: a run that stops early leaves no empty folder).
+
+    Raises:
+        UserError: ``out`` is a file, is not writable, lies under a file or under a folder that is
+            not writable, or has a name the file system refuses; the message starts ``{flag} {out}:``.
+    """
+    from lmgs_eval.errors import UserError
+
+    out = Path(out)
+    try:
+        exists = out.exists()
+    except OSError as exc:  # e.g. a name longer than the file system allows
+        raise UserError(f"{flag} {out}: not a usable folder name ({exc.strerror or exc})") from None
+    if exists:
+        if not out.is_dir():
+            raise UserError(f"{flag} {out}: exists and is not a folder")
+        if not os.access(out, os.W_OK | os.X_OK):
+            raise UserError(f"{flag} {out}: folder is not writable")
+        return
+    up = out.parent
+    while not up.exists() and up != up.parent:
+        up = up.parent
+    if not up.is_dir():
+        raise UserError(f"{flag} {out}: cannot create the folder ({up} is not a folder)")
+    if not os.access(up, os.W_OK | os.X_OK):
+        raise UserError(f"{flag} {out}: cannot create the folder ({up} is not writable)")
 
 
 @contextlib.contextmanager

@@ -252,3 +252,273 @@ def test_table_out_not_writable_as_the_os_reports_it(world, monkeypatch):
         rc, out, err = run_cli("table", "--results", str(res), "--out", str(out_dir))
         one_line_error(rc, out, err, f"--out {out_dir}", words)
     assert list(ro.iterdir()) == []
+
+
+# ----------------------------------------------------------------------------- ingest: checked before anything is made
+def _short_clip(truth: Path, out: Path, n: int, seconds: float | None = None) -> Path:
+    """The first ``n`` frames of the bundled truth as a video with ``seconds`` of its audio (default: as long)."""
+    from lmgs_eval.data import io
+
+    frames = np.stack([io.read_rgb_u8(truth / "ori_imgs" / f"{i}.jpg") for i in range(n)])
+    audio, _ = io.load_audio(truth / "aud.wav")
+    io.write_video(out, frames, 25, audio[: int((n / 25 if seconds is None else seconds) * 16000)])
+    return out
+
+
+def test_ingest_data_root_that_cannot_be_made_and_a_name_too_long(truth, world, monkeypatch):
+    from conftest import ingest_error_line
+
+    tmp, res, snap = world
+    f = tmp / "afile"
+    f.write_text("keep me")
+    video = truth / "astronaut.mp4"
+    before = snap()
+    rc, out, err = run_cli("ingest", str(video), "--data-root", str(f / "R"), "--quiet")
+    ingest_error_line(rc, err, f"--data-root {f / 'R'}", f"cannot create the folder ({f} is not a folder)")
+    # a folder this user may not write (root writes anywhere: refused as the OS would report it)
+    ro = tmp / "ro"
+    ro.mkdir()
+    real = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode: False if Path(p) == ro else real(p, mode))
+    for root, words in ((ro, "folder is not writable"), (ro / "data", f"cannot create the folder ({ro} is not writable)")):
+        rc, out, err = run_cli("ingest", str(video), "--data-root", str(root), "--quiet")
+        ingest_error_line(rc, err, f"--data-root {root}", words)
+    monkeypatch.undo()
+    rc, out, err = run_cli("ingest", str(video), "--data-root", str(tmp / "data"), "--name", "a" * 300, "--quiet")
+    ingest_error_line(rc, err, "--name aaaa", "300 bytes long", "at most")
+    assert f.read_text() == "keep me" and list(ro.iterdir()) == [] and not (tmp / "data").exists()
+    assert snap() == before
+
+
+def test_ingest_refuses_an_empty_name_and_a_folder_given_as_a_file(truth, tmp_path):
+    from conftest import entries, ingest_error_line
+
+    root = tmp_path / "data"
+    rc, _, err = run_cli("ingest", str(truth / "astronaut.mp4"), "--name", "", "--data-root", str(root), "--quiet")
+    ingest_error_line(rc, err, "--name ''", "plain folder name")
+    rc, _, err = run_cli("ingest", str(truth), "--data-root", str(root), "--quiet")
+    ingest_error_line(rc, err, str(truth), "is a folder, not a video file")
+    rc, _, err = run_cli("ingest", str(truth / "astronaut.mp4"), "--audio", str(truth), "--data-root", str(root), "--quiet")
+    ingest_error_line(rc, err, str(truth), "is a folder, not an audio file")
+    rc, _, err = run_cli("ingest", str(tmp_path / "none.mp4"), "--data-root", str(root), "--quiet")
+    ingest_error_line(rc, err, "none.mp4", "video not found")
+    assert not root.exists()
+
+
+def test_ingest_refuses_too_few_frames_or_too_little_audio(truth, tmp_path):
+    from conftest import ingest_error_line
+    from lmgs_eval.data.ingest.pipeline import MIN_FRAMES
+
+    root = tmp_path / "data"
+    one = _short_clip(truth, tmp_path / "one.mp4", 1, seconds=2.0)  # one frame, 2 s of audio
+    rc, _, err = run_cli("ingest", str(one), "--data-root", str(root), "--quiet")
+    ingest_error_line(rc, err, "one.mp4", "1 frame at 25 fps", "too few to make a subject", f"at least {MIN_FRAMES} frames")
+    two = _short_clip(truth, tmp_path / "two.mp4", 50)
+    short = tmp_path / "short.wav"
+    write_pcm_wav(short, 0.2 * np.sin(np.arange(1600) / 5), 16000)  # 0.1 s
+    rc, _, err = run_cli("ingest", str(two), "--audio", str(short), "--data-root", str(root), "--quiet")
+    ingest_error_line(rc, err, "short.wav", "the audio is too short (0.10 s)", "the video has 2.00 s")
+    assert not root.exists()  # not even an empty data root
+
+
+def test_ingest_a_bad_video_makes_no_data_root(tmp_path):
+    from conftest import ingest_error_line
+
+    bad = tmp_path / "broken.mp4"
+    bad.write_bytes(np.random.default_rng(0).bytes(5000))
+    root = tmp_path / "a" / "b" / "data"
+    rc, _, err = run_cli("ingest", str(bad), "--data-root", str(root), "--quiet")
+    ingest_error_line(rc, err, "broken.mp4", "not a readable video")
+    assert list(tmp_path.iterdir()) == [bad]
+
+
+def _remux(src: Path, out: Path, interleave: bool) -> bytes:
+    """``src`` rewritten with its index at the front (``faststart``), its packets in time order when
+    ``interleave``; the bytes written."""
+    import av
+
+    with av.open(str(src)) as i:
+        pk = [(float(p.dts * p.time_base), p.stream.index, p) for p in i.demux() if p.dts is not None]
+        if interleave:
+            pk.sort(key=lambda x: (x[0], x[1]))
+        with av.open(str(out), "w", format="mp4", options={"movflags": "faststart"}) as o:
+            m = {s.index: o.add_stream_from_template(s) for s in i.streams}
+            for _, idx, p in pk:
+                p.stream = m[idx]
+                o.mux(p)
+    data = out.read_bytes()
+    assert data.find(b"moov") < data.find(b"mdat")  # the index before the data: a cut file still opens
+    return data
+
+
+def test_a_truncated_video_is_refused_or_flagged(truth, tmp_path):
+    from conftest import TRUTH_SECONDS, ingest_error_line
+    from lmgs_eval.data.ingest import decode
+    from lmgs_eval.data.ingest.pipeline import check_decoded
+
+    data = _remux(truth / "astronaut.mp4", tmp_path / "whole.mp4", interleave=True)
+    assert check_decoded(decode.probe(tmp_path / "whole.mp4")) is None
+    half = tmp_path / "half.mp4"
+    half.write_bytes(data[: len(data) // 2])
+    root = tmp_path / "data"
+    rc, _, err = run_cli("ingest", str(half), "--data-root", str(root), "--quiet")
+    ingest_error_line(rc, err, "half.mp4", "the file is cut short", f"of the {TRUTH_SECONDS:.2f} s of video", "missing")
+    assert not root.exists()
+    # a little missing: made from what decodes, with a warning (flagged in the manifest)
+    tail = tmp_path / "tail.mp4"
+    tail.write_bytes(data[: int(len(data) * 0.97)])
+    info = decode.probe(tail)
+    assert 0 < info.missing_seconds < 0.1 * info.stated_duration
+    warning = check_decoded(info)
+    assert warning.startswith(f"{tail}: the file is cut short: the last ") and "the subject is made from what decodes" in warning
+
+
+# ----------------------------------------------------------------------------- subjects, protocols
+def test_a_one_frame_subject_is_refused_by_prepare_and_self(world):
+    tmp, res, snap = world
+    root = tmp / "one"
+    make_ernerf_folder(root, n=1)  # what a one-frame video made: 0 train / 1 test
+    before = snap()
+    for cmd in (("prepare", "--subject", str(root)), ("self", "--subject", str(root), "--results", str(res), "--no-progress")):
+        rc, out, err = run_cli(*cmd)
+        one_line_error(rc, out, err, str(root), "1 frame, split 0 train / 1 test", "too few frames", "2 or more")
+    assert snap() == before
+
+
+def test_external_renders_are_checked_before_any_record(world):
+    tmp, res, snap = world
+    assert run_cli("prepare", "--subject", "astronaut-64px-2s")[0] == 0  # the subject is data, built once
+    (tmp / "bad").mkdir()
+    (tmp / "bad" / "notes.txt").write_text("no frames here")
+    write_frames(tmp / "three", range(3), size=64)  # the test split has 5 frames
+    before = snap()
+    for renders, words in ((tmp / "bad", "folder has no images"), (tmp / "three", "3 frames, but the protocol's clip has 5")):
+        rc, out, err = run_cli("self", "--subject", "astronaut-64px-2s", "--method", "external:other", "--renders",
+                               str(renders), "--results", str(res), "--no-progress")
+        one_line_error(rc, out, err, str(renders), words)
+        assert "scoring" not in err
+    assert snap() == before and list(res.iterdir()) == []
+
+
+# ----------------------------------------------------------------------------- report, verify
+def _records_store(root: Path) -> None:
+    from lmgs_eval.results import write_record
+    from test_results import fixture_records
+
+    for r in fixture_records():
+        write_record(root, r)
+
+
+def test_report_out_under_a_file_and_renders_not_there(world):
+    tmp, res, snap = world
+    _records_store(res)
+    f = tmp / "afile"
+    f.write_text("keep me")
+    before = snap()
+    rc, out, err = run_cli("report", "--results", str(res), "--out", str(f / "site"), "--no-previews", "--no-static-charts")
+    one_line_error(rc, out, err, f"--out {f / 'site'}", f"cannot create the folder ({f} is not a folder)")
+    site = tmp / "site"
+    rc, out, err = run_cli("report", "--results", str(res), "--out", str(site), "--renders", str(tmp / "nonexistent"),
+                           "--no-static-charts")
+    one_line_error(rc, out, err, f"--renders {tmp / 'nonexistent'}", "no such folder")
+    rc, out, err = run_cli("report", "--results", str(res), "--out", str(site), "--renders", str(f), "--no-static-charts")
+    one_line_error(rc, out, err, f"--renders {f}", "is a file, not the folder")
+    assert f.read_text() == "keep me" and not site.exists() and snap() == before
+
+
+def test_verify_a_folder_without_records(tmp_path):
+    from lmgs_eval.data import io
+
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    jpgs = tmp_path / "jpgs"
+    jpgs.mkdir()
+    for i in range(3):
+        io.write_rgb(jpgs / f"{i}.jpg", np.full((16, 16, 3), 40 * i, np.uint8))
+    for folder in (empty, jpgs):
+        rc, out, err = run_cli("verify", str(folder))
+        assert rc == 1 and "Traceback" not in err, (rc, out, err)
+        assert err.strip() == (f"lmgs-eval verify: error: {folder}: no result records there, so nothing was checked "
+                               "(give the results store, e.g. `lmgs-eval verify results`)")
+        assert "all inputs unchanged" not in out
+
+
+# ----------------------------------------------------------------------------- plans
+PLAN = '[[stage]]\nprotocols = ["self"]\nsubjects = ["astronaut-64px-2s"]\nmethods = ["lmgs"]\n'
+
+
+def test_a_plan_whose_cross_clip_is_missing(world):
+    tmp, res, snap = world
+    plan = tmp / "plan.toml"
+    plan.write_text('[[stage]]\nprotocols = ["cross"]\nsubjects = ["astronaut-64px-2s"]\nmethods = ["lmgs"]\n'
+                    'clips = ["gone.wav"]\n')
+    before = snap()
+    for extra in ([], ["--dry-run"]):
+        rc, out, err = run_cli("run", str(plan), "--results", str(res / "r"), *extra)
+        line = one_line_error(rc, out, err, "plan.toml: stage 1: clips:", "gone.wav: no such audio file")
+        assert str(tmp / "gone.wav") in line
+    assert snap() == before
+
+
+@pytest.mark.parametrize("flags, words", [
+    (["--max-parallel", "-3"], ["--max-parallel must be at least 1, got -3"]),
+    (["--address", "10.0.0.1:6379"], ["--address names a Ray cluster; it needs --executor ray"]),
+    (["--max-parallel", "2"], ["--max-parallel 2: the serial executor runs one at a time"]),
+    (["--executor", "ray", "--address", "banana"], ["--address banana: expected auto or HOST:PORT"]),
+])
+def test_a_dry_run_checks_the_executor_flags_as_the_run_does(world, flags, words):
+    tmp, res, snap = world
+    plan = tmp / "plan.toml"
+    plan.write_text(PLAN)
+    before = snap()
+    for extra in (["--dry-run"], []):
+        rc, out, err = run_cli("run", str(plan), "--results", str(res / "r"), *flags, *extra)
+        one_line_error(rc, out, err, *words)
+        assert out == ""
+    assert snap() == before
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_a_ray_address_with_no_cluster_is_refused_at_once(world):
+    import time
+
+    pytest.importorskip("ray")
+    tmp, res, snap = world
+    plan = tmp / "plan.toml"
+    plan.write_text(PLAN)
+    before = snap()
+    address = f"127.0.0.1:{_free_port()}"  # nothing listens there
+    t0 = time.perf_counter()
+    rc, out, err = run_cli("run", str(plan), "--results", str(res / "r"), "--executor", "ray", "--address", address)
+    one_line_error(rc, out, err, f"--address {address}: no Ray cluster there", "connection refused")
+    assert time.perf_counter() - t0 < 30
+    assert snap() == before
+
+
+# ----------------------------------------------------------------------------- argparse
+def test_argparse_errors_are_one_line(tmp_path, capsys):
+    from lmgs_eval.cli import main
+
+    for argv, want in (
+        (["run", "x.toml", "--executor", "banana"], "lmgs-eval run: error: argument --executor: invalid choice: 'banana'"),
+        (["self", "--seed", "x"], "lmgs-eval self: error: argument --seed: invalid int value: 'x'"),
+        (["ingest"], "lmgs-eval ingest: error: the following arguments are required: video"),
+        (["weights", "import-syncnet"], "lmgs-eval weights import-syncnet: error: the following arguments are required"),
+        (["nosuch"], "lmgs-eval: error: argument COMMAND: invalid choice: 'nosuch'"),
+    ):
+        with pytest.raises(SystemExit) as e:
+            main(argv)
+        out, err = capsys.readouterr()
+        assert e.value.code == 2 and out == ""
+        assert len(err.strip().splitlines()) == 1 and err.startswith(want), err
+    with pytest.raises(SystemExit) as e:  # --help still prints the usage, and exits 0
+        main(["run", "--help"])
+    out, err = capsys.readouterr()
+    assert e.value.code == 0 and out.startswith("usage: lmgs-eval run") and "--max-parallel" in out

@@ -27,7 +27,7 @@ def add_executor_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from lmgs_eval.plans import expand, load_plan, make_executor, run_plan
+    from lmgs_eval.plans import check_executor, expand, load_plan, make_executor, run_plan
     from lmgs_eval.plans.identity import Identities
 
     import dataclasses
@@ -36,6 +36,7 @@ def run(args: argparse.Namespace) -> int:
     if args.data_root:
         plan = dataclasses.replace(plan, data_root=args.data_root)
     results = args.results or plan.results or "results"
+    check_executor(args.executor, args.address, args.max_parallel)  # a dry run refuses what the run would
     if args.dry_run:
         ids = Identities(results, plan.data_root)
         for r in expand(plan):

@@ -82,22 +82,7 @@ def _check_records_dir(records_dir: Path, results: Path) -> None:
 
 
 def _check_out_dir(out: Path, flag: str) -> None:
-    """An output folder must be a folder this user can write, or one that can be made; checked before any
-    file is written (and nothing is made here: a run without records leaves no empty folder)."""
-    import os
+    """An output folder must be a folder this user can write, or one that can be made (:func:`lmgs_eval.paths.check_out_dir`)."""
+    from lmgs_eval.paths import check_out_dir
 
-    from lmgs_eval.errors import UserError
-
-    if out.exists():
-        if not out.is_dir():
-            raise UserError(f"{flag} {out}: exists and is not a folder")
-        if not os.access(out, os.W_OK | os.X_OK):
-            raise UserError(f"{flag} {out}: folder is not writable")
-        return
-    up = out.parent
-    while not up.exists() and up != up.parent:
-        up = up.parent
-    if not up.is_dir():
-        raise UserError(f"{flag} {out}: cannot create the folder ({up} is not a folder)")
-    if not os.access(up, os.W_OK | os.X_OK):
-        raise UserError(f"{flag} {out}: cannot create the folder ({up} is not writable)")
+    check_out_dir(out, flag)

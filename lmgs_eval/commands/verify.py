@@ -18,7 +18,8 @@ def run(args: argparse.Namespace) -> int:
     """Check each record's artefacts; print one line per changed or missing input.
 
     Returns:
-        0 when every artefact of every valid record hashes as recorded, 1 otherwise.
+        0 when every artefact of every valid record hashes as recorded, 1 otherwise (and when the
+        folder holds no record at all: nothing was checked).
         A record file that cannot be read (not JSON, truncated, of an unknown schema version,
         invalid) is named on stderr and makes the exit code 1: its inputs cannot be checked.
         A JSON file that is not a record at all (no ``schema_version``) is only a warning.
@@ -56,6 +57,10 @@ def run(args: argparse.Namespace) -> int:
     if unreadable:
         print(f"{len(unreadable)} record files could not be read, so their inputs were not checked")
     if bad or unreadable:
+        return 1
+    if not items:  # nothing was checked: no store, or the wrong folder
+        print(f"lmgs-eval verify: error: {root}: no result records there, so nothing was checked "
+              "(give the results store, e.g. `lmgs-eval verify results`)", file=sys.stderr)
         return 1
     print(f"{len(items)} records, {n_art} artefacts checked: all inputs unchanged")
     return 0

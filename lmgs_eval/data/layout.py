@@ -35,6 +35,9 @@ from lmgs_eval.errors import UserError
 SAMPLES_PER_FRAME = SAMPLE_RATE // FPS  # 640
 
 
+MIN_SPLIT_FRAMES = 2  # the fewest frames the first-10/11 split leaves a training and a test frame
+
+
 def split_point(n_frames: int) -> int:
     """Index of the first test frame: the field's ``int(n * 10 / 11)``."""
     return int(n_frames * 10 / 11)
@@ -241,6 +244,10 @@ def read_subject(root: str | Path, name: str | None = None, *, check_images: boo
     if not val_frames:
         cut = split_point(n)
         train_ids, test_ids = np.arange(cut), np.arange(cut, n)
+    if not len(train_ids) or not len(test_ids):
+        raise UserError(f"{root}: {n} frame{'s' if n != 1 else ''}, split {len(train_ids)} train / {len(test_ids)} test: "
+                        f"too few frames (a subject needs one to train on and one to test on: {MIN_SPLIT_FRAMES} or more "
+                        "under the first-10/11 split)")
 
     # Images: all present, one decodes, its size is the subject's size.
     gt_dir = root / "gt_imgs"

@@ -7,9 +7,9 @@ others and writes their records (:mod:`.driver`); ``make_executor("serial" | "ra
 """
 
 from lmgs_eval.plans.driver import Summary, run_plan
-from lmgs_eval.plans.executors import EXECUTORS, make_executor
+from lmgs_eval.plans.executors import EXECUTORS, check_executor, make_executor
 from lmgs_eval.plans.runs import Run, expand
 from lmgs_eval.plans.schema import Plan, Stage, load_plan, plan_from_dict
 
-__all__ = ["EXECUTORS", "Plan", "Run", "Stage", "Summary", "expand", "load_plan", "make_executor", "plan_from_dict",
-           "run_plan"]
+__all__ = ["EXECUTORS", "Plan", "Run", "Stage", "Summary", "check_executor", "expand", "load_plan", "make_executor",
+           "plan_from_dict", "run_plan"]

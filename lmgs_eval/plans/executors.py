@@ -62,11 +62,16 @@ class RayExecutor:
         self._owns = not ray.is_initialized()
         if self._owns:
             env = {k: os.environ[k] for k in FORWARDED_ENV if os.environ.get(k)}
+            if address is not None:
+                _reachable(address)
             try:
                 ray.init(address=address, include_dashboard=False, logging_level="ERROR", log_to_driver=False,
                          runtime_env={"env_vars": env} if env else None)
-            except ConnectionError as exc:
-                raise UserError(f"--address {address}: no Ray cluster there ({exc})") from None
+            except (ConnectionError, ValueError, RuntimeError) as exc:
+                why = str(exc).strip().splitlines()[0] if str(exc).strip() else exc.__class__.__name__
+                if address is None:
+                    raise UserError(f"--executor ray: Ray could not start or join an instance on this machine ({why})") from None
+                raise UserError(f"--address {address}: no Ray cluster there ({why})") from None
         cpus = int(ray.cluster_resources().get("CPU", 1))
         self.slots = max_parallel or cpus
         self._remote = ray.remote(_ray_task)
@@ -110,8 +115,9 @@ def _ray_task(run: Run, known: dict[str, str]) -> Outcome:
     return out
 
 
-def make_executor(name: str, address: str | None = None, max_parallel: int | None = None):
-    """An executor by name; ``--address`` and ``--max-parallel`` checked against it."""
+def check_executor(name: str, address: str | None = None, max_parallel: int | None = None) -> None:
+    """``--executor``, ``--address`` and ``--max-parallel`` checked against each other, with nothing started
+    (a dry run checks them as the run does)."""
     if max_parallel is not None and max_parallel < 1:
         raise UserError(f"--max-parallel must be at least 1, got {max_parallel}")
     if name == "serial":
@@ -119,7 +125,54 @@ def make_executor(name: str, address: str | None = None, max_parallel: int | Non
             raise UserError("--address names a Ray cluster; it needs --executor ray")
         if max_parallel not in (None, 1):
             raise UserError(f"--max-parallel {max_parallel}: the serial executor runs one at a time; use --executor ray")
+        return
+    if name != "ray":
+        raise UserError(f"--executor {name!r}: expected one of {', '.join(EXECUTORS)}")
+    if address is not None:
+        _host_port(address)
+
+
+def make_executor(name: str, address: str | None = None, max_parallel: int | None = None):
+    """An executor by name; ``--address`` and ``--max-parallel`` checked against it (:func:`check_executor`)."""
+    check_executor(name, address, max_parallel)
+    if name == "serial":
         return SerialExecutor()
-    if name == "ray":
-        return RayExecutor(address, max_parallel)
-    raise UserError(f"--executor {name!r}: expected one of {', '.join(EXECUTORS)}")
+    return RayExecutor(address, max_parallel)
+
+
+CONNECT_TIMEOUT_S = 10.0  # how long the cluster's address is given to answer before ray.init is tried
+
+
+def _host_port(address: str) -> tuple[str, int] | None:
+    """``(host, port)`` of a Ray address to probe; None for ``auto`` / ``local`` (Ray looks those up itself).
+
+    Raises:
+        UserError: the address is neither ``auto``, ``HOST:PORT`` nor ``ray://HOST:PORT``.
+    """
+    if address in ("auto", "local"):
+        return None
+    target = address[len("ray://"):] if address.startswith("ray://") else address
+    host, sep, port = target.rpartition(":")
+    host = host.strip("[]")  # an IPv6 address in brackets
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise UserError(f"--address {address}: expected auto or HOST:PORT (the address `ray start --head` prints, "
+                        "e.g. 10.0.0.1:6379)")
+    return host, int(port)
+
+
+def _reachable(address: str) -> None:
+    """Refuse an address where nothing answers, before ``ray.init``: Ray's own connection retries
+    last minutes on an address with no cluster behind it."""
+    import socket
+
+    hp = _host_port(address)
+    if hp is None:
+        return
+    try:
+        with socket.create_connection(hp, timeout=CONNECT_TIMEOUT_S):
+            pass
+    except OSError as exc:
+        why = (f"no answer within {CONNECT_TIMEOUT_S:g} s" if isinstance(exc, TimeoutError)
+               else (exc.strerror or exc.__class__.__name__).lower())
+        raise UserError(f"--address {address}: no Ray cluster there ({hp[0]}:{hp[1]}: {why}; "
+                        "start one with `ray start --head`)") from None

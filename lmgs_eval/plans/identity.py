@@ -64,7 +64,7 @@ class Identities:
             if run.method.startswith("external:"):
                 return []
             if run.clips:
-                names = [(Path(c).stem, str(c)) for c in run.clips]
+                names = _user_clip_names(run.clips)
             else:
                 from lmgs_eval.protocols.cross import bundled_cross_clips
 
@@ -132,3 +132,17 @@ class Identities:
         rec["status"] = {"state": "failed", "reason": reason[:500] or "failed"}
         store.write_record(self.results, rec)
         return rec
+
+
+def _user_clip_names(paths) -> list[tuple[str, str]]:
+    """``(clip, split)`` of each user audio file as the cross protocol names it: the file's stem and the
+    start of its sha256, and its absolute path (the same audio under two names is one clip; a file
+    that is not there makes no record)."""
+    out: dict[str, tuple[str, str]] = {}
+    for c in paths:
+        path = Path(c).resolve()
+        if not path.is_file():
+            continue
+        sha = store.sha256_file(path)
+        out.setdefault(sha, (f"{path.stem}-{sha[:12]}", str(path)))
+    return list(out.values())

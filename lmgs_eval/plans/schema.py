@@ -146,6 +146,10 @@ def _stage(d: dict, top: dict, top_set: dict, where: str, base: Path | None) -> 
             kw["gpus"] = 1  # a run told to use a GPU asks the scheduler for one
     overrides = {**top_set, **_overrides(d.get("set", {}), f"{where}: set")}
     clips = tuple(_path(c, base) for c in _names(d.get("clips", []), f"{where}: clips", empty=True))
+    for c in clips:  # a clip that is not there would leave its cross runs with nothing to drive them
+        if not Path(c).is_file():
+            raise UserError(f"{where}: clips: {c}: " + ("is a folder, not an audio file" if Path(c).is_dir()
+                                                         else "no such audio file"))
     conditions = _names(d.get("conditions", []), f"{where}: conditions", empty=True)
     for k in ("max_minutes", "long_seconds"):
         v = d.get(k, Stage.__dataclass_fields__[k].default)

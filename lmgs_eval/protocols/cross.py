@@ -93,10 +93,15 @@ def run_cross(cfg: RunConfig, audio_paths: list[str] | None = None) -> tuple[lis
     """Drive trained models with other audio; LSE per clip, and LMD where the clip has GT.
 
     Returns the records written and the per-file errors (the other clips still run).
+
+    Raises:
+        UserError: none of ``audio_paths`` can drive a model (the message joins the files' errors).
     """
     subject = find_subject(cfg.subject, cfg.data_root, progress=cfg.progress)
     if audio_paths:
         clips, errors = user_cross_clips(audio_paths)
+        if not clips:
+            raise UserError("; ".join(errors))
     else:
         clips, errors = bundled_cross_clips(subject), []
         if not clips:

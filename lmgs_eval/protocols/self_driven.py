@@ -32,6 +32,10 @@ def run_self(cfg: RunConfig) -> list[dict]:
     records = []
     # every method built before anything is scored: a bad --set or --preset stops the run here
     planned = [(build_method(cfg, name, subject), seed) for name in cfg.methods for seed in cfg.seeds]
+    # and renders made elsewhere read and checked against the test split: bad renders stop it here too
+    for method, _ in planned:
+        if getattr(method, "prerendered", False) and hasattr(method, "check"):
+            method.check(driving, gt.shape[1:3])
 
     # The paper's "Ground Truth" row: the real test video scored like any method.
     gt_info = MethodInfo("ground-truth", "Ground Truth", "ground-truth", "the test split's own frames and audio", config={}, config_hash="gt")

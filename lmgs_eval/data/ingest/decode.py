@@ -38,6 +38,10 @@ class VideoInfo:
         duration: seconds covered by the video stream.
         t0: presentation time of the first frame (seconds).
         has_audio: whether the file carries an audio track.
+        stated_duration: seconds of video the file's header states (the stream's duration, else its
+            frame count over its rate; None when it states neither): more than ``duration`` when
+            the file was cut short.
+        corrupt_frames: decoded frames the decoder marked as corrupt.
     """
 
     path: Path
@@ -52,6 +56,13 @@ class VideoInfo:
     duration: float
     t0: float
     has_audio: bool
+    stated_duration: float | None = None
+    corrupt_frames: int = 0
+
+    @property
+    def missing_seconds(self) -> float:
+        """Seconds of the stated video that did not decode (0 when the header states no duration)."""
+        return max(0.0, self.stated_duration - self.duration) if self.stated_duration else 0.0
 
     def to_json(self) -> dict:
         return {k: (str(v) if isinstance(v, Path) else v) for k, v in self.__dict__.items()}
@@ -87,8 +98,9 @@ def _rotation_of(frame, stream) -> int:
     return int(round(-float(rot) / 90.0)) % 4 * 90
 
 
-def _timed_frames(path: Path, max_side: int) -> Iterator[tuple[float, np.ndarray, int, float]]:
-    """Decoded frames as ``(time, rgb uint8, clockwise rotation, scale)`` in presentation order."""
+def _timed_frames(path: Path, max_side: int, counts: dict | None = None) -> Iterator[tuple[float, np.ndarray, int, float]]:
+    """Decoded frames as ``(time, rgb uint8, clockwise rotation, scale)`` in presentation order
+    (``counts["corrupt"]``, when given, counts the frames the decoder marked corrupt)."""
     import av
 
     c = _open(path)
@@ -100,6 +112,8 @@ def _timed_frames(path: Path, max_side: int) -> Iterator[tuple[float, np.ndarray
         k = 0
         for fr in c.decode(vs):
             t = float(fr.pts) * tb if fr.pts is not None else k * fallback
+            if counts is not None and getattr(fr, "is_corrupt", False):
+                counts["corrupt"] = counts.get("corrupt", 0) + 1
             rot = _rotation_of(fr, vs)
             w, h = fr.width, fr.height
             s = min(1.0, max_side / max(w, h))
@@ -125,9 +139,15 @@ def probe(path: str | Path, max_side: int = MAX_SIDE) -> VideoInfo:
     vs = c.streams.video[0]
     fps = float(vs.average_rate) if vs.average_rate else 0.0
     has_audio = bool(c.streams.audio)
+    stated = None
+    if vs.duration and vs.time_base:
+        stated = float(vs.duration * vs.time_base)
+    elif vs.frames and fps:
+        stated = vs.frames / fps
     c.close()
     times, first, rot, scale = [], None, 0, 1.0
-    for t, img, r, s in _timed_frames(path, max_side):
+    counts: dict = {}
+    for t, img, r, s in _timed_frames(path, max_side, counts):
         if first is None:
             first, rot, scale = img, r, s
         times.append(t)
@@ -140,7 +160,7 @@ def probe(path: str | Path, max_side: int = MAX_SIDE) -> VideoInfo:
     h, w = first.shape[:2]
     sw, sh = (h, w) if rot in (90, 270) else (w, h)
     return VideoInfo(path, w, h, int(round(sw / scale)), int(round(sh / scale)), fps or 1.0 / step, rot, scale, n,
-                     duration, float(times[0]), has_audio)
+                     duration, float(times[0]), has_audio, stated, int(counts.get("corrupt", 0)))
 
 
 def frames_25fps(info: VideoInfo, max_side: int = MAX_SIDE) -> Iterator[tuple[int, np.ndarray]]:

@@ -27,6 +27,9 @@ from lmgs_eval.errors import UserError
 
 INGEST_VERSION = "6"  # 2: depth / normal priors; 3: the zoom check (pose.scale in the manifest); 4: head label on the jaw line, neck continued behind the head in torso_imgs, poses refined by tracked texture; 5: depth / normal priors cover the whole head mask; 6: the person's holes only where background does not reach the edge, the person grown against the plate
 MIN_SECONDS = 10.0  # shorter clips are ingested with a warning: too little to train on
+MIN_FRAMES = 25  # fewer are refused: one second, which the first-10/11 split leaves 22 frames to train on and 3 to test
+CUT_SHORT_WARN = 2 / 25  # seconds of the stated video that may not decode (rounding of the header); more: a warning...
+CUT_SHORT_REFUSE = 0.1  # ...and above this share of the stated duration, a refusal: the file was cut short
 MIN_FACE_PX = 100  # jaw width in source pixels under which the face is flagged as small
 MOVING_SHARE = 0.02  # moving-camera flag: background residual above STATIC_LEVELS in more than this share...
 STATIC_LEVELS = 10.0  # ...of the sampled frames (grey levels, median over the background)
@@ -98,11 +101,14 @@ def ingest(video: str | Path, name: str | None = None, *, audio: str | Path | No
         UserError: a bad input (one line naming the file and what is wrong); nothing is left
             under the data root.
     """
-    from lmgs_eval.paths import data_root as _data_root
+    import os
+
+    from lmgs_eval.paths import check_out_dir, data_root as _data_root
 
     video = Path(video).expanduser()
-    name = name or video.stem
-    if not name or "/" in name or name.startswith("."):
+    if name is None:
+        name = video.stem
+    if not name or "/" in name or "\0" in name or name.startswith("."):
         raise UserError(f"--name {name!r}: must be a plain folder name")
     if not (64 <= cfg.size <= 2048):
         raise UserError(f"--size {cfg.size}: must be between 64 and 2048 pixels")
@@ -111,14 +117,23 @@ def ingest(video: str | Path, name: str | None = None, *, audio: str | Path | No
     if cfg.focal is not None and not cfg.focal > 0:
         raise UserError(f"--focal {cfg.focal}: must be positive")
     njobs = _jobs(jobs)
+    # Every input is checked before anything is made: a refused ingest leaves the data root as it was.
+    _check_file(video, "video")
+    if audio is not None:
+        _check_file(Path(audio).expanduser(), "audio")
+        audio = Path(audio).expanduser()
     root = _data_root(data_root)
+    flag = "--data-root" if data_root else ("$LMGS_DATA" if os.environ.get("LMGS_DATA") else "the data root")
+    check_out_dir(root, flag)
+    _check_name_length(name, root)
     final = root / name
     if final.exists() and not force:
         raise UserError(f"{final}: already exists (pass --force to replace it, or --name another)")
-    if not video.is_file():
-        raise UserError(f"{video}: video not found")
-    if audio is not None and not Path(audio).is_file():
-        raise UserError(f"{audio}: audio file not found")
+    info = decode.probe(video)
+    cut_short = check_decoded(info)
+    sound = decode.read_audio(video, audio, info)
+    check_length(video, audio, info, len(sound[0]))
+    made = _missing_parents(root)
     root.mkdir(parents=True, exist_ok=True)
     key = {"input_sha256": writer.sha256_file(video), "audio_sha256": writer.sha256_file(Path(audio)) if audio else None,
            "config": asdict(cfg), "ingest_version": INGEST_VERSION}
@@ -139,15 +154,93 @@ def ingest(video: str | Path, name: str | None = None, *, audio: str | Path | No
         writer.write_json(state, {"key": key, "done": [], "flags": {}, "log": [], "timings": {}})
     ctx = _Ctx(video, Path(audio) if audio else None, name, cfg, work, sub, progress, njobs, [], {}, {})
     try:
-        _run(ctx, key)
+        _run(ctx, key, info, sound, cut_short)
     except UserError:
         shutil.rmtree(work, ignore_errors=True)
+        for d in made:  # the folders this ingest made for the data root, if they hold nothing else
+            try:
+                d.rmdir()
+            except OSError:
+                break
         raise
     if final.exists():
         shutil.rmtree(final)
     sub.rename(final)
     shutil.rmtree(work, ignore_errors=True)
     return final
+
+
+def _check_file(path: Path, what: str) -> None:
+    if path.is_dir():
+        raise UserError(f"{path}: is a folder, not {'a video' if what == 'video' else 'an audio'} file")
+    if not path.is_file():
+        raise UserError(f"{path}: {what} {'not found' if what == 'video' else 'file not found'}")
+
+
+def _check_name_length(name: str, root: Path) -> None:
+    """The subject's folder and its work folder (``.<name>.ingest``) must be names the file system takes."""
+    import os
+
+    up = root
+    while not up.exists() and up != up.parent:
+        up = up.parent
+    try:
+        limit = os.pathconf(up, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        limit = 255
+    most = limit - len(".ingest") - 1
+    if len(os.fsencode(name)) > most:
+        raise UserError(f"--name {name[:24]}...: {len(os.fsencode(name))} bytes long; a subject name may have at most {most} "
+                        f"(the file system's limit for a folder name is {limit})")
+
+
+def _missing_parents(root: Path) -> list[Path]:
+    """``root`` and those of its parents that do not exist yet, deepest first."""
+    out = []
+    while not root.exists() and root != root.parent:
+        out.append(root)
+        root = root.parent
+    return out
+
+
+def check_decoded(info: decode.VideoInfo) -> str | None:
+    """Compare what decoded with what the file's header states: a file cut short by more than
+    :data:`CUT_SHORT_REFUSE` of its video, or with as many corrupt frames, is refused; a smaller loss
+    is returned as a warning (the subject is made from what decodes).
+
+    Raises:
+        UserError: the file is cut short or corrupt beyond repair.
+    """
+    miss, stated, n = info.missing_seconds, info.stated_duration, int(round(info.duration * info.fps))
+    bad = info.corrupt_frames
+    if stated and miss > CUT_SHORT_REFUSE * stated:
+        raise UserError(f"{info.path}: the file is cut short: only {info.duration:.2f} s of the {stated:.2f} s of video its "
+                        f"header states can be decoded ({miss / stated:.0%} missing); copy or export it again")
+    if bad and bad > CUT_SHORT_REFUSE * max(n, 1):
+        raise UserError(f"{info.path}: {bad} of {n} frames decode as corrupt; copy or export it again")
+    said = []
+    if miss > CUT_SHORT_WARN:
+        said.append(f"the file is cut short: the last {miss:.2f} s of the {stated:.2f} s of video its header states "
+                    "cannot be decoded")
+    if bad:
+        said.append(f"{bad} frames decode as corrupt")
+    return f"{info.path}: {'; '.join(said)}; the subject is made from what decodes" if said else None
+
+
+def check_length(video: Path, audio: Path | None, info: decode.VideoInfo, n_samples: int) -> None:
+    """The video and the audio must each cover :data:`MIN_FRAMES` frames.
+
+    Raises:
+        UserError: naming the file that is too short and its length.
+    """
+    need = f"at least {MIN_FRAMES} frames at 25 fps, {MIN_FRAMES / 25:g} s"
+    if info.n_frames < MIN_FRAMES:
+        raise UserError(f"{video}: {info.n_frames} frame{'s' if info.n_frames != 1 else ''} at 25 fps ({info.duration:.2f} s): "
+                        f"too few to make a subject ({need})")
+    if n_samples // 640 < MIN_FRAMES:
+        which = f"{audio}: the audio is" if audio is not None else f"{video}: its audio track is"
+        raise UserError(f"{which} too short ({n_samples / 16000:.2f} s) to make a subject ({need}; "
+                        f"the video has {info.duration:.2f} s)")
 
 
 def _jobs(jobs: int | None) -> int:
@@ -174,7 +267,7 @@ def _done(ctx: _Ctx, stage: str, **extra) -> None:
     atomic_write_text(ctx.work / "state.json", json.dumps(st, indent=1, sort_keys=True))
 
 
-def _run(ctx: _Ctx, key: dict) -> None:
+def _run(ctx: _Ctx, key: dict, info: decode.VideoInfo, sound: tuple, cut_short: str | None) -> None:
     from lmgs_eval.data.ingest import stages
 
     st = _load_state(ctx)
@@ -182,8 +275,9 @@ def _run(ctx: _Ctx, key: dict) -> None:
     ctx.log.extend(st.get("log", []))
     ctx.timings.update(st.get("timings", {}))
     done = set(st["done"])
-    info = decode.probe(ctx.video)
-    audio, notes, source = decode.read_audio(ctx.video, ctx.audio, info)
+    audio, notes, source = sound
+    if cut_short and "track" not in done:
+        ctx.warn("cut_short", cut_short)
     ctx.log += notes
     if "track" not in done:
         stages.track(ctx, info)
@@ -219,6 +313,9 @@ def check_frames(ctx: _Ctx, info: decode.VideoInfo, n_audio_frames: int, first: 
         ctx.warn("audio_shorter", f"the audio is {short} frames ({short / 25:.2f} s) shorter than the video; the last {short} frames are dropped")
         last = n_audio_frames
     kept = last - first - sum(1 for k in left_out if k < last)
+    if kept < MIN_FRAMES:
+        raise UserError(f"{ctx.video}: {kept} frame{'s' if kept != 1 else ''} with a face ({kept / 25:.2f} s): too few to make "
+                        f"a subject (at least {MIN_FRAMES} frames at 25 fps, {MIN_FRAMES / 25:g} s)")
     if kept / 25 < MIN_SECONDS:
         ctx.warn("short_clip", f"{ctx.video}: {kept / 25:.1f} s with a face: too short to train a model well (at least {MIN_SECONDS:g} s; the field uses 3-5 min)")
     return first, last

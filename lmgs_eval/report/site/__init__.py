@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from lmgs_eval.errors import UserError
-from lmgs_eval.paths import atomic_dir
+from lmgs_eval.paths import atomic_dir, check_out_dir
 from lmgs_eval.report.site.model import (CURVE_METRICS, FILTER_FAMILIES, MARKS_LEGEND, WatchRun, curve_meta, curves, leaderboards,
                                          make_runs, watch_groups)
 from lmgs_eval.results import iter_store, resolve_artefact
@@ -74,12 +74,16 @@ def build_site(store: str | os.PathLike, out: str | os.PathLike, previews: bool 
         The index page's path and one warning per record file that was skipped.
 
     Raises:
-        UserError: ``store`` is not a folder or holds no valid record; ``out`` is a file, the store or
-            above it, or a folder that is neither empty nor an earlier report (it is replaced whole).
+        UserError: ``store`` is not a folder or holds no valid record; ``renders`` is not a folder;
+            ``out`` is a file, the store or above it, a folder that is neither empty nor an earlier
+            report (it is replaced whole), or one that cannot be made or written.
     """
     store, out = Path(store), Path(out)
     if not store.is_dir():
         raise UserError(f"--results {store}: not a folder of result records")
+    if renders is not None and not Path(renders).is_dir():
+        raise UserError(f"--renders {renders}: " + ("is a file, not the folder the records' renders are under"
+                                                    if Path(renders).exists() else "no such folder"))
     items, warnings = iter_store(store)
     if not items:
         raise UserError(f"--results {store}: no valid result record in it (run `lmgs-eval self` first)")
@@ -151,6 +155,7 @@ def _check_out(out: Path) -> None:
     if out.is_dir() and not (out / MARKER).is_file() and any(out.iterdir()):
         raise UserError(f"--out {out}: folder exists and is not a report made by `lmgs-eval report` (it would be "
                         "replaced whole); choose a new folder")
+    check_out_dir(out, "--out")
 
 
 def _protocol_counts(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
