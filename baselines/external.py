@@ -33,8 +33,9 @@ def read_frames(path: Path) -> np.ndarray:
     path = Path(path)
     if path.is_dir():
         return np.stack([io.read_rgb_u8(p) for p in list_frames(path)])
-    frames, _, _, _ = io.read_video(path)
-    return io.to_u8(frames)
+    from lmgs_eval.data.frames import FrameFile
+
+    return FrameFile(path).read()  # decoded to uint8 frame by frame (no float copy of the clip)
 
 
 def read_sidecar(path: Path) -> dict:
@@ -74,12 +75,27 @@ class ExternalRenders:
         if not self.path.exists():
             raise InputError(f"{self.path}: renders not found")
         self.sidecar = read_sidecar(self.path)
+        self._frames: np.ndarray | None = None  # read once, by check() or the first render()
 
     def fit(self, clip, *, seed: int, workdir: Path, progress: bool = True) -> None:
         """Nothing to train: the renders exist already."""
 
+    def check(self, driving, size: tuple[int, int] | None = None) -> None:
+        """Read the renders and check them against the protocol's clip (``size``: its frames' height and
+        width), so that a protocol refuses bad renders before it writes any record.
+
+        Raises:
+            InputError: the renders cannot be read, or their number or size is not the clip's.
+        """
+        frames = self.render(driving)
+        if size is not None and tuple(frames.shape[1:3]) != tuple(size):
+            raise InputError(f"{self.path}: frames of {frames.shape[2]}x{frames.shape[1]} px, but the protocol's clip is "
+                             f"{size[1]}x{size[0]} px (same split, same frames expected)")
+
     def render(self, driving) -> np.ndarray:
-        frames = read_frames(self.path)
+        if self._frames is None:
+            self._frames = read_frames(self.path)
+        frames = self._frames
         n = driving.n_frames
         if len(frames) != n:
             raise InputError(f"{self.path}: {len(frames)} frames, but the protocol's clip has {n} (same split, same frames expected)")

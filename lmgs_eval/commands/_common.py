@@ -102,6 +102,15 @@ def print_rows(records: list[dict]) -> None:
     if any(trained_busy(r.get("cost") or {}) for r in records):
         print(f"  {BUSY} train s: trained while other processes took more than {BUSY_SHARE:.0%} of the host's CPU "
               "(cost.train_others_cpu_share): a quiet host trains faster")
+    # a metric that could not be computed on a clip: n/a in the table, its reason here (lse_d/lse_c/av_offset once)
+    for r in records:
+        seen = set()
+        for k, v in r["metrics"].items():
+            why = next((f[len("unavailable: "):] for f in v.get("flags") or [] if f.startswith("unavailable: ")), None)
+            name = "lse" if k in ("lse_d", "lse_c", "av_offset") else k
+            if why is not None and name not in seen:
+                seen.add(name)
+                print(f"  {r['method']['display_name']}/{r['protocol']['clip']} seed {r['seed']}: {name} unavailable: {why}")
     backends = sorted({f"{k}: {v['backend']}" + (f" (stand-in: {v['standin']})" if v.get("standin") else "")
                        for r in records for k, v in r["metrics"].items() if k in ("lpips", "lpips_custom", "lse_d", "lmd")})
     for b in backends:

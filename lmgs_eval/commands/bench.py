@@ -22,6 +22,7 @@ TARGETS: dict[str, str] = {
     "ingest": "lmgs_eval.data.ingest.bench",
     "stripped": "lmgs_eval.commands._bench_stripped",
     "ingested": "lmgs_eval.commands._bench_ingested",
+    "score-memory": "lmgs_eval.commands._bench_score_memory",
 }
 
 

@@ -18,7 +18,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                                      "whose sha256 does not start with 7be5be79 scores as lpips-alex-custom)")
     p.add_argument("--lpips", choices=["lpips-alex", "stlpips-alex"], help="force one LPIPS network")
     p.add_argument("--landmarks", default="dlib", choices=["dlib", "fan"], help="LMD landmark backend")
-    p.add_argument("--metrics", help="comma-separated subset: psnr,ssim,lpips,lmd,lse")
+    p.add_argument("--metrics", help="comma-separated subset: psnr,ssim,lpips,lmd,lse (one that cannot be computed, "
+                                     "e.g. lse on a video without audio, is reported unavailable with its reason and "
+                                     "the others are scored; when none asked can be: one error line, exit code 2)")
+    p.epilog = ("A metric that cannot be computed on these inputs (LSE without audio or without a face, LMD without "
+                "a face) is reported as unavailable, with its reason, and the other metrics are scored. When no "
+                "metric asked for can be computed (e.g. --metrics lse on a video without audio), score prints one "
+                "error line and exits with code 2. The clips are read a few frames at a time, never held whole.")
     p.add_argument("--reference", action="store_true",
                    help="the pred is real footage known to be in sync (ground truth): LSE's self-check also "
                         "requires the AV offset to be 0 +- 1")
@@ -32,12 +38,13 @@ def run(args: argparse.Namespace) -> int:
 
     from lmgs_eval.commands._sync import apply, print_untrusted, untrusted
     from lmgs_eval.metrics.lpips import custom_trunk_line
-    from lmgs_eval.metrics.suite import format_record, score
+    from lmgs_eval.metrics.suite import format_record, require_scored, score
 
     apply(args)
     rec = score(args.pred, args.gt, args.audio, truncate=args.truncate, alexnet=args.alexnet, lpips=args.lpips,
                 landmarks=args.landmarks, metrics=args.metrics.split(",") if args.metrics else None,
                 reference=args.reference)
+    require_scored(rec["results"], str(args.pred))
     custom = rec["results"].get("lpips-alex-custom")
     if custom:
         trunk = custom["spec"]["weights_files"]["alexnet"]

@@ -14,7 +14,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("video", help="a video with its own audio track, in sync (25 fps)")
     p.add_argument("--audio", help="the clip's audio, when the video has no track")
-    p.add_argument("--other-audio", help="other speech (any wav): the clip's LSE-C must stay clearly above it")
+    p.add_argument("--other-audio", help="other speech (any wav, looped when shorter than the clip; at least 2 s or the "
+                                         "clip's length): the clip's LSE-C must stay clearly above it")
+    p.epilog = ("LSE is all sync-check measures: when it cannot be computed (no face, no or too little audio, no "
+                "scorer) that is one error line and exit code 2.")
     p.add_argument("--json", action="store_true", help="print the figures as JSON")
     add_sync_argument(p)
 
@@ -23,28 +26,31 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from lmgs_eval.commands._sync import apply
-    from lmgs_eval.data.io import load_audio, to_mono_16k
+    from lmgs_eval.data.io import load_audio
     from lmgs_eval.errors import UserError
-    from lmgs_eval.metrics.suite import load_frames
-    from lmgs_eval.metrics.sync_probe import probe
+    from lmgs_eval.data.frames import FrameFile
+    from lmgs_eval.metrics.suite import clip_audio
+    from lmgs_eval.metrics.sync import FaceClip
+    from lmgs_eval.metrics.sync_probe import check_other, probe
 
     apply(args)
-    frames, fps, audio, sr, _ = load_frames(args.video)
-    if fps is not None and abs(fps - 25.0) > 0.01:
-        raise UserError(f"{args.video}: {fps:g} fps; the sync scorers read 25 fps")
-    if args.audio:
-        a16, _ = load_audio(Path(args.audio))
-    elif audio is not None:
-        a16, _ = to_mono_16k(audio, sr, f"{args.video} audio track")
-    else:
+    src = FrameFile(args.video)  # frames are read as the scorer needs them, never held whole
+    if src.fps is not None and abs(src.fps - 25.0) > 0.01:
+        raise UserError(f"{args.video}: {src.fps:g} fps; the sync scorers read 25 fps")
+    if args.audio is None and src.audio is None:
         raise UserError(f"{args.video}: no audio track; give --audio")
-    other = load_audio(Path(args.other_audio))[0] if args.other_audio else None
-    out = probe(frames, a16, other)
+    a16, reason, _ = clip_audio(args.audio, src)
+    if a16 is None:
+        raise UserError(reason)
+    other = None
+    if args.other_audio:
+        other = load_audio(Path(args.other_audio))[0]
+        check_other(other, len(a16), f"--other-audio {args.other_audio}")
+    out = probe(FaceClip(src), a16, other)
+    if not out["available"]:
+        raise UserError(f"{args.video}: LSE unavailable: {out['reason']}")
     if args.json:
         print(json.dumps(out, indent=2, default=str))
-        return 0
-    if not out["available"]:
-        print(f"LSE unavailable: {out['reason']}")
         return 0
     o = out["own"]
     print(f"scorer: {out['backend']}")

@@ -175,6 +175,8 @@ def read_wav(path: Path) -> tuple[np.ndarray, int]:
             raw = w.readframes(n)
     except (wave.Error, EOFError):
         return _read_audio_av(path)
+    if n == 0 or not raw:
+        raise UserError(f"{path}: the WAV holds no samples (a header only)")
     if width == 2:
         x = np.frombuffer(raw, "<i2").astype(np.float32) / 32768.0
     elif width == 4:

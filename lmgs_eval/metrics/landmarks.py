@@ -32,6 +32,7 @@ from lmgs_eval.paths import atomic_write_bytes, cache_root
 
 MOUTH = slice(48, 68)
 EYE_OUTER = (36, 45)
+FALLBACK_SIDE = 640  # the upsampled whole-frame search runs on at most this side (a 1080x1920 frame upsampled is 8 Mpx)
 
 LMD_SPEC = MetricSpec(
     name="lmd",
@@ -125,9 +126,14 @@ class DlibBackend:
     pixels every ``redetect`` frames; in between, the face is tracked by re-detecting only
     inside a window of twice the previous box, scaled so the face is about 100 px (a few
     ms; a smaller face is upscaled to that size). If the local search finds no face, the whole frame is searched again; if that
-    fails too (after one more try at full resolution with 1x upsampling) the frame has no
+    fails too (after one more try with 1x upsampling, on the frame at full resolution or, for a
+    frame larger than :data:`FALLBACK_SIDE`, on a copy downscaled to that side) the frame has no
     landmarks: NaN, counted by the metric, never filled in. With ``redetect=1`` every
     frame is detected independently on the whole frame.
+
+    Frames are float RGB in [0, 1] or uint8 RGB (the same landmarks: the detector reads uint8).
+    :meth:`tracker` follows a clip given a chunk at a time, with the result of one call on the
+    whole clip.
     """
 
     name = "dlib"
@@ -145,7 +151,10 @@ class DlibBackend:
         self.detect_side = int(detect_side)
         # local100: faces smaller than 100 px are upscaled to 100 px for local re-detection (was
         # dlib's 2x pyramid upsampling, 4x the pixels); faces >= 100 px are found exactly as before
-        self.version = f"dlib-{dlib.__version__}-hog+shape68(redetect={self.redetect},side={self.detect_side},local100)"
+        # fallback640: the upsampled whole-frame search of a frame larger than 640 px runs on a copy at 640 px (was the
+        # full frame); frames up to 640 px are searched exactly as before
+        self.version = (f"dlib-{dlib.__version__}-hog+shape68(redetect={self.redetect},side={self.detect_side},local100,"
+                        "fallback640)")
 
     def detect(self, u8: np.ndarray):
         """The largest face box in an RGB uint8 frame, or None."""
@@ -160,8 +169,14 @@ class DlibBackend:
         else:
             dets = self.detector(u8, 0)
         if len(dets) == 0:
-            s = 1.0
-            dets = self.detector(u8, 1)
+            s = min(1.0, FALLBACK_SIDE / max(h, w))
+            if s < 1.0:
+                import cv2
+
+                mid = cv2.resize(u8, (max(1, round(w * s)), max(1, round(h * s))), interpolation=cv2.INTER_AREA)
+                dets = self.detector(mid, 1)
+            else:
+                dets = self.detector(u8, 1)
             if len(dets) == 0:
                 return None
         d = max(dets, key=lambda r: r.width() * r.height())
@@ -197,22 +212,36 @@ class DlibBackend:
                               int(round(d.right() / s + x0)), int(round(d.bottom() / s + y0)))
 
     def landmarks(self, frames: np.ndarray) -> np.ndarray:
-        frames = check_frames(frames, "frames")
-        out = np.full((frames.shape[0], 68, 2), np.nan)
-        box, age = None, 0
-        for t in range(frames.shape[0]):
-            u8 = np.ascontiguousarray(to_u8(frames[t]))
-            nb = None
-            if box is not None and age < self.redetect:
-                nb = self.detect_local(u8, box)  # tracking: look for the face where it was
-            if nb is None:
-                nb, age = self.detect(u8), 0  # whole-frame (downscaled) detection
-            box = nb
-            if box is None:
-                continue  # no face: NaN, counted by the metric, never filled in
-            out[t] = self._shape(u8, box)
-            age += 1
-        return out
+        """``[T, 68, 2]`` of ``[T, H, W, 3]`` frames (float in [0, 1] or uint8), NaN where no face."""
+        if np.asarray(frames).dtype != np.uint8:
+            frames = check_frames(frames, "frames")
+        return self.tracker()(frames)
+
+    def tracker(self):
+        """A function of successive chunks of one clip (``[k, H, W, 3]`` arrays, or an iterable of frames)
+        returning each chunk's ``[k, 68, 2]`` landmarks; the track carries over from one chunk to the next."""
+        state = {"box": None, "age": 0}
+
+        def feed(frames) -> np.ndarray:
+            out = []
+            for frame in frames:
+                u8 = np.ascontiguousarray(to_u8(frame))
+                box, age = state["box"], state["age"]
+                nb = None
+                if box is not None and age < self.redetect:
+                    nb = self.detect_local(u8, box)  # tracking: look for the face where it was
+                if nb is None:
+                    nb, age = self.detect(u8), 0  # whole-frame (downscaled) detection
+                box = nb
+                lm = np.full((68, 2), np.nan)
+                if box is not None:  # no face: NaN, counted by the metric, never filled in
+                    lm = self._shape(u8, box)
+                    age += 1
+                state["box"], state["age"] = box, age
+                out.append(lm)
+            return np.stack(out) if out else np.full((0, 68, 2), np.nan)
+
+        return feed
 
 
 class GivenBackend:
@@ -254,7 +283,8 @@ class FanBackend:
         self.fa = face_alignment.FaceAlignment(lt, device=dev)
 
     def landmarks(self, frames: np.ndarray) -> np.ndarray:
-        frames = check_frames(frames, "frames")
+        if np.asarray(frames).dtype != np.uint8:
+            frames = check_frames(frames, "frames")
         out = np.full((frames.shape[0], 68, 2), np.nan)
         for t in range(frames.shape[0]):
             res = self.fa.get_landmarks_from_image(to_u8(frames[t]))
@@ -277,6 +307,12 @@ def create_backend(name: str = "dlib", **kw) -> LandmarkBackend:
     if name == "fan":
         return FanBackend(**kw)
     raise UserError(f"unknown landmark backend {name!r} (dlib, fan; 'given' takes arrays)")
+
+
+def landmark_stream(backend: LandmarkBackend):
+    """A function of successive chunks of one clip returning their landmarks: the backend's
+    :meth:`DlibBackend.tracker` (its track carried over), else ``backend.landmarks`` chunk by chunk."""
+    return backend.tracker() if hasattr(backend, "tracker") else backend.landmarks
 
 
 def frames_digest(frames: np.ndarray) -> str:

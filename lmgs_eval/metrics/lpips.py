@@ -363,7 +363,10 @@ class LPIPS:
         self.cache_note = ""
 
     def features(self, x: np.ndarray) -> list[np.ndarray]:
-        """Normalised features of ``[N, H, W, 3]`` float frames in [0, 1]: five ``[N, C, h, w]`` float32 arrays."""
+        """Normalised features of ``[N, H, W, 3]`` frames (float in [0, 1], or uint8 converted here): five
+        ``[N, C, h, w]`` float32 arrays."""
+        if x.dtype == np.uint8:
+            x = x.astype(np.float32) / 255.0
         x = np.ascontiguousarray(x.transpose(0, 3, 1, 2), np.float32)
         if self.backend.session is not None:
             return self.backend.session.run(None, {"x": x})
@@ -380,7 +383,8 @@ class LPIPS:
         return total
 
     def distances(self, pred: np.ndarray, gt: np.ndarray, gt_key: str | None = None, same: bool = False) -> np.ndarray:
-        """Per-frame distances of ``[T, H, W, 3]`` float frames in [0, 1].
+        """Per-frame distances of ``[T, H, W, 3]`` frames: float in [0, 1], or both uint8 (converted a batch at a
+        time, the same numbers as dividing the whole clips by 255 first).
 
         Args:
             gt_key: a digest of ``gt`` (content, not identity): its features are kept for the next call with the
@@ -388,7 +392,11 @@ class LPIPS:
             same: ``pred`` is ``gt`` (the ground truth scored as a method): distances are 0 and only the
                 ground truth's features are computed (to fill the cache).
         """
-        pred, gt = check_pair(pred, gt)
+        if pred.dtype == np.uint8 and gt.dtype == np.uint8:
+            if pred.ndim != 4 or pred.shape[-1] != 3 or pred.shape != gt.shape:
+                raise UserError(f"pred and gt must be [T, H, W, 3] of one shape: {tuple(pred.shape)} vs {tuple(gt.shape)}")
+        else:
+            pred, gt = check_pair(pred, gt)
         t, h, w, _ = pred.shape
         if h < MIN_SIDE or w < MIN_SIDE:
             raise UserError(f"{self.spec.name}: frames must be at least {MIN_SIDE}x{MIN_SIDE}, got {h}x{w}")

@@ -14,7 +14,8 @@ from typing import Any
 import numpy as np
 
 from lmgs_eval.errors import UserError
-from lmgs_eval.metrics.base import MetricResult
+from lmgs_eval.metrics.base import MetricResult, merge_stats
+from lmgs_eval.data.frames import CHUNK
 from lmgs_eval.metrics.landmarks import frames_digest
 from lmgs_eval.metrics.lpips import ALEX_NAMES, find_alexnet
 from lmgs_eval.metrics.registry import create_metric
@@ -62,7 +63,7 @@ class MetricSuite:
         return self._metrics[name]
 
     def paired(self, name: str, pred: np.ndarray, gt: np.ndarray) -> MetricResult:
-        """One paired metric of float frames in [0, 1] (its result's ``spec.name`` may differ from ``name``:
+        """One paired metric of float frames in [0, 1] (or uint8 for LPIPS and LMD; its result's ``spec.name`` may differ from ``name``:
         ``lpips-alex`` scores as ``lpips-alex-custom`` with a trunk that is not torchvision's)."""
         m = self.metric(name)
         return m.compute(m.update(pred, gt))
@@ -86,13 +87,11 @@ class MetricSuite:
         clock = time.perf_counter
         self.timings = {}
         t0 = clock()
-        pf = pred.astype(np.float32) / 255.0
         out = {}
         pred_lms = None
         if gt is not None and (reference or lmd):
-            gf = gt.astype(np.float32) / 255.0
-            if gf.shape != pf.shape:
-                raise UserError(f"rendered frames {pf.shape} and ground truth {gf.shape} differ")
+            if gt.shape != pred.shape:
+                raise UserError(f"rendered frames {tuple(pred.shape)} and ground truth {tuple(gt.shape)} differ")
             gt_key = frames_digest(gt)
             same = pred is gt  # the ground-truth row: its side is computed once
             self.timings["convert+hash"] = clock() - t0
@@ -100,25 +99,30 @@ class MetricSuite:
             for name in names:
                 t = clock()
                 m = self.metric(name)
-                if name == self.lpips_name:
-                    r = m.compute(m.update(pf, gf, gt_key=gt_key, same=same))
+                if name == self.lpips_name:  # uint8 frames, converted a batch at a time
+                    r = m.compute(m.update(pred, gt, gt_key=gt_key, same=same))
                     if m.cache_note:
                         r.notes.append(m.cache_note)
                 else:
-                    r = m.compute(m.update(pf, gf))
+                    r = m.compute(merge_stats(m.update(_unit(pred[s:s + CHUNK]), _unit(gt[s:s + CHUNK]))
+                                              for s in range(0, len(pred), CHUNK)))
                 out[r.spec.name] = r  # an official trunk's result is lpips-alex, another's lpips-alex-custom
                 self.timings[r.spec.name] = clock() - t
             if lmd:
                 t = clock()
                 m = self.metric("lmd")
-                stats = m.update(pf, gf, same=same, gt_key=gt_key)
+                stats = m.update(pred, gt, same=same, gt_key=gt_key)  # the tracker reads uint8 frames as they are
                 out["lmd"] = m.compute(stats)
                 pred_lms = stats["pred_lms"]
                 self.timings["lmd"] = clock() - t
         t = clock()
-        out["lse"] = self.lse(pf, audio16k, audio_reason="" if audio16k is not None else "no audio", in_sync=in_sync,
+        out["lse"] = self.lse(pred, audio16k, audio_reason="" if audio16k is not None else "no audio", in_sync=in_sync,
                               lms=pred_lms)
         self.timings["lse"] = clock() - t
         self.timings["total"] = clock() - t0
         return out
 
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    """uint8 frames as float32 in [0, 1] (a chunk at a time: the suite never holds a float copy of a clip)."""
+    return x.astype(np.float32) / 255.0

@@ -101,3 +101,22 @@ def load_torch_state(path: Path, what: str) -> dict:
     if not isinstance(sd, dict) or not all(isinstance(v, torch.Tensor) for v in sd.values()):
         raise UserError(f"{path}: {what} is not a state dict of tensors")
     return sd
+
+
+def nonfinite_weights(path: Path) -> list[str]:
+    """Names of the float weights (initializers and constants) of an ONNX graph that hold NaN or Inf."""
+    import numpy as np
+    import onnx
+    from onnx import numpy_helper
+
+    model = onnx.load(str(path))
+    tensors = [(t.name, t) for t in model.graph.initializer]
+    for node in model.graph.node:
+        if node.op_type == "Constant":
+            tensors += [(node.output[0], a.t) for a in node.attribute if a.name == "value"]
+    bad = []
+    for name, t in tensors:
+        a = numpy_helper.to_array(t)
+        if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
+            bad.append(name)
+    return bad

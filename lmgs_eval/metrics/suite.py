@@ -8,12 +8,14 @@ from pathlib import Path
 
 import numpy as np
 
-from lmgs_eval.data.io import list_frames, load_audio, read_rgb, read_video, to_mono_16k
+from lmgs_eval.data.io import load_audio, to_mono_16k
 from lmgs_eval.errors import UserError
-from lmgs_eval.metrics.base import align_lengths, check_frames
+from lmgs_eval.metrics.base import align_lengths, merge_stats
+from lmgs_eval.data.frames import FrameFile, chunk_for
+from lmgs_eval.metrics.landmarks import landmark_stream
 from lmgs_eval.metrics.lpips import ALEX_NAMES, find_alexnet
 from lmgs_eval.metrics.registry import create_metric
-from lmgs_eval.metrics.sync import lse
+from lmgs_eval.metrics.sync import MIN_SAMPLES, FaceClip, lse
 
 RECORD_SCHEMA = "lmgs-eval/score/1"
 
@@ -25,18 +27,44 @@ REFERENCE_METRICS = ("psnr", "ssim", "lpips", "lmd")
 def load_frames(path: str | Path) -> tuple[np.ndarray, float | None, np.ndarray | None, int | None, list[str]]:
     """Frames of a video file or a folder of images (in frame order, no gap: :func:`lmgs_eval.data.io.list_frames`).
 
-    Returns frames ``[T, H, W, 3]`` float32 [0, 1], fps (None for a folder), audio, sample rate, notes.
+    Returns frames ``[T, H, W, 3]`` uint8, fps (None for a folder), audio, sample rate, notes. The
+    whole clip is held: :func:`score` reads its clips through :class:`~lmgs_eval.data.frames.FrameFile`
+    instead, a frame at a time.
     """
-    path = Path(path)
-    if path.is_dir():
-        files = list_frames(path)
-        frames = [read_rgb(f) for f in files]
-        shapes = {f.shape for f in frames}
-        if len(shapes) != 1:
-            raise UserError(f"{path}: images differ in size {sorted(shapes)}")
-        return np.stack(frames), None, None, None, [f"{path}: {len(files)} images, sorted by number in the name"]
-    frames, fps, audio, sr = read_video(path)
-    return frames, fps, audio, sr, []
+    src = FrameFile(path)
+    return src.read(), src.fps, src.audio, src.sr, list(src.notes)
+
+
+def clip_audio(audio: str | Path | None, src: FrameFile, what: str = "--audio") -> tuple[np.ndarray | None, str, list[str]]:
+    """16 kHz mono audio for LSE: the file ``audio``, else the video's own track; ``(audio, reason, notes)``.
+
+    ``audio`` is None with a reason (naming the file) when there is none or it is too short for one
+    LSE window.
+    """
+    if audio is not None:
+        a16, notes = load_audio(Path(audio))
+        name = f"{what} {audio}"
+    elif src.audio is not None:
+        a16, notes = to_mono_16k(src.audio, src.sr, f"{src.path} audio track")
+        name = f"{src.path} audio track"
+    else:
+        return None, f"{src.path} has no audio track and --audio was not given", []
+    if len(a16) < MIN_SAMPLES:
+        return None, (f"{name}: {len(a16) / 16000:.2f} s of audio ({len(a16)} samples at 16 kHz); LSE needs at least "
+                      f"{MIN_SAMPLES / 16000:.2f} s ({MIN_SAMPLES} samples: 6 frames at 25 fps)"), notes
+    return a16, "", notes
+
+
+def require_scored(results: dict, what: str) -> None:
+    """The rule of every scoring command: a metric that cannot be computed is reported as unavailable with its
+    reason while the others are scored; when no metric asked for could be computed, that is an error.
+
+    ``results``: ``{name: MetricResult.to_dict()}``. Raises :class:`UserError` (one line naming ``what``
+    and each reason) when every one is unavailable.
+    """
+    if results and not any(r["available"] for r in results.values()):
+        why = "; ".join(f"{name} unavailable: {r.get('reason', '')}" for name, r in results.items())
+        raise UserError(f"{what}: nothing could be scored: {why}")
 
 
 def git_hash() -> str | None:
@@ -73,48 +101,66 @@ def score(pred: str | Path, gt: str | Path | None = None, audio: str | Path | No
     needs_gt = sorted(want & set(REFERENCE_METRICS), key=METRIC_NAMES.index)
     if gt is None and metrics and needs_gt:
         raise UserError(f"--metrics {','.join(needs_gt)}: compares with a reference; pass --gt VIDEO_OR_FOLDER")
-    p_frames, fps, p_audio, p_sr, notes = load_frames(pred)
-    check_frames(p_frames, str(pred))
+    src = FrameFile(pred)
+    notes = list(src.notes)
+    fps = src.fps
     flags: list[str] = []
     results = {}
     if fps is None:
         fps = 25.0
         notes.append("pred is a frame folder: 25 fps assumed")
+    pred_lms = None
     if gt is not None:
-        g_frames, _, _, _, gnotes = load_frames(gt)
-        notes += gnotes
-        check_frames(g_frames, str(gt))
-        n, tflags = align_lengths(p_frames.shape[0], g_frames.shape[0], truncate)
+        gsrc = FrameFile(gt)
+        notes += gsrc.notes
+        if (src.height, src.width) != (gsrc.height, gsrc.width):
+            raise UserError(f"{pred} and {gt}: frame sizes differ {(src.height, src.width)} vs {(gsrc.height, gsrc.width)}")
+        n, tflags = align_lengths(src.count(), gsrc.count(), truncate)
         flags += tflags
-        pf, gf = p_frames[:n], g_frames[:n]
-        if pf.shape != gf.shape:
-            raise UserError(f"{pred} and {gt}: frame sizes differ {pf.shape[1:3]} vs {gf.shape[1:3]}")
         names = [m for m in ("psnr", "ssim") if m in want]
         if "lpips" in want:
             names.append(lpips or ("lpips-alex" if find_alexnet(alexnet) else "stlpips-alex"))
         if "lmd" in want:
             names.append("lmd")
+        made = {}
         for name in names:
             kw = {"alexnet": alexnet} if name in ALEX_NAMES else ({"backend": landmarks} if name == "lmd" else {})
-            m = create_metric(name, **kw)
-            r = m.compute(m.update(pf, gf))
+            made[name] = create_metric(name, **kw)
+        # both clips read in step, a chunk of frames at a time; each metric's per-frame statistics are kept
+        parts: dict[str, list] = {name: [] for name in made}
+        lmd = made.get("lmd")
+        feeds = (landmark_stream(lmd.backend), landmark_stream(lmd.gt_backend)) if lmd is not None else None
+        got = 0
+        size = chunk_for(src.height, src.width)
+        for cp, cg in zip(src.chunks(size, stop=n), gsrc.chunks(size, stop=n)):
+            if len(cp) != len(cg):
+                break
+            pf, gf = cp.astype(np.float32) / 255.0, cg.astype(np.float32) / 255.0
+            for name, m in made.items():
+                if name == "lmd":
+                    parts[name].append({"pred_lms": feeds[0](cp), "gt_lms": feeds[1](cg)})
+                else:
+                    parts[name].append(m.update(pf, gf))
+            got += len(cp)
+        if got != n:
+            raise UserError(f"{pred} and {gt}: {got} frame pairs decoded where {n} were counted; the shorter file is "
+                            "corrupt or truncated")
+        for name, m in made.items():
+            stats = merge_stats(parts[name])
+            r = m.compute(stats)
             r.flags = sorted(set(r.flags + tflags))
             results[r.spec.name] = r  # lpips-alex-custom when the trunk is not torchvision's
+            if name == "lmd" and landmarks == "dlib":
+                pred_lms = stats["pred_lms"]  # the landmark sync scorer's own tracker: LSE reads them
     else:
-        n = p_frames.shape[0]
+        n = src.count()
         notes.append("no --gt: only no-reference metrics")
     if "lse" in want:
-        reason = ""
-        a16 = None
-        if audio is not None:
-            a16, anotes = load_audio(Path(audio))
-            notes += anotes
-        elif p_audio is not None:
-            a16, anotes = to_mono_16k(p_audio, p_sr, f"{pred} audio track")
-            notes += anotes
-        else:
-            reason = f"{pred} has no audio track and --audio was not given"
-        results["lse"] = lse(p_frames[:n], a16, fps=fps, audio_reason=reason, reference=reference)
+        a16, reason, anotes = clip_audio(audio, src)
+        notes += anotes
+        video = FaceClip(src.head(n), lms=pred_lms)
+        results["lse"] = lse(video, a16, fps=fps, audio_reason=reason, reference=reference)
+        n = len(video)
     return {
         "schema": RECORD_SCHEMA,
         "pred": str(pred),
@@ -148,6 +194,7 @@ def format_record(rec: dict) -> str:
         if r["spec"].get("standin"):
             lines.append(f"{'':<{w + 2}}STAND-IN: {r['spec']['standin']}")
         if r["values"].get("trusted") is not None:
-            lines.append(f"{'':<{w + 2}}self-check: separation {r['values']['separation']:.2f}, "
-                         f"{'trusted' if r['values']['trusted'] else 'NOT trusted'}")
+            sep = r["values"].get("separation")
+            lines.append(f"{'':<{w + 2}}self-check: separation " + (f"{sep:.2f}" if isinstance(sep, float) else "n/a")
+                         + f", {'trusted' if r['values']['trusted'] else 'NOT trusted'}")
     return "\n".join(lines)

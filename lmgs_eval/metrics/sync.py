@@ -45,6 +45,7 @@ from lmgs_eval.metrics.sync_nets import (  # noqa: F401  (the networks live ther
 
 VSHIFT = 15
 SAMPLES_PER_FRAME = 640  # 16 kHz / 25 fps
+MIN_SAMPLES = 6 * SAMPLES_PER_FRAME  # one 5-frame window needs 6 frames of audio (syncnet_python's min_length - 5 >= 1)
 PREPARE_CHUNK = 256  # frames cropped and shaped at a time
 CROP_SCALE = 0.4
 PAD_VALUE = 110
@@ -156,8 +157,11 @@ def lse_from_embeddings(v_emb: np.ndarray, a_emb: np.ndarray, vshift: int = VSHI
 
 
 # ----------------------------------------------------------------------------- crops
-def face_boxes(frames: np.ndarray, detect_every: int = 1, detect_side: int = 320) -> tuple[np.ndarray, int]:
+def face_boxes(frames, detect_every: int = 1, detect_side: int = 320) -> tuple[np.ndarray, int]:
     """Per-frame face boxes ``[T, 3]`` = (cx, cy, size), smoothed; and the count of frames without a detection.
+
+    ``frames``: ``[T, H, W, 3]`` (float in [0, 1] or uint8) or any iterable of frames (a
+    :class:`~lmgs_eval.data.frames.FrameFile` is decoded once, a frame at a time).
 
     Raises:
         UserError: no face in any frame.
@@ -168,13 +172,17 @@ def face_boxes(frames: np.ndarray, detect_every: int = 1, detect_side: int = 320
     from lmgs_eval.metrics.landmarks import DlibBackend
 
     det = DlibBackend(redetect=1, detect_side=detect_side)
-    t = frames.shape[0]
-    raw = np.full((t, 3), np.nan)
     every = max(1, int(detect_every))
-    for i in range(0, t, every):
-        b = det.detect(np.ascontiguousarray(to_u8(frames[i])))
-        if b is not None:
-            raw[i] = ((b.left() + b.right()) / 2, (b.top() + b.bottom()) / 2, max(b.width(), b.height()))
+    raw = []
+    for i, frame in enumerate(frames):
+        box = (np.nan, np.nan, np.nan)
+        if i % every == 0:
+            b = det.detect(np.ascontiguousarray(to_u8(frame)))
+            if b is not None:
+                box = ((b.left() + b.right()) / 2, (b.top() + b.bottom()) / 2, max(b.width(), b.height()))
+        raw.append(box)
+    raw = np.asarray(raw, np.float64).reshape(-1, 3)
+    t = raw.shape[0]
     found = np.isfinite(raw[:, 0])
     detected_at = np.arange(0, t, every)
     n_missing = int((~found[detected_at]).sum())
@@ -191,26 +199,126 @@ def face_boxes(frames: np.ndarray, detect_every: int = 1, detect_side: int = 320
     return boxes, n_missing
 
 
-def crop_faces(frames: np.ndarray, boxes: np.ndarray, size: int = CROP_SIZE) -> np.ndarray:
-    """syncnet_python ``crop_video`` geometry -> ``[T, size, size, 3]`` BGR float32 in 0..255."""
+def crop_face(frame: np.ndarray, box, size: int = CROP_SIZE) -> np.ndarray:
+    """One frame's syncnet_python ``crop_video`` crop -> ``[size, size, 3]`` BGR uint8.
+
+    The frame padded by ``bsi`` on every side with :data:`PAD_VALUE` is sliced as numpy slices it;
+    only the slice is built (a 1080x1920 frame is not padded whole).
+    """
     import cv2
 
     from lmgs_eval.data.io import to_u8
 
-    out = np.empty((frames.shape[0], size, size, 3), np.float32)
     cs = CROP_SCALE
-    for t in range(frames.shape[0]):
-        cx, cy, s = boxes[t]
-        bs = s / 2
-        bsi = int(bs * (1 + 2 * cs))
-        img = to_u8(frames[t])[:, :, ::-1]
-        pad = np.pad(img, ((bsi, bsi), (bsi, bsi), (0, 0)), mode="constant", constant_values=PAD_VALUE)
-        my, mx = cy + bsi, cx + bsi
-        face = pad[int(my - bs):int(my + bs * (1 + 2 * cs)), int(mx - bs * (1 + cs)):int(mx + bs * (1 + cs))]
-        out[t] = cv2.resize(face, (size, size), interpolation=cv2.INTER_LINEAR)
+    cx, cy, s = box
+    bs = s / 2
+    bsi = int(bs * (1 + 2 * cs))
+    img = to_u8(frame)
+    h, w = img.shape[:2]
+    my, mx = cy + bsi, cx + bsi
+    r0, r1, _ = slice(int(my - bs), int(my + bs * (1 + 2 * cs))).indices(h + 2 * bsi)
+    c0, c1, _ = slice(int(mx - bs * (1 + cs)), int(mx + bs * (1 + cs))).indices(w + 2 * bsi)
+    face = np.full((max(0, r1 - r0), max(0, c1 - c0), 3), PAD_VALUE, np.uint8)
+    fr0, fr1 = max(r0 - bsi, 0), min(r1 - bsi, h)  # the frame's own rows and columns inside the slice
+    fc0, fc1 = max(c0 - bsi, 0), min(c1 - bsi, w)
+    if fr1 > fr0 and fc1 > fc0:
+        face[fr0 + bsi - r0:fr1 + bsi - r0, fc0 + bsi - c0:fc1 + bsi - c0] = img[fr0:fr1, fc0:fc1, ::-1]
+    return cv2.resize(face, (size, size), interpolation=cv2.INTER_LINEAR)
+
+
+def crop_faces(frames, boxes: np.ndarray, size: int = CROP_SIZE) -> np.ndarray:
+    """syncnet_python ``crop_video`` geometry -> ``[T, size, size, 3]`` BGR float32 in 0..255 (integer values)."""
+    out = np.empty((len(boxes), size, size, 3), np.float32)
+    for t, frame in zip(range(len(boxes)), frames):
+        out[t] = crop_face(frame, boxes[t], size)
     return out
 
 
+class FaceClip:
+    """The video side of LSE for one clip, each part computed once from frames read in order.
+
+    * :meth:`landmarks`: dlib's 68 landmarks, tracked (``DlibBackend(redetect=10)``, the landmark
+      scorer's input);
+    * :meth:`crops`: face boxes (:func:`face_boxes`) and then the 224x224 BGR uint8 crops of the
+      pixel scorers (:func:`crop_face`), a second pass over the frames.
+
+    ``frames``: ``[T, H, W, 3]`` (float in [0, 1] or uint8), or a
+    :class:`~lmgs_eval.data.frames.FrameFile` (decoded on each pass, never held). ``lms``:
+    landmarks already found by the same tracker (LMD's). ``clip[a:b]`` shares what was computed
+    and gives its part of it (the probe's shifted copies of one clip).
+    """
+
+    is_face_clip = True
+
+    def __init__(self, frames, lms: np.ndarray | None = None):
+        self._src = frames
+        self._lms = None if lms is None else np.asarray(lms, np.float64)
+        self._crops: dict[int, tuple[np.ndarray, int]] = {}
+        self._n: int | None = len(frames) if isinstance(frames, np.ndarray) else None
+        if self._lms is not None:
+            self._set_n(len(self._lms))
+        self._base, self._start, self._stop = self, 0, None
+
+    def _set_n(self, n: int) -> None:
+        if self._n is not None and n != self._n:
+            raise UserError(f"{getattr(self._src, 'path', 'frames')}: {n} frames decoded where {self._n} were counted")
+        self._n = n
+
+    def _length(self) -> int:
+        if self._n is None:
+            self._n = int(self._src.count())
+        return self._n
+
+    def __len__(self) -> int:
+        n = self._base._length()
+        start, stop, _ = slice(self._start, self._stop).indices(n)
+        return max(0, stop - start)
+
+    def __getitem__(self, sl: slice) -> "FaceClip":
+        if not isinstance(sl, slice) or sl.step not in (None, 1):
+            raise TypeError("a FaceClip is sliced by a contiguous range")
+        n = len(self)
+        start, stop, _ = sl.indices(n)
+        view = object.__new__(FaceClip)
+        view._base = self._base
+        view._start = self._start + start
+        view._stop = self._start + max(start, stop)
+        return view
+
+    def _part(self, a: np.ndarray) -> np.ndarray:
+        return a[self._start:self._stop]
+
+    def _frames(self):
+        """The clip's frames one at a time (a file is decoded again on each pass)."""
+        return iter(self._base._src)
+
+    def landmarks(self) -> np.ndarray:
+        """``[T, 68, 2]`` dlib landmarks of this clip (NaN where no face)."""
+        b = self._base
+        if b._lms is None:
+            from lmgs_eval.metrics.landmarks import DlibBackend
+
+            lms = DlibBackend(redetect=10).tracker()(self._frames())
+            b._set_n(len(lms))
+            b._lms = lms
+        return self._part(b._lms)
+
+    def crops(self, detect_every: int = 1) -> tuple[np.ndarray, int]:
+        """``[T, 224, 224, 3]`` BGR uint8 face crops of this clip and the count of detections without a face.
+
+        Raises:
+            UserError: no face in any frame.
+        """
+        b = self._base
+        if detect_every not in b._crops:
+            boxes, n_missing = face_boxes(self._frames(), detect_every)
+            b._set_n(len(boxes))
+            out = np.empty((len(boxes), CROP_SIZE, CROP_SIZE, 3), np.uint8)
+            for t, f in zip(range(len(boxes)), self._frames()):
+                out[t] = crop_face(f, boxes[t])
+            b._crops[detect_every] = (out, n_missing)
+        crops, n_missing = b._crops[detect_every]
+        return self._part(crops), n_missing
 
 
 # ----------------------------------------------------------------------------- scorer
@@ -225,6 +333,7 @@ class SyncScorer:
     region: str  # "full", "lower_half" or "mouth" (MOUTH_BOX) of the 224 crop
     pixel: str  # "bgr_0_255" or "bgr_0_1"
     standin: str = ""
+    source: str = ""  # the weights file, for messages
 
     def prepare(self, crops224: np.ndarray) -> np.ndarray:
         import cv2
@@ -245,7 +354,13 @@ class SyncScorer:
     def embed_clip(self, frames, crops, audio16k, mfcc, last, detect_every=1, lms=None):
         """Audio and video embeddings of windows ``0 .. last-1``, the still-face embedding, flags and notes."""
         flags, notes = [], []
-        if crops is None:
+        if crops is None and getattr(frames, "is_face_clip", False):
+            crops, n_missing = frames.crops(detect_every)  # found once per clip, uint8
+            if n_missing:
+                flags.append(f"no_face: {n_missing} detection(s) without a face, box held from the nearest frame")
+            notes.append(f"crops: dlib HOG every {detect_every} frame(s), median-9 box smoothing, syncnet_python "
+                         "crop_video geometry, 224x224 BGR 0-255")
+        elif crops is None:
             if frames is None:
                 raise UserError(f"{self.name} scores face crops of frames; landmarks alone are not enough")
             boxes, n_missing = face_boxes(frames, detect_every)
@@ -290,7 +405,7 @@ class SyncScorer:
 
 def find_scorer(prefer: str | None = None) -> tuple[SyncScorer | None, str]:
     """The official SyncNet if imported, else the bundled scorer; ``(None, reason)`` if neither."""
-    from lmgs_eval.metrics.ort import load_session, sha256_file
+    from lmgs_eval.metrics.ort import load_session, nonfinite_weights, sha256_file
 
     reasons = []
     if prefer in (None, "syncnet-v2"):
@@ -304,8 +419,13 @@ def find_scorer(prefer: str | None = None) -> tuple[SyncScorer | None, str]:
                 sha = sha256_file(p)
                 if sha != m.get("onnx_sha256"):
                     raise UserError(f"{p}: sha256 {sha[:12]}... does not match {mp}; re-run lmgs-eval weights import-syncnet")
+                bad = nonfinite_weights(p)
+                if bad:
+                    raise UserError(f"{p} (imported from {m.get('source')}): weights {bad[0]!r}"
+                                    + (f" and {len(bad) - 1} more" if len(bad) > 1 else "") + " hold NaN or Inf; "
+                                    "import a sound syncnet_v2.model with lmgs-eval weights import-syncnet")
                 return SyncScorer("syncnet-v2", load_session(p), m["source_sha256"], tuple(m["input_hw"]),
-                                  m.get("region", "full"), m.get("pixel", "bgr_0_255")), ""
+                                  m.get("region", "full"), m.get("pixel", "bgr_0_255"), source=str(m.get("source", p))), ""
         else:
             reasons.append("syncnet-v2 not imported (lmgs-eval weights import-syncnet syncnet_v2.model)")
     if prefer in (None, "bundled-sync"):
@@ -316,7 +436,7 @@ def find_scorer(prefer: str | None = None) -> tuple[SyncScorer | None, str]:
             if m.get("sha256") and sha != m["sha256"]:
                 raise UserError(f"{p}: sha256 {sha[:12]}... does not match {j} (corrupt or replaced weights)")
             return SyncScorer("bundled-sync", load_session(p), sha, tuple(m.get("input_hw", (48, 96))),
-                              m.get("region", "lower_half"), m.get("pixel", "bgr_0_1"),
+                              m.get("region", "lower_half"), m.get("pixel", "bgr_0_1"), source=str(p),
                               standin="bundled-sync is trained by this project on synthetic clips; its LSE values are "
                                       "not comparable with SyncNet LSE in papers"), ""
         reasons.append(f"bundled-sync weights not present ({p.name} + {j.name} in {BUNDLED_DIR})")
@@ -344,6 +464,10 @@ def lse(frames: np.ndarray | None, audio16k: np.ndarray | None, fps: float = 25.
     ``trusted``, ``null_lse_c``, ``null_lse_c_max``, ``still_lse_c`` (:mod:`sync_check`).
     """
     n = int(next(len(x) for x in (crops, frames, lms) if x is not None))
+    if audio16k is not None and len(audio16k) < MIN_SAMPLES:
+        audio_reason = (f"audio too short: {len(audio16k) / 16000:.2f} s ({len(audio16k)} samples at 16 kHz); LSE "
+                        f"needs at least {MIN_SAMPLES / 16000:.2f} s ({MIN_SAMPLES} samples: 6 frames at 25 fps)")
+        audio16k = None
     if scorer is None:
         return _lse_selected(frames, audio16k, fps, crops, detect_every, audio_reason, lms, reference, n)
     spec = LSE_SPEC.with_weights(scorer.sha256, backend=f"onnxruntime:{scorer.name}")
@@ -356,12 +480,16 @@ def lse(frames: np.ndarray | None, audio16k: np.ndarray | None, fps: float = 25.
     flags, notes = [], []
     if is_silent(audio16k):
         flags.append("silent_audio: RMS below 1e-4, LSE is meaningless on silence")
-    mf = mfcc_13(audio16k)
     try:
         last = n_windows(n, len(audio16k))
+        mf = mfcc_13(audio16k)
         a_emb, v_emb, v_still, f2, n2 = scorer.embed_clip(frames, crops, audio16k, mf, last, detect_every, lms=lms)
     except UserError as exc:
         return unavailable(spec, str(exc), n)
+    bad = [k for k, e in (("audio", a_emb), ("video", v_emb), ("still-face", v_still)) if not np.all(np.isfinite(e))]
+    if bad:
+        raise UserError(f"{scorer.name} ({getattr(scorer, 'source', '') or 'sha256 ' + scorer.sha256[:12]}): "
+                        f"non-finite {' and '.join(bad)} embeddings; its weights are damaged (NaN or Inf)")
     flags += f2
     notes += n2
     if 4 * (last - 1) + 20 > mf.shape[1]:

@@ -221,14 +221,13 @@ class LandmarkScorer:
         if lms is None:
             if frames is None:
                 raise UserError("landmark-sync needs frames or landmarks, not face crops")
-            from lmgs_eval.metrics.landmarks import DlibBackend, cached_landmarks
-
-            det = DlibBackend(redetect=10)
-            if frames.dtype == np.uint8:  # converted a chunk at a time (a long clip stays in memory once)
-                lms = np.concatenate([det.landmarks(frames[s:min(s + 256, last + 4)].astype(np.float32) / 255.0)
-                                      for s in range(0, last + 4, 256)])
+            if getattr(frames, "is_face_clip", False):  # found once per clip (sync.FaceClip)
+                lms = frames.landmarks()
             else:
-                lms = cached_landmarks(det, frames[:last + 4])
+                from lmgs_eval.metrics.landmarks import DlibBackend, cached_landmarks
+
+                # uint8 frames are read as they are (the tracker converts one frame at a time)
+                lms = cached_landmarks(DlibBackend(redetect=10), frames[:last + 4])
             notes.append("video: dlib 68 landmarks (HOG, tracked, re-detected every 10 frames), mouth points 48-67 "
                          "pose-normalised on eye corners and nose, clip mean removed, RMS-scaled")
         else:

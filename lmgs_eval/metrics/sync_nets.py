@@ -114,8 +114,10 @@ def import_syncnet(state_dict_path: Path) -> dict:
     """Convert the official ``syncnet_v2.model`` state dict to ONNX in the cache; return the manifest.
 
     Raises:
-        UserError: unreadable file, or keys/shapes not those of syncnet_python's ``S``.
+        UserError: unreadable file, keys/shapes not those of syncnet_python's ``S``, or a tensor holding NaN or Inf.
     """
+    import torch
+
     from lmgs_eval.metrics.ort import load_torch_state, onnx_cache_dir, sha256_file
     from lmgs_eval.paths import atomic_write_text
 
@@ -130,6 +132,12 @@ def import_syncnet(state_dict_path: Path) -> dict:
     for k, v in own.items():
         if tuple(sd[k].shape) != tuple(v.shape):
             raise UserError(f"{src}: key {k!r} has shape {tuple(sd[k].shape)}, expected {tuple(v.shape)}")
+    for k in own:
+        t = sd[k]
+        if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+            n_bad = int((~torch.isfinite(t)).sum())
+            raise UserError(f"{src}: tensor {k!r} holds {n_bad} non-finite value(s) (NaN or Inf) of {t.numel()}; "
+                            "these are not usable weights (a damaged or diverged checkpoint)")
     net.load_state_dict({k: sd[k] for k in own})
     sha = sha256_file(src)
     out = onnx_cache_dir() / f"{sha}-syncnet-v2.onnx"

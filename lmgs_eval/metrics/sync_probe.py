@@ -18,6 +18,25 @@ import numpy as np
 from lmgs_eval.metrics.sync import SAMPLES_PER_FRAME, lse
 
 SHIFTS = (-10, -5, 5, 10)
+OTHER_MIN_S = 2.0  # other speech shorter than this (or than the clip) is too short to loop into a control
+
+
+def check_other(other: np.ndarray, n_samples: int, what: str) -> None:
+    """Refuse other speech that cannot serve as a control: empty, silent, or under :data:`OTHER_MIN_S`
+    (or the clip's length, when the clip is shorter); ``what`` names it in the message.
+
+    Raises:
+        UserError: naming ``what``, its length and the minimum.
+    """
+    from lmgs_eval.errors import UserError
+    from lmgs_eval.metrics.sync import is_silent
+
+    need = min(int(OTHER_MIN_S * 16000), int(n_samples))
+    if len(other) < need:
+        raise UserError(f"{what}: {len(other) / 16000:.2f} s of audio ({len(other)} samples at 16 kHz); other speech "
+                        f"must last at least {need / 16000:.2f} s (it is looped to the clip's length)")
+    if is_silent(other):
+        raise UserError(f"{what}: silent (RMS below 1e-4): not speech to compare the clip's own with")
 
 
 def shifted(x: np.ndarray, audio: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -32,7 +51,12 @@ def shifted(x: np.ndarray, audio: np.ndarray, k: int) -> tuple[np.ndarray, np.nd
 
 def probe(frames: np.ndarray, audio: np.ndarray, other: np.ndarray | None = None, shifts=SHIFTS, scorer=None,
           n_other: int = 6) -> dict:
-    """The figures of the module doc for one clip (``frames`` ``[T, H, W, 3]`` float, 16 kHz audio)."""
+    """The figures of the module doc for one clip (``frames`` ``[T, H, W, 3]`` or a :class:`~lmgs_eval.metrics.sync.FaceClip`,
+    16 kHz audio). The clip's faces are found once; each shifted copy takes its part of them."""
+    from lmgs_eval.metrics.sync import FaceClip
+
+    if not getattr(frames, "is_face_clip", False):
+        frames = FaceClip(frames)
     own = lse(frames, audio, scorer=scorer, reference=True)
     if not own.available:
         return {"available": False, "reason": own.reason}

@@ -60,7 +60,7 @@ def run_controls(cfg: RunConfig, subject, gt: np.ndarray, audio: np.ndarray, oth
     if not todo:
         return []
     log(f"scoring {len(todo)} calibration controls")
-    gf = gt.astype(np.float32) / 255.0
+    gf = gt  # uint8, as the sync scorers and LMD read it (no float copy of the clip)
     gt_crops = None
     records = []
     for name, display, control, frames, aud in todo:
@@ -72,8 +72,7 @@ def run_controls(cfg: RunConfig, subject, gt: np.ndarray, audio: np.ndarray, oth
                     gt_crops = False
             res = {"lse": cfg.suite.lse(gf, aud, crops=gt_crops if gt_crops is not False else None)}
         else:
-            pf = frames.astype(np.float32) / 255.0
-            res = {"lse": cfg.suite.lse(pf, aud), "lmd": cfg.suite.paired("lmd", pf, gf)}
+            res = {"lse": cfg.suite.lse(frames, aud), "lmd": cfg.suite.paired("lmd", frames, gf)}
         info = MethodInfo(name, display, "control", f"negative control: {display} (targets {', '.join(control['targets'])})",
                           config={"control": control, "version": CONTROLS_VERSION}, config_hash=f"controls-v{CONTROLS_VERSION}")
         rec = build_record(info=info, subject=subject, protocol="calibration", clip="test", split="test", n_frames=len(frames),
