@@ -281,13 +281,17 @@ def read_video(path: Path) -> tuple[np.ndarray, float, np.ndarray | None, int | 
 
 
 def write_video(path: Path, frames: np.ndarray, fps: int = 25, audio: np.ndarray | None = None, sr: int = 16000,
-                lossless: bool = False) -> None:
+                lossless: bool = False, *, threads: int | None = None, x264_params: str | None = None) -> None:
     """Encode ``[T, H, W, 3]`` frames (float [0,1] or uint8) as H.264 mp4, with mono audio (AAC).
 
     By default as a camera or a renderer's output is stored (CRF 18, 4:2:0 chroma); ``lossless``
     keeps every RGB value (x264's RGB encoder at quantiser 0), for footage whose processing is
     to be measured apart from its compression. Written to a temporary file and renamed, so a
     reader never sees half a video.
+
+    x264 left to itself encodes with one slice thread per CPU, and each slice count gives other
+    bytes: ``threads`` fixes the count (slice threads), and ``x264_params`` passes x264 options
+    (e.g. ``asm=...`` to fix its kernels), for a file that must be the same bytes on every host.
     """
     import av
 
@@ -298,6 +302,11 @@ def write_video(path: Path, frames: np.ndarray, fps: int = 25, audio: np.ndarray
         vs.width, vs.height = w - w % 2, h - h % 2
         vs.pix_fmt = "rgb24" if lossless else "yuv420p"
         vs.options = {"qp": "0", "preset": "veryfast"} if lossless else {"crf": "18", "preset": "veryfast"}
+        if x264_params:
+            vs.options = {**vs.options, "x264-params": x264_params}
+        if threads is not None:
+            vs.codec_context.thread_count = int(threads)
+            vs.codec_context.thread_type = "SLICE"
         as_ = None
         if audio is not None and len(audio):
             as_ = c.add_stream("aac", rate=int(sr))

@@ -216,40 +216,9 @@ X264_ASM = "MMX2,SSE,SSE2,SSE3,SSSE3,SSE4.1,SSE4.2"
 def _write_video(path: Path, frames: np.ndarray, audio: np.ndarray) -> None:
     """The subject's raw video: :func:`lmgs_eval.data.io.write_video`'s H.264 (CRF 18, veryfast,
     4:2:0) and AAC, with the encoder's threads and kernels fixed (above), so the bytes do not
-    depend on the host. Kept here, not in the shared writer, because it is part of the generator's
-    output (a change is a new :data:`GENERATOR_VERSION`)."""
-    import av
-
-    from lmgs.fileio import atomic_path
-
-    t, h, w, _ = frames.shape
-    with atomic_path(path) as tmp, av.open(str(tmp), "w", format="mp4") as c:
-        vs = c.add_stream("libx264", rate=FPS)
-        vs.width, vs.height = w - w % 2, h - h % 2
-        vs.pix_fmt = "yuv420p"
-        vs.options = {"crf": "18", "preset": "veryfast", "x264-params": f"asm={X264_ASM}"}
-        vs.codec_context.thread_count = X264_THREADS
-        vs.codec_context.thread_type = "SLICE"
-        as_ = None
-        if len(audio):
-            as_ = c.add_stream("aac", rate=sp_mod.SAMPLE_RATE)
-            as_.layout = "mono"
-        for i in range(t):
-            fr = av.VideoFrame.from_ndarray(np.ascontiguousarray(frames[i, : vs.height, : vs.width]), format="rgb24")
-            for p in vs.encode(fr):
-                c.mux(p)
-        for p in vs.encode():
-            c.mux(p)
-        if as_ is not None:
-            pcm = np.clip(np.rint(np.asarray(audio, np.float64) * 32767), -32768, 32767).astype(np.int16)
-            for k in range(0, len(pcm), 1024):
-                af = av.AudioFrame.from_ndarray(pcm[None, k : k + 1024], format="s16", layout="mono")
-                af.sample_rate = sp_mod.SAMPLE_RATE
-                af.pts = k
-                for p in as_.encode(af):
-                    c.mux(p)
-            for p in as_.encode():
-                c.mux(p)
+    depend on the host (a change is a new :data:`GENERATOR_VERSION`)."""
+    io.write_video(path, frames, FPS, audio if len(audio) else None, sp_mod.SAMPLE_RATE,
+                   threads=X264_THREADS, x264_params=f"asm={X264_ASM}")
 
 
 def _cross_seconds(seconds: float) -> float:
