@@ -223,3 +223,17 @@ def test_cli_prepare_reports_the_ground_truth_head_on_the_plate(tmp_path):
     want = np.mean([10 * np.log10(255**2 / ((40 + 10 * i) ** 2 / 2)) for i in range(info["cut"], info["n"])])
     assert rc == 0, err
     assert f"PSNR {want:.2f} dB" in out and "GT head on plate" in out
+
+
+def test_normal_maps_round_trip_and_no_surface_reads_as_zero(tmp_path):
+    from lmgs_eval.data.io import read_normal, write_normal
+
+    rng = np.random.default_rng(0)
+    n = rng.normal(size=(8, 8, 3))
+    n /= np.linalg.norm(n, axis=2, keepdims=True)
+    n[:3] = 0.0  # no surface: stored as black
+    write_normal(tmp_path / "n.png", n)
+    back = read_normal(tmp_path / "n.png")
+    assert np.all(back[:3] == 0)
+    np.testing.assert_allclose(np.linalg.norm(back[3:], axis=2), 1.0, atol=1e-6)
+    assert np.degrees(np.arccos(np.clip((back[3:] * n[3:]).sum(-1), -1, 1))).max() < 1.0  # 8-bit quantisation

@@ -144,10 +144,13 @@ def write_depth(path: Path, depth: np.ndarray, scale: float) -> None:
 
 def read_normal(path: Path) -> np.ndarray:
     """A normal-map PNG (RGB = (n + 1) * 127.5) as unit float32 ``[H, W, 3]``; 0 where no surface."""
-    u8 = read_rgb_u8(path).astype(np.float32)
-    n = u8 / 127.5 - 1.0
+    u8 = read_rgb_u8(path)
+    n = u8.astype(np.float32) / 127.5 - 1.0
     norm = np.linalg.norm(n, axis=2, keepdims=True)
-    return np.where(norm > 0.5, n / np.maximum(norm, 1e-6), 0.0).astype(np.float32)
+    # black (what write_normal stores where there is no surface) decodes to (-1, -1, -1), of norm
+    # sqrt(3): it is told apart by its bytes, not by its length
+    surface = (norm > 0.5) & u8.any(axis=2, keepdims=True)
+    return np.where(surface, n / np.maximum(norm, 1e-6), 0.0).astype(np.float32)
 
 
 def write_normal(path: Path, normal: np.ndarray) -> None:
