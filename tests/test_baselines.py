@@ -90,16 +90,35 @@ def test_methods_command_lists_every_method_with_its_config_hash():
 
 
 @pytest.mark.parametrize("name", ALL)
-def test_protocol_describe_and_cost(name, fitted):
-    m, _ = fitted(name)
+def test_protocol_describe_and_cost(name, fitted, clip):
+    m, wd = fitted(name)
     assert isinstance(m, TalkingHead)
     info = m.describe()
     assert isinstance(info, MethodInfo) and info.name == name and info.family == FAMILY[name]
     assert "Simplified" in info.description or "simplified" in info.description
     assert len(info.config_hash) == 16 and info.config
     c = m.cost()
-    assert c["n_params"] > 0 and c["model_mb"] > 0
-    assert (c["n_gaussians"] is None) == (name not in GS)
+    # against the checkpoint the fit saved: its state holds the parameters and the buffers; the
+    # parameters are what is counted, at 4 bytes each; a 3DGS method's Gaussians are the rows of
+    # its means there (one set, or the face's and the mouth's)
+    import torch
+
+    ck = torch.load(wd / "model.pt", map_location="cpu", weights_only=False)
+    buffers = {k for k, _ in m.model.named_buffers()}
+    saved = sum(v.numel() for k, v in ck["state"].items() if k not in buffers)
+    assert saved > 0 and c["n_params"] == saved
+    assert c["model_mb"] == pytest.approx(saved * 4 / 2**20, rel=1e-12)
+    if name in GS:
+        means = [v for k, v in ck["state"].items() if k.split(".")[-1] == "means"]
+        assert means and all(v.shape[1:] == (3,) for v in means)
+        assert c["n_gaussians"] == sum(v.shape[0] for v in means) > 0
+    else:
+        assert c["n_gaussians"] is None
+    # and an adapter that reloads that checkpoint reports the same
+    again = create_method(name, preset="tiny")
+    again.fit(clip, seed=0, workdir=wd, progress=False)
+    assert {k: again.cost()[k] for k in ("n_params", "n_gaussians", "model_mb")} == {
+        k: c[k] for k in ("n_params", "n_gaussians", "model_mb")}
 
 
 @pytest.mark.parametrize("name", GS + NERF)

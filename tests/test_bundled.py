@@ -254,7 +254,7 @@ def test_layout_reader_reads_it(tiny):
     yy, xx = np.mgrid[0:SIZE, 0:SIZE] + 0.5
     ray = np.stack([(xx - s.cx) / s.focal, (yy - s.cy) / s.focal, np.ones_like(xx)], -1)
     for i in (0, s.n_frames - 1):
-        np.testing.assert_array_equal(s.landmarks[i], np.loadtxt(tiny / "ori_imgs" / f"{i}.lms"))
+        np.testing.assert_array_equal(s.landmarks[i], np.loadtxt(tiny / "ori_imgs" / f"{i}.lms", dtype=np.float32))
         # depth: the 16-bit PNG over the folder's scale (camera z)
         raw = cv2.imread(str(tiny / "depth" / f"{i}.png"), cv2.IMREAD_UNCHANGED)
         d = s.depth(i)

@@ -149,7 +149,23 @@ def test_smoke_stress_one_condition(demo_store):
 def test_smoke_bench_metrics(demo_store):
     rc, out, err = run_cli("bench", "metrics", "--frames", "2", "--sizes", "64", "--json")
     assert rc == 0, err
-    assert json.loads(out)
+    res = json.loads(out)
+    assert res["frames"] == 2 and res["threads"] >= 1
+    net = res["lpips_network"]
+    rows = {r["metric"]: r for r in res["rows"]}
+    assert {r["size"] for r in res["rows"]} == {64} and len(rows) == len(res["rows"])
+    assert {"psnr", "ssim", f"{net} onnxruntime", f"{net} eager torch (folded)", f"{net} eager torch (reference)",
+            "lmd landmarks (dlib, pred+gt)"} <= set(rows)
+    assert any(m.startswith("lse (") for m in rows)  # the bundled scorer is installed
+    ort_ms = rows[f"{net} onnxruntime"]["ms_per_frame"]
+    for name, r in rows.items():
+        # one timing t of 2 frames gives both figures: frames/s = 2 / t, ms/frame = 1000 t / 2
+        assert r["ms_per_frame"] > 0 and r["frames_per_s"] * r["ms_per_frame"] == pytest.approx(1000.0, rel=1e-9), name
+        if "eager" in name:  # the eager time over the ONNX Runtime time of the same network and frames
+            assert r["ort_speedup"] == pytest.approx(r["ms_per_frame"] / ort_ms, rel=1e-9), name
+        else:
+            assert r["ort_speedup"] is None, name
+    assert not any(k.startswith("suite_500x512") for k in res)  # extrapolated from 512 px rows only
 
 
 def test_smoke_bench_metrics_suite():

@@ -10,6 +10,7 @@ import hashlib
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -89,11 +90,48 @@ def test_ingested_subject_reads_and_is_complete(ingested):
     assert s.landmarks3d is not None and s.landmarks3d.shape == (n, 68, 3)
     assert s.has_geometry and s.depth(0).max() > 0 and s.normal(0).shape == (SIZE, SIZE, 3)
     assert "AU45_r" in s.aus and s.blink.max() > 1.0  # the generator blinks in 3 s
-    for d in ("gt_imgs", "torso_imgs", "parsing", "teeth_mask", "ori_imgs"):
-        assert (folder / d).is_dir()
+    for d, exts in (("gt_imgs", ".jpg"), ("torso_imgs", ".png"), ("parsing", ".png"), ("teeth_mask", ".npy"),
+                    ("ori_imgs", ".jpg .lms")):
+        want = sorted(f"{i}{e}" for i in range(n) for e in exts.split())
+        assert sorted(p.name for p in (folder / d).iterdir()) == want, d
     assert s.torso(0).shape == (SIZE, SIZE, 4) and s.mouth_mask(0).shape == (SIZE, SIZE)
-    assert (folder / "preview.png").is_file()
+    assert cv2.imread(str(folder / "preview.png")) is not None
     assert "too short to train" in text  # a 3 s clip is flagged
+
+
+def test_the_per_frame_layers_agree_with_the_parsing(ingested):
+    """Read back with OpenCV: a parsing map holds ER-NeRF's four colours only; ``gt_imgs`` is the
+    frame inside the person and the plate (``bc.jpg``) outside it (to JPEG's error); ``torso_imgs``
+    keeps the frame's own neck and torso pixels exactly and opaque; the teeth lie in the head."""
+    folder, _ = ingested
+
+    def rgb(path, flags=cv2.IMREAD_COLOR):
+        img = cv2.imread(str(path), flags)
+        return np.concatenate([img[..., 2::-1], img[..., 3:]], -1).astype(np.float64)
+
+    def psnr(a, b):
+        return 10 * np.log10(255.0**2 / np.mean((a - b) ** 2))
+
+    colours = {(255, 255, 255), (255, 0, 0), (0, 255, 0), (0, 0, 255)}  # background, head, neck, torso
+    bc = rgb(folder / "bc.jpg")
+    n = int(round(SECONDS * 25))
+    for i in (0, n // 2, n - 1):
+        parsing = rgb(folder / "parsing" / f"{i}.png").astype(np.uint8)
+        assert set(map(tuple, np.unique(parsing.reshape(-1, 3), axis=0))) <= colours
+        head = np.all(parsing == (255, 0, 0), -1)
+        body = np.all(parsing == (0, 255, 0), -1) | np.all(parsing == (0, 0, 255), -1)
+        person = head | body
+        assert 0.02 < head.mean() and 0.02 < body.mean() and person.mean() < 0.9
+        frame, gt = rgb(folder / "ori_imgs" / f"{i}.jpg"), rgb(folder / "gt_imgs" / f"{i}.jpg")
+        # measured: 50 dB inside the person, 51 dB outside against the plate, where the frame
+        # itself is 46-47 dB from the plate
+        assert psnr(gt[person], frame[person]) > 40 and psnr(gt[~person], bc[~person]) > 40, i
+        assert psnr(gt[~person], bc[~person]) > psnr(frame[~person], bc[~person]) + 2, i  # the plate, not the frame
+        torso = rgb(folder / "torso_imgs" / f"{i}.png", cv2.IMREAD_UNCHANGED)
+        assert np.array_equal(torso[..., :3][body], frame[body]) and np.all(torso[..., 3][body] == 255), i
+        teeth = np.load(folder / "teeth_mask" / f"{i}.npy")
+        assert teeth.any() and not (teeth & ~head).any(), i
+
 
 
 def test_3d_landmarks_reproject_onto_the_2d_track(ingested):
@@ -240,8 +278,8 @@ def test_corrupt_file(tmp_path):
 def test_no_face(tmp_path):
     from lmgs_eval.data import io
 
-    frames = np.tile(np.linspace(0, 255, 128, dtype=np.uint8)[None, :, None], (128, 1, 3))[None].repeat(20, 0)
-    io.write_video(tmp_path / "wall.mp4", frames, 25, np.zeros(20 * 640, np.float32))
+    frames = np.tile(np.linspace(0, 255, 128, dtype=np.uint8)[None, :, None], (128, 1, 3))[None].repeat(30, 0)
+    io.write_video(tmp_path / "wall.mp4", frames, 25, np.zeros(30 * 640, np.float32))
     root = tmp_path / "data"
     rc, _, err = run_cli("ingest", str(tmp_path / "wall.mp4"), "--data-root", str(root), "--quiet")
     ingest_error_line(rc, err, "wall.mp4", "no face found")

@@ -35,20 +35,72 @@ def test_score_folders_length_mismatch(tmp_path, capsys):
     assert rec["results"]["psnr"]["n_effective"] == 10 and any("truncated" in f for f in rec["results"]["ssim"]["flags"])
 
 
-def test_bench_metrics_measures_every_metric_including_lse():
+def test_bench_metrics_measures_every_metric_including_lse(monkeypatch):
+    """Every metric is timed and turned into its figures; the clock is a fake one that each read
+    moves by 1 ms and each metric call by a fixed cost, so every figure is worked out by hand.
+    The sizes are labelled 512 (for the suite estimate) but the frames are 64 px (cheap)."""
     import argparse
+    from types import SimpleNamespace
+
+    import pytest
 
     from lmgs_eval.metrics import bench
+    from lmgs_eval.metrics.landmarks import DlibBackend
+    from lmgs_eval.metrics.lpips import LPIPS
 
-    out = bench.run(argparse.Namespace(frames=2, sizes="128"))
-    names = {r["metric"] for r in out["rows"]}
-    assert {"psnr", "ssim", "lmd landmarks (dlib, pred+gt)"} <= names
-    assert any(n.startswith("lse (bundled-sync") for n in names)  # the bundled scorer ships with the package
-    eager = [r for r in out["rows"] if "eager" in r["metric"]]
-    assert eager and all(r["ort_speedup"] > 0 for r in eager)
-    assert all(r["frames_per_s"] > 0 and r["ms_per_frame"] > 0 for r in out["rows"])
-    if out["lpips_network"] != "lpips-alex":  # the official network is timed anyway (random weights, named so)
-        assert bench.ALEX_TIMING in names and "random weights" in bench.ALEX_TIMING
+    now = [0.0]
+
+    def clock():
+        now[0] += 1e-3
+        return now[0]
+
+    def costing(fn, ms):
+        def wrapped(*a, **k):
+            out = fn(*a, **k)
+            now[0] += (ms(a[0]) if callable(ms) else ms) / 1e3
+            return out
+        return wrapped
+
+    clip = bench._clip
+    monkeypatch.setattr(bench, "_clip", lambda n, size: clip(n, 64))
+    monkeypatch.setattr(bench, "time", SimpleNamespace(perf_counter=clock))
+    monkeypatch.setattr(bench, "psnr_per_frame", costing(bench.psnr_per_frame, 3))
+    monkeypatch.setattr(bench, "ssim_per_frame", costing(bench.ssim_per_frame, 7))
+    monkeypatch.setattr(bench, "lse", costing(bench.lse, 60))
+    monkeypatch.setattr(DlibBackend, "landmarks", costing(DlibBackend.landmarks, 10))
+    monkeypatch.setattr(LPIPS, "distances", costing(LPIPS.distances, lambda lp: 30 if lp.spec.name == "lpips-alex" else 20))
+
+    out = bench.run(argparse.Namespace(frames=2, sizes="512"))
+    net = out["lpips_network"]
+    official = net == "lpips-alex"  # torchvision's trunk installed: no separate timing of the official shape
+    assert out["frames"] == 2
+    rows = {r["metric"]: r for r in out["rows"]}
+    assert {r["size"] for r in out["rows"]} == {512} and len(rows) == len(out["rows"])
+    lse_name = "lse (bundled-sync, detect+crop+embed)"  # the bundled scorer ships with the package
+    # a timing is the costs of its calls + 1 ms (the clock read that ends it), over 2 frames
+    # (LSE: over 50, its whole windows): ms/frame and frames/s of each
+    ort = 15.5 if official else 10.5
+    want = {"psnr": 2.0, "ssim": 4.0, f"{net} onnxruntime": ort, f"{net} eager torch (folded)": 0.5,
+            f"{net} eager torch (reference)": 0.5, "lmd landmarks (dlib, pred+gt)": 10.5, lse_name: 61 / 50}
+    if not official:
+        want[bench.ALEX_TIMING] = 15.5
+        assert "random weights" in bench.ALEX_TIMING
+    assert set(rows) == set(want)
+    for name, ms in want.items():
+        r = rows[name]
+        assert r["ms_per_frame"] == pytest.approx(ms) and r["frames_per_s"] == pytest.approx(1e3 / ms), name
+        assert r["ort_speedup"] == (pytest.approx(0.5 / ort) if "eager" in name else None), name
+    # 500 frames of PSNR + SSIM + LPIPS (ORT) + LMD + LSE: 2 + 4 + 10.5 + 10.5 + 1.22 = 28.22 ms a frame;
+    # with the ground truth's landmarks cached half the LMD less (22.97 ms); with the official
+    # network's 15.5 ms for the 10.5: 33.22 and 27.97 ms
+    estimates = {k: v for k, v in out.items() if k.startswith("suite_500x512") and not k.endswith("note")}
+    if official:
+        assert estimates == {"suite_500x512_estimate_s": 16.6, "suite_500x512_gt_cached_estimate_s": 14.0}
+    else:
+        assert estimates == {"suite_500x512_estimate_s": 14.1, "suite_500x512_gt_cached_estimate_s": 11.5,
+                             "suite_500x512_lpips_alex_estimate_s": 16.6,
+                             "suite_500x512_lpips_alex_gt_cached_estimate_s": 14.0}
+    assert "+LSE" in out["suite_estimate_note"]
 
 
 def test_score_names_a_trunk_that_is_not_torchvisions_lpips_alex_custom(tmp_path, capsys):

@@ -158,8 +158,24 @@ def _bundled(monkeypatch, tmp_path):
 def test_bundled_scorer_loads_runs_and_flags_silence(monkeypatch, tmp_path):
     scorer = _bundled(monkeypatch, tmp_path)
     crops, audio = _clip(12)
+    crops[:, :112] = 128  # a still upper face: what moves is in the lower half, the half this scorer reads
     r = S.lse(None, audio, crops=crops.astype(np.float32), scorer=scorer)
-    assert r.available and "bundled" in r.spec.standin and np.isfinite(r.values["lse_d"])
+    assert r.available and "bundled" in r.spec.standin
+    # the same numbers from the torch network the ONNX file was exported from, on inputs shaped
+    # here (the lower half of each 224 crop, area-resized to 96x48, 0..1) and syncnet_python's
+    # windows and distances (test_lse_equals_syncnet_python_evaluate holds those to its code)
+    _, B = S.nets()
+    torch.manual_seed(0)
+    net = B().eval()  # the weights _bundled exported
+    x = np.stack([cv2.resize(c[112:].astype(np.float32), (96, 48), interpolation=cv2.INTER_AREA) for c in crops]) / 255
+    vw, aw = S.windows(x, S.mfcc_13(audio), len(audio))
+    with torch.no_grad():
+        a_emb, v_emb = (t.numpy() for t in net(torch.from_numpy(aw), torch.from_numpy(vw.astype(np.float32))))
+    want = S.lse_from_embeddings(v_emb, a_emb)
+    assert r.values["offset"] == want["offset"] and r.n_effective == len(vw) == len(crops) - 5
+    assert r.values["lse_d"] == pytest.approx(want["lse_d"], rel=1e-4)
+    assert r.values["lse_c"] == pytest.approx(want["lse_c"], rel=1e-3, abs=1e-5)
+    np.testing.assert_allclose(r.per_item, want["per_window"], rtol=1e-4)
     assert not any("silent" in f for f in r.flags)
     r = S.lse(None, np.zeros_like(audio), crops=crops.astype(np.float32), scorer=scorer)
     assert any(f.startswith("silent_audio") for f in r.flags)

@@ -102,10 +102,33 @@ def _with_features(plain: dict, fname: str, tmp_path) -> dict:
 
 
 def test_the_plain_folder_is_read_with_derived_geometry(plain):
-    s = plain["subject"]
-    assert s.describe()["geometry_derived"] and s.landmarks3d is not None and s.has_geometry
-    assert plain["train"].depth is not None and (plain["train"].depth > 0).any()
-    assert plain["train"].normal is not None and plain["train"].landmarks3d is not None
+    """The derived geometry against the full folder's own (the generator's true 3D landmarks,
+    depth and normals). Measured (seed 0): the lifted landmarks reproject onto the 2D track to
+    1e-6 px, their shape (centred) lies 8-9 % of the jaw width from the truth's; the depth prior
+    covers 99.8 % of the true depth map at a 5.3 % median error, its normals 13.6 deg off."""
+    from lmgs_eval.data.layout import read_subject
+
+    s, full = plain["subject"], read_subject(plain["full"])
+    assert s.describe()["geometry_derived"] and s.has_geometry and not full.describe()["geometry_derived"]
+    assert plain["train"].landmarks3d is not None and plain["train"].depth is not None
+    for i in range(s.n_frames):  # 3D landmarks on the camera rays of the 2D ones
+        w2c = s.camera(i).world_to_camera.numpy().astype(np.float64)
+        pc = s.landmarks3d[i] @ w2c[:3, :3].T + w2c[:3, 3]
+        uv = np.stack([s.focal * pc[:, 0] / pc[:, 2] + s.cx, s.focal * pc[:, 1] / pc[:, 2] + s.cy], 1)
+        np.testing.assert_allclose(uv, s.landmarks[i], atol=1e-3)
+    for i in (0, s.n_frames - 1):
+        got, true = s.landmarks3d[i], full.landmarks3d[i]
+        jaw = np.linalg.norm(true[16] - true[0])
+        shape_err = np.linalg.norm((got - got.mean(0)) - (true - true.mean(0)), axis=1).mean()
+        assert shape_err < 0.15 * jaw, (i, shape_err / jaw)
+        d, d_true = s.depth(i), full.depth(i)
+        both = (d > 0) & (d_true > 0)
+        assert both.sum() > 0.95 * (d_true > 0).sum(), i
+        assert np.median(np.abs(d[both] - d_true[both]) / d_true[both]) < 0.08, i
+        n, n_true = s.normal(i)[both], full.normal(i)[both]
+        np.testing.assert_allclose(np.linalg.norm(n, axis=-1), 1.0, atol=1e-3)
+        cos = (n * n_true).sum(-1) / np.linalg.norm(n_true, axis=-1)
+        assert np.degrees(np.arccos(np.clip(cos, -1, 1))).mean() < 20.0, i
 
 
 @pytest.mark.parametrize("name", METHODS)

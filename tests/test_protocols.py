@@ -54,9 +54,36 @@ def test_self_writes_valid_records_renders_and_rows(store):
     # verify re-hashes the inputs too: the subject's ground truth and the LPIPS weights
     assert lm["artefacts"]["ground_truth"]["path"].endswith("manifest.json")
     assert any(k.startswith("weights:") and "lpips" in k for k in lm["artefacts"])
-    assert 0 < lm["metrics"]["psnr"]["value"] < 100 and by["ground-truth"]["metrics"]["psnr"]["value"] == 100.0
+    assert by["ground-truth"]["metrics"]["psnr"]["value"] == 100.0  # identical frames: the cap
     assert by["ground-truth"]["metrics"]["lpips"]["value"] == pytest.approx(0.0, abs=1e-6)
     assert "Ground Truth" in out and "Ours (lmgs)" in out
+
+
+def test_the_lmgs_row_scores_the_checkpoints_render_of_the_test_split(store):
+    """The record's PSNR is its model's render of the test split against the test frames: the
+    checkpoint the record names, reloaded and rendered again, scores the same with skimage's PSNR."""
+    from skimage.metrics import peak_signal_noise_ratio
+
+    from baselines.protocol import create_method
+    from lmgs_eval.commands._common import parse_overrides
+    from lmgs_eval.convert import driving_from_subject, subject_to_clip
+    from lmgs_eval.data.registry import find_subject
+    from lmgs_eval.results import sha256_file
+
+    root, _, _ = store
+    lm = next(r for r in load_records(root)[0] if r["method"]["name"] == "lmgs")
+    ck = Path(lm["artefacts"]["checkpoint"]["path"])
+    assert sha256_file(ck) == lm["artefacts"]["checkpoint"]["sha256"]
+    subject = find_subject(SUBJECT, None, progress=False)
+    method = create_method("lmgs", subject=subject, preset="quick", **parse_overrides(FAST[1::2]))
+    assert method.describe().config_hash == lm["config_hash"]
+    method.fit(subject_to_clip(subject, subject.train_ids), seed=0, workdir=ck.parent, progress=False)  # reloads
+    test = subject_to_clip(subject, subject.test_ids)
+    frames = method.render(driving_from_subject(subject, subject.test_ids, test))
+    assert frames.shape == test.frames.shape and frames.dtype == np.uint8
+    want = [peak_signal_noise_ratio(g, f, data_range=255) for g, f in zip(test.frames, frames)]
+    assert lm["metrics"]["psnr"]["value"] == pytest.approx(np.mean(want), abs=1e-6)
+    assert np.mean(want) < 60  # a render, not the ground truth
 
 
 def test_the_plate_reference_row_is_the_ground_truth_head_on_the_subjects_plate(store):

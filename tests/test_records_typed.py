@@ -79,11 +79,16 @@ def test_the_committed_tables_are_made_again_byte_for_byte(committed):
     """Every table under tables/ is a pure function of tables/records."""
     tables = all_tables([r for _, r in committed])
     assert len(tables) >= 5
+    made = set()
     for t in tables:
         for ext, text in (("md", t.markdown()), ("tex", t.latex()), ("csv", t.csv())):
             path = ROOT / "tables" / f"{t.name}.{ext}"
-            if path.exists():
-                assert path.read_text(encoding="utf-8") == text, path
+            assert path.is_file(), f"{path} is made from tables/records but not committed"
+            assert path.read_text(encoding="utf-8") == text, path
+            made.add(path.name)
+    # and no committed table is left over that the records no longer make
+    on_disk = {p.name for p in (ROOT / "tables").iterdir() if p.suffix in (".md", ".tex", ".csv")} - {"README.md"}
+    assert on_disk == made, sorted(on_disk ^ made)
 
 
 def test_a_metric_entry_carries_each_weights_file_and_old_entries_still_read(tmp_path):

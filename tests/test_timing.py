@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import inspect
 import os
 import subprocess
 import sys
 import time
 
 import pytest
+import torch
 
 from lmgs_eval.hosttime import HostSpeed, OthersCPU, host_cpu_seconds, probe_ms
 
@@ -20,26 +22,113 @@ def _spin(seconds: float) -> None:
         pass
 
 
+def _proc_cpu_seconds(stat: str) -> float:
+    """utime + stime of a ``/proc/<pid>/stat`` line (fields 14 and 15, counted after the command name)."""
+    f = stat.rsplit(")", 1)[1].split()
+    return (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _self_cpu() -> float:
+    with open("/proc/self/stat", encoding="ascii") as f:
+        return _proc_cpu_seconds(f.read())
+
+
+def _spin_cpu(seconds: float) -> None:
+    """Burn ``seconds`` of this process's CPU time (however long a busy host makes it take)."""
+    t = time.process_time()
+    while time.process_time() - t < seconds:
+        pass
+
+
+_CHILD = f"""
+import os, time
+{inspect.getsource(_proc_cpu_seconds)}
+t = time.process_time()
+while time.process_time() - t < {{spin}}:
+    pass
+print(_proc_cpu_seconds(open("/proc/self/stat").read()))
+"""
+
+
+def test_others_cpu_share_is_host_busy_less_this_process_over_host_total(monkeypatch):
+    """The accounting on given readings: ``share = (d busy - d own) / d total``, clamped into [0, 1]."""
+    from lmgs_eval import hosttime
+
+    def readings(host, own):
+        it_h, it_o = iter(host), iter(own)
+        monkeypatch.setattr(hosttime, "host_cpu_seconds", lambda: next(it_h))
+        monkeypatch.setattr(hosttime, "own_cpu_seconds", lambda: next(it_o))
+
+    # a 2-core host over 1 s (2 CPU-seconds): another process keeps one core, this one uses 0.2 s
+    readings([(100.0, 500.0), (101.2, 502.0)], [3.0, 3.2])
+    with OthersCPU() as span:
+        pass
+    assert span.share == pytest.approx(0.5)
+    # only this process worked: nothing was taken by others
+    readings([(100.0, 500.0), (101.0, 502.0)], [3.0, 4.0])
+    with OthersCPU() as span:
+        pass
+    assert span.share == pytest.approx(0.0)
+    # both: 0.3 s others of 4 CPU-seconds
+    readings([(10.0, 40.0), (11.1, 44.0)], [1.0, 1.8])
+    with OthersCPU() as span:
+        pass
+    assert span.share == pytest.approx(0.075)
+    # tick granularity can make this process's time exceed the host's busy time: 0, not negative
+    readings([(10.0, 40.0), (10.0, 40.02)], [1.0, 1.01])
+    with OthersCPU() as span:
+        pass
+    assert span.share == 0.0
+    # no /proc/stat, or a clock that did not advance: no share
+    readings([None, None], [0.0, 1.0])
+    with OthersCPU() as span:
+        pass
+    assert span.share is None
+    readings([(10.0, 40.0), (10.5, 40.0)], [0.0, 0.1])
+    with OthersCPU() as span:
+        pass
+    assert span.share is None
+
+
+def test_host_cpu_seconds_reads_the_cpu_line_of_proc_stat(monkeypatch):
+    """busy = user + nice + system + irq + softirq + steal, total adds idle and iowait; guest time,
+    already inside user, is not added again (ticks of SC_CLK_TCK)."""
+    import io
+
+    from lmgs_eval import hosttime
+
+    line = "cpu  100 20 30 400 50 0 10 5 70 9\ncpu0 1 2 3 4 5 6 7 8 9 10\n"
+    monkeypatch.setattr(hosttime, "open", lambda *a, **k: io.StringIO(line), raising=False)
+    hz = os.sysconf("SC_CLK_TCK")
+    busy, total = hosttime.host_cpu_seconds()
+    assert total == pytest.approx(615 / hz) and busy == pytest.approx(165 / hz)
+    monkeypatch.setattr(hosttime, "open", lambda *a, **k: io.StringIO("intr 1 2 3\n"), raising=False)
+    assert hosttime.host_cpu_seconds() is None
+
+
 @needs_proc
-def test_others_cpu_share_counts_other_processes_and_not_this_one():
-    ncpu = os.cpu_count() or 1
-    with OthersCPU() as idle:
-        time.sleep(0.5)
-    if idle.share is not None and idle.share > 0.15:
-        pytest.skip(f"the host is busy ({idle.share:.0%} of its CPU taken by others): contention cannot be measured against it")
-    with OthersCPU() as own:
-        _spin(1.0)  # only this process is busy
-    child = subprocess.Popen([sys.executable, "-c",
-                              "import time\nt = time.perf_counter()\nwhile time.perf_counter() - t < 1.8: pass"])
-    try:
-        time.sleep(0.3)  # let it start
-        with OthersCPU() as other:
-            time.sleep(1.0)  # this process idles while the other one keeps a core busy
-    finally:
-        child.wait()
-    assert own.share is not None and other.share is not None and 0 <= own.share <= 1 and 0 <= other.share <= 1
-    assert other.share > 0.7 / ncpu  # one core of the host (about 0.5 on 2 cores)
-    assert other.share - own.share > 0.5 / ncpu  # this process's own work is not contention
+def test_others_cpu_counts_a_child_process_and_not_this_one():
+    """Measured against CPU times read from ``/proc/<pid>/stat``: a child's CPU time is counted as
+    others', this process's own is not. The readings bracket the span, so the bounds hold however
+    busy the rest of the host is (its load only adds to others' share)."""
+    spin, tol = 0.4, 0.08  # s; /proc/stat and per-process times are both sampled in clock ticks
+    h0, own0 = host_cpu_seconds(), _self_cpu()
+    with OthersCPU() as mine:
+        _spin_cpu(spin)
+    h1, own1 = host_cpu_seconds(), _self_cpu()
+    own = own1 - own0
+    assert own >= spin - 0.02 and 0.0 <= mine.share <= 1.0
+    # others' seconds in the span are at most the host's busy seconds less this process's own
+    assert mine.share * (h1[1] - h0[1]) <= (h1[0] - h0[0]) - own + tol
+
+    h0 = host_cpu_seconds()
+    with OthersCPU() as theirs:  # this process waits while the child burns its CPU
+        out = subprocess.run([sys.executable, "-c", _CHILD.format(spin=spin)], capture_output=True, text=True,
+                             check=True).stdout
+    h1 = host_cpu_seconds()
+    child = float(out)
+    assert child >= spin - 0.02 and 0.0 <= theirs.share <= 1.0
+    assert theirs.share * (h1[1] - h0[1]) >= child - tol
 
 
 class _Probe:
@@ -88,9 +177,26 @@ def test_host_speed_survives_a_corrupt_ledger_and_keeps_none_when_asked(tmp_path
     assert h.slowdown == pytest.approx(2.0)  # no ledger: against the faster of its own two sides
 
 
-def test_probe_is_a_real_workload():
-    ms = [probe_ms() for _ in range(3)]
-    assert all(m > 0 for m in ms)
+def test_probe_times_exactly_its_fixed_workload(monkeypatch):
+    """The clock is read once before and once after the 40 chained matmul + tanh steps, and the
+    span is returned in milliseconds (a fake clock advancing 0.25 s per read: 250 ms)."""
+    from lmgs_eval import hosttime
+
+    events, real_tanh = [], torch.tanh
+    clock = iter([10.0, 10.25])
+
+    def perf_counter():
+        events.append("clock")
+        return next(clock)
+
+    def tanh(x):
+        events.append(("tanh", tuple(x.shape)))
+        return real_tanh(x)
+
+    monkeypatch.setattr(hosttime.time, "perf_counter", perf_counter)
+    monkeypatch.setattr(torch, "tanh", tanh)
+    assert probe_ms() == pytest.approx(250.0)
+    assert events == ["clock"] + [("tanh", (256, 256))] * 40 + ["clock"]
 
 
 def test_training_records_the_contention_and_a_reused_checkpoint_keeps_it(tmp_path, monkeypatch):
