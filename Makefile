@@ -25,8 +25,11 @@ venv: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/lmgs-eval demo
 
+# The suite in TEST_WORKERS processes (pytest-xdist), each test file whole in one of them (its
+# module fixtures, e.g. a trained toy model, are made once); most tests keep one core busy.
+TEST_WORKERS ?= 2
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -m "not slow" -p no:cacheprovider
+	$(BIN)/python -m pytest -q -m "not slow" -p no:cacheprovider -n $(TEST_WORKERS) --dist loadfile
 
 # The speed benchmarks (ratios measured in one run), then the whole benchmark behind the
 # committed tables/: the plan benchmarks/paper.toml (resumable from ./results). Serial by default;

@@ -54,40 +54,26 @@ def test_others_cpu_share_is_host_busy_less_this_process_over_host_total(monkeyp
     """The accounting on given readings: ``share = (d busy - d own) / d total``, clamped into [0, 1]."""
     from lmgs_eval import hosttime
 
-    def readings(host, own):
+    def share(host, own):
+        """The span's share when the host's (busy, total) and this process's CPU seconds read these in turn."""
         it_h, it_o = iter(host), iter(own)
         monkeypatch.setattr(hosttime, "host_cpu_seconds", lambda: next(it_h))
         monkeypatch.setattr(hosttime, "own_cpu_seconds", lambda: next(it_o))
+        with OthersCPU() as span:
+            pass
+        return span.share
 
     # a 2-core host over 1 s (2 CPU-seconds): another process keeps one core, this one uses 0.2 s
-    readings([(100.0, 500.0), (101.2, 502.0)], [3.0, 3.2])
-    with OthersCPU() as span:
-        pass
-    assert span.share == pytest.approx(0.5)
+    assert share([(100.0, 500.0), (101.2, 502.0)], [3.0, 3.2]) == pytest.approx(0.5)
     # only this process worked: nothing was taken by others
-    readings([(100.0, 500.0), (101.0, 502.0)], [3.0, 4.0])
-    with OthersCPU() as span:
-        pass
-    assert span.share == pytest.approx(0.0)
+    assert share([(100.0, 500.0), (101.0, 502.0)], [3.0, 4.0]) == pytest.approx(0.0)
     # both: 0.3 s others of 4 CPU-seconds
-    readings([(10.0, 40.0), (11.1, 44.0)], [1.0, 1.8])
-    with OthersCPU() as span:
-        pass
-    assert span.share == pytest.approx(0.075)
+    assert share([(10.0, 40.0), (11.1, 44.0)], [1.0, 1.8]) == pytest.approx(0.075)
     # tick granularity can make this process's time exceed the host's busy time: 0, not negative
-    readings([(10.0, 40.0), (10.0, 40.02)], [1.0, 1.01])
-    with OthersCPU() as span:
-        pass
-    assert span.share == 0.0
+    assert share([(10.0, 40.0), (10.0, 40.02)], [1.0, 1.01]) == 0.0
     # no /proc/stat, or a clock that did not advance: no share
-    readings([None, None], [0.0, 1.0])
-    with OthersCPU() as span:
-        pass
-    assert span.share is None
-    readings([(10.0, 40.0), (10.5, 40.0)], [0.0, 0.1])
-    with OthersCPU() as span:
-        pass
-    assert span.share is None
+    assert share([None, None], [0.0, 1.0]) is None
+    assert share([(10.0, 40.0), (10.5, 40.0)], [0.0, 0.1]) is None
 
 
 def test_host_cpu_seconds_reads_the_cpu_line_of_proc_stat(monkeypatch):
