@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
 import io
 import os
 import pickle
@@ -12,16 +11,9 @@ from pathlib import Path
 
 import torch
 
+from lmgs.fileio import sha256_file  # noqa: F401  (imported from here by the scorers)
 from lmgs_eval.errors import UserError
 from lmgs_eval.paths import atomic_write_bytes, cache_root
-
-
-def sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def onnx_cache_dir() -> Path:

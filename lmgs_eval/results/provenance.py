@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import datetime
-import hashlib
 import math
 import os
 import platform
@@ -15,17 +14,9 @@ from pathlib import Path
 from typing import Any
 
 from lmgs.config import config_hash
+from lmgs.fileio import sha256_file
 from lmgs_eval import __version__
 from lmgs_eval.results.schema import SCHEMA_VERSION
-
-
-def sha256_file(path: str | os.PathLike) -> str:
-    """sha256 (hex) of a file's bytes, read in 1 MB blocks."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def compact(values: Iterable[float | None] | None, digits: int = 6) -> list[float | None] | None:

@@ -2,28 +2,17 @@
 
 from __future__ import annotations
 
-import hashlib
 import io as _io
 import json
 from pathlib import Path
 
 import numpy as np
 
+from lmgs.fileio import sha256_file
 from lmgs_eval.data.layout import split_point
 
 FPS = 25
 AU_COLUMNS = ("AU25_r", "AU26_r", "AU45_r")
-
-
-def sha256_file(path: Path, chunk: int = 1 << 20) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while True:
-            b = f.read(chunk)
-            if not b:
-                break
-            h.update(b)
-    return h.hexdigest()
 
 
 def write_json(path: Path, obj) -> None:
