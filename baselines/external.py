@@ -29,13 +29,10 @@ def list_frames(folder: Path) -> list[Path]:
 
 
 def read_frames(path: Path) -> np.ndarray:
-    """A video or a folder of images as uint8 ``[T, H, W, 3]``."""
-    path = Path(path)
-    if path.is_dir():
-        return np.stack([io.read_rgb_u8(p) for p in list_frames(path)])
+    """A video or a folder of images as uint8 ``[T, H, W, 3]`` (decoded a frame at a time, no float copy)."""
     from lmgs_eval.data.frames import FrameFile
 
-    return FrameFile(path).read()  # decoded to uint8 frame by frame (no float copy of the clip)
+    return FrameFile(path).read()
 
 
 def read_sidecar(path: Path) -> dict:

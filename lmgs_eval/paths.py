@@ -12,7 +12,7 @@ from pathlib import Path
 from lmgs.fileio import atomic_path, atomic_write_bytes, public_mode
 
 __all__ = ["atomic_dir", "atomic_path", "atomic_write_bytes", "atomic_write_text", "cache_root", "check_out_dir", "claim",
-           "data_root", "public_mode"]
+           "data_root", "existing_ancestor", "public_mode"]
 
 
 def cache_root() -> Path:
@@ -29,6 +29,14 @@ def data_root(explicit: str | os.PathLike | None = None) -> Path:
     if env:
         return Path(env).expanduser()
     return cache_root() / "data"
+
+
+def existing_ancestor(path: Path) -> Path:
+    """``path`` itself if it exists, else its nearest parent that does."""
+    path = Path(path)
+    while not path.exists() and path != path.parent:
+        path = path.parent
+    return path
 
 
 def check_out_dir(out: Path, flag: str) -> None:
@@ -52,9 +60,7 @@ def check_out_dir(out: Path, flag: str) -> None:
         if not os.access(out, os.W_OK | os.X_OK):
             raise UserError(f"{flag} {out}: folder is not writable")
         return
-    up = out.parent
-    while not up.exists() and up != up.parent:
-        up = up.parent
+    up = existing_ancestor(out.parent)
     if not up.is_dir():
         raise UserError(f"{flag} {out}: cannot create the folder ({up} is not a folder)")
     if not os.access(up, os.W_OK | os.X_OK):

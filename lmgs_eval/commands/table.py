@@ -23,14 +23,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Load the store (warning about skipped files), write every table and chart, print Table I."""
-    from lmgs_eval.paths import atomic_write_text
+    from lmgs_eval.paths import atomic_write_text, check_out_dir
     from lmgs_eval.results import load_records
     from lmgs_eval.report.tables import all_tables
 
     records_dir = args.records
-    _check_out_dir(Path(args.out), "--out")
+    check_out_dir(Path(args.out), "--out")
     if records_dir is not None:
-        _check_out_dir(Path(records_dir).parent, "--records")
+        check_out_dir(Path(records_dir).parent, "--records")
         _check_records_dir(Path(records_dir), Path(args.results))
     records, warnings = load_records(args.results)
     for w in warnings:
@@ -79,10 +79,3 @@ def _check_records_dir(records_dir: Path, results: Path) -> None:
     if a == b or b in a.parents or a in b.parents:
         raise UserError(f"--records {records_dir}: overlaps the results store {results} "
                         "(its records would be read twice); choose a folder outside it, e.g. tables/records")
-
-
-def _check_out_dir(out: Path, flag: str) -> None:
-    """An output folder must be a folder this user can write, or one that can be made (:func:`lmgs_eval.paths.check_out_dir`)."""
-    from lmgs_eval.paths import check_out_dir
-
-    check_out_dir(out, flag)

@@ -15,7 +15,7 @@ from lmgs_eval.data.frames import FrameFile, chunk_for
 from lmgs_eval.metrics.landmarks import landmark_stream
 from lmgs_eval.metrics.lpips import ALEX_NAMES, find_alexnet
 from lmgs_eval.metrics.registry import create_metric
-from lmgs_eval.metrics.sync import MIN_SAMPLES, FaceClip, lse
+from lmgs_eval.metrics.sync import MIN_SAMPLES, FaceClip, lse, too_short
 
 RECORD_SCHEMA = "lmgs-eval/score/1"
 
@@ -50,8 +50,7 @@ def clip_audio(audio: str | Path | None, src: FrameFile, what: str = "--audio") 
     else:
         return None, f"{src.path} has no audio track and --audio was not given", []
     if len(a16) < MIN_SAMPLES:
-        return None, (f"{name}: {len(a16) / 16000:.2f} s of audio ({len(a16)} samples at 16 kHz); LSE needs at least "
-                      f"{MIN_SAMPLES / 16000:.2f} s ({MIN_SAMPLES} samples: 6 frames at 25 fps)"), notes
+        return None, f"{name}: audio too short: {too_short(len(a16))}", notes
     return a16, "", notes
 
 

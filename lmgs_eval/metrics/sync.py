@@ -71,6 +71,12 @@ LSE_SPEC = MetricSpec(
 
 
 # ----------------------------------------------------------------------------- audio
+def too_short(n_samples: int) -> str:
+    """Why ``n_samples`` of 16 kHz audio cannot give one LSE window: its length and the minimum."""
+    return (f"{n_samples / 16000:.2f} s ({n_samples} samples at 16 kHz); LSE needs at least {MIN_SAMPLES / 16000:.2f} s "
+            f"({MIN_SAMPLES} samples: 6 frames at 25 fps)")
+
+
 def mfcc_13(audio16k: np.ndarray) -> np.ndarray:
     """``[13, T]`` MFCCs at 100 Hz of float [-1, 1] 16 kHz mono audio, at int16 scale.
 
@@ -226,9 +232,11 @@ def crop_face(frame: np.ndarray, box, size: int = CROP_SIZE) -> np.ndarray:
     return cv2.resize(face, (size, size), interpolation=cv2.INTER_LINEAR)
 
 
-def crop_faces(frames, boxes: np.ndarray, size: int = CROP_SIZE) -> np.ndarray:
-    """syncnet_python ``crop_video`` geometry -> ``[T, size, size, 3]`` BGR float32 in 0..255 (integer values)."""
-    out = np.empty((len(boxes), size, size, 3), np.float32)
+def crop_faces(frames, boxes: np.ndarray, size: int = CROP_SIZE, dtype=np.float32) -> np.ndarray:
+    """syncnet_python ``crop_video`` geometry -> ``[T, size, size, 3]`` BGR in 0..255 (integer values), ``dtype``.
+
+    ``frames``: an array or any iterable of frames, one per box."""
+    out = np.empty((len(boxes), size, size, 3), dtype)
     for t, frame in zip(range(len(boxes)), frames):
         out[t] = crop_face(frame, boxes[t], size)
     return out
@@ -313,10 +321,7 @@ class FaceClip:
         if detect_every not in b._crops:
             boxes, n_missing = face_boxes(self._frames(), detect_every)
             b._set_n(len(boxes))
-            out = np.empty((len(boxes), CROP_SIZE, CROP_SIZE, 3), np.uint8)
-            for t, f in zip(range(len(boxes)), self._frames()):
-                out[t] = crop_face(f, boxes[t])
-            b._crops[detect_every] = (out, n_missing)
+            b._crops[detect_every] = (crop_faces(self._frames(), boxes, dtype=np.uint8), n_missing)
         crops, n_missing = b._crops[detect_every]
         return self._part(crops), n_missing
 
@@ -354,16 +359,13 @@ class SyncScorer:
     def embed_clip(self, frames, crops, audio16k, mfcc, last, detect_every=1, lms=None):
         """Audio and video embeddings of windows ``0 .. last-1``, the still-face embedding, flags and notes."""
         flags, notes = [], []
-        if crops is None and getattr(frames, "is_face_clip", False):
-            crops, n_missing = frames.crops(detect_every)  # found once per clip, uint8
-            if n_missing:
-                flags.append(f"no_face: {n_missing} detection(s) without a face, box held from the nearest frame")
-            notes.append(f"crops: dlib HOG every {detect_every} frame(s), median-9 box smoothing, syncnet_python "
-                         "crop_video geometry, 224x224 BGR 0-255")
-        elif crops is None:
+        if crops is None:
             if frames is None:
                 raise UserError(f"{self.name} scores face crops of frames; landmarks alone are not enough")
-            boxes, n_missing = face_boxes(frames, detect_every)
+            if getattr(frames, "is_face_clip", False):
+                crops, n_missing = frames.crops(detect_every)  # found once per clip, uint8
+            else:  # an array: boxes now, crops a chunk at a time below
+                boxes, n_missing = face_boxes(frames, detect_every)
             if n_missing:
                 flags.append(f"no_face: {n_missing} detection(s) without a face, box held from the nearest frame")
             notes.append(f"crops: dlib HOG every {detect_every} frame(s), median-9 box smoothing, syncnet_python "
@@ -465,8 +467,7 @@ def lse(frames: np.ndarray | None, audio16k: np.ndarray | None, fps: float = 25.
     """
     n = int(next(len(x) for x in (crops, frames, lms) if x is not None))
     if audio16k is not None and len(audio16k) < MIN_SAMPLES:
-        audio_reason = (f"audio too short: {len(audio16k) / 16000:.2f} s ({len(audio16k)} samples at 16 kHz); LSE "
-                        f"needs at least {MIN_SAMPLES / 16000:.2f} s ({MIN_SAMPLES} samples: 6 frames at 25 fps)")
+        audio_reason = f"audio too short: {too_short(len(audio16k))}"
         audio16k = None
     if scorer is None:
         return _lse_selected(frames, audio16k, fps, crops, detect_every, audio_reason, lms, reference, n)

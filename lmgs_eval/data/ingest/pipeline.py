@@ -181,11 +181,10 @@ def _check_name_length(name: str, root: Path) -> None:
     """The subject's folder and its work folder (``.<name>.ingest``) must be names the file system takes."""
     import os
 
-    up = root
-    while not up.exists() and up != up.parent:
-        up = up.parent
+    from lmgs_eval.paths import existing_ancestor
+
     try:
-        limit = os.pathconf(up, "PC_NAME_MAX")
+        limit = os.pathconf(existing_ancestor(root), "PC_NAME_MAX")
     except (OSError, ValueError):
         limit = 255
     most = limit - len(".ingest") - 1
