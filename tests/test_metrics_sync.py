@@ -39,6 +39,14 @@ def _load_file(name, path):
 needs_pkg = pytest.mark.skipif(_pkg_dir() is None, reason="syncnet-python (reference code) not installed")
 
 
+@pytest.fixture(autouse=True)
+def _imported_syncnet_removed():
+    """An imported official scorer is kept in the test session's cache, where every later scoring test
+    (in whatever order the test processes take the files) would pick it: each test here removes it."""
+    yield
+    S.syncnet_manifest_path().unlink(missing_ok=True)
+
+
 @pytest.fixture(scope="module")
 def reference_net(tmp_path_factory):
     model = _load_file("ref_syncnet_model", _pkg_dir() / "SyncNetModel.py")
