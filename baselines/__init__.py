@@ -11,4 +11,5 @@ ADAPTERS: tuple[str, ...] = (
     "baselines.nerf",  # adnerf, radnerf, ernerf, geneface
     "baselines.gaussian",  # talkinggaussian, degstalk, gaussiantalker
     "baselines.twod",  # wav2lip, ip_lap
+    "baselines.external",  # external:NAME
 )

@@ -33,6 +33,22 @@ LOGMEL = AudioConfig()  # the project's audio front end (log-mel, 16 x 80 window
 BASELINE_PRESETS = ("tiny", "quick")
 
 
+class Budget:
+    """Base of the adapters' budgets (frozen dataclasses): each preset of :data:`BASELINE_PRESETS`
+    is a classmethod of its name. ``quick`` (the benchmark's) is the defaults; ``tiny`` (tests)
+    the defaults changed by the class's :attr:`TINY`."""
+
+    TINY: dict = {}  # not a dataclass field: no annotation in the subclasses
+
+    @classmethod
+    def tiny(cls):
+        return cls(**cls.TINY)
+
+    @classmethod
+    def quick(cls):
+        return cls()
+
+
 def preset_of(cls, name: str, method: str | None = None):
     """``cls.tiny()`` / ``cls.quick()``; a clear error for a preset the baselines do not have."""
     if name not in BASELINE_PRESETS:
@@ -158,11 +174,14 @@ def head_box(clip: TrainingClip, pad: float = 0.3) -> tuple[np.ndarray, np.ndarr
 
 
 def cost_of(module: torch.nn.Module | None, n_gaussians: int | None = None) -> dict:
-    """``n_params``, ``n_gaussians`` (None outside the 3DGS family) and ``model_mb`` (float32)."""
+    """``n_params``, ``n_gaussians`` (None outside the 3DGS family), ``model_mb`` (float32) and ``device``:
+    where the model's parameters are, i.e. where it trained or was loaded and renders."""
     if module is None:
         return {}
-    n = sum(p.numel() for p in module.parameters())
-    return {"n_params": int(n), "n_gaussians": n_gaussians, "model_mb": n * 4 / 2**20}
+    params = list(module.parameters())
+    n = sum(p.numel() for p in params)
+    device = str(params[0].device) if params else None
+    return {"n_params": int(n), "n_gaussians": n_gaussians, "model_mb": n * 4 / 2**20, "device": device}
 
 
 def landmark_targets(clip: TrainingClip) -> np.ndarray:
@@ -238,6 +257,14 @@ class Adapter:
 
     def _train(self, clip: TrainingClip, seed: int, progress: bool):  # pragma: no cover - abstract
         raise NotImplementedError
+
+    def _start(self, clip: TrainingClip, seed: int) -> tuple[torch.device, np.random.Generator, int, torch.Tensor]:
+        """Where a ``_train`` starts: the device, the generator of ``seed`` (torch seeded alike),
+        the clip's frame count and its audio windows ``[T, 16, 80]`` on the device."""
+        dev = self.dev
+        rng = seed_all(seed)
+        n = len(clip)
+        return dev, rng, n, audio_windows(clip.audio, n).to(dev)
 
     def _build(self, build: dict):  # pragma: no cover - abstract
         raise NotImplementedError

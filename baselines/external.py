@@ -11,28 +11,15 @@ folder) gives cost figures: ``fps``, ``train_hours``, ``device``, ``n_gaussians`
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
-from baselines.protocol import MethodInfo
+from baselines.protocol import EXTERNAL_PREFIX, MethodInfo, register_prefix
 from lmgs.errors import InputError
-from lmgs_eval.data import io
 
-IMAGE_EXT = io.IMAGE_EXT
 SIDECAR_KEYS = ("fps", "train_hours", "device", "n_gaussians", "model_mb", "notes")
-
-
-def list_frames(folder: Path) -> list[Path]:
-    """The folder's images in frame order; a gap in the numbering is an error (:func:`lmgs_eval.data.io.list_frames`)."""
-    return io.list_frames(Path(folder))
-
-
-def read_frames(path: Path) -> np.ndarray:
-    """A video or a folder of images as uint8 ``[T, H, W, 3]`` (decoded a frame at a time, no float copy)."""
-    from lmgs_eval.data.frames import FrameFile
-
-    return FrameFile(path).read()
 
 
 def read_sidecar(path: Path) -> dict:
@@ -57,12 +44,20 @@ def read_sidecar(path: Path) -> dict:
     return d
 
 
+@register_prefix(EXTERNAL_PREFIX)
 class ExternalRenders:
-    """A method whose frames were rendered elsewhere (e.g. the official ER-NeRF on a GPU)."""
+    """A method whose frames were rendered elsewhere (e.g. the official ER-NeRF on a GPU).
+
+    ``read_frames`` (a hook the toolkit passes, see :func:`baselines.protocol.create_method`)
+    reads the video or folder as uint8 ``[T, H, W, 3]``; a gap in a folder's numbering is an
+    :class:`~lmgs.errors.InputError`.
+    """
 
     prerendered = True  # the protocol neither fits nor times it (see protocols.fit_render_score)
+    hooks = ("read_frames",)
 
-    def __init__(self, name: str, renders: str | Path | None = None, **_):
+    def __init__(self, name: str, renders: str | Path | None = None,
+                 read_frames: Callable[[Path], np.ndarray] | None = None, **_):
         if not name:
             raise InputError("external method needs a name: --method external:NAME")
         if renders is None:
@@ -72,6 +67,7 @@ class ExternalRenders:
         if not self.path.exists():
             raise InputError(f"{self.path}: renders not found")
         self.sidecar = read_sidecar(self.path)
+        self.read_frames = read_frames
         self._frames: np.ndarray | None = None  # read once, by check() or the first render()
 
     def fit(self, clip, *, seed: int, workdir: Path, progress: bool = True) -> None:
@@ -91,7 +87,10 @@ class ExternalRenders:
 
     def render(self, driving) -> np.ndarray:
         if self._frames is None:
-            self._frames = read_frames(self.path)
+            if self.read_frames is None:
+                raise InputError(f"external:{self.name}: no frame reader; the toolkit passes one as the "
+                                 "'read_frames' hook of create_method")
+            self._frames = self.read_frames(self.path)
         frames = self._frames
         n = driving.n_frames
         if len(frames) != n:

@@ -31,6 +31,7 @@ from torch import nn
 
 from baselines.common import (
     Adapter,
+    Budget,
     audio_windows,
     configured,
     cost_of,
@@ -39,23 +40,24 @@ from baselines.common import (
     mean_background,
     n_frames_of,
     progress_bar,
-    seed_all,
     to_u8,
 )
 from baselines.lmgs_method import GR_PER_PIXEL
 from baselines.protocol import MethodInfo, register
 from lmgs import losses
 from lmgs.audio import AudioNet
+from lmgs.checkpoint import load_model, save_model
 from lmgs.config import AudioConfig, DeformConfig, TriplaneConfig
 from lmgs.device import choose_device
 from lmgs.encoders import TriplaneEncoder
 from lmgs.gaussians import PARAM_NAMES, GaussianSet
-from lmgs.init import face_area_px, init_face
+from lmgs.init import face_area_px, init_face, scene_box
 from lmgs.model import to_image
+from lmgs.optim import densify, gaussian_adam, network_adamw, optimise
 from lmgs.presets import TrainConfig, quick
 from lmgs.render import rasterize
-from lmgs.strategy import Strategy, accumulate, budget_from_face_area, initialize_state, step_post_backward
-from lmgs.train import fit, load_model, save_model
+from lmgs.strategy import Strategy, budget_from_face_area, initialize_state
+from lmgs.train import fit
 from lmgs.types import Camera
 
 STANDINS = ("audio front end: log-mel computed in the project (DeepSpeech / HuBERT / WavLM cannot be had offline)",)
@@ -67,7 +69,7 @@ SHARED_TRAIN_KEYS = ("lr_means", "lr_scales", "lr_quats", "lr_opacity", "lr_colo
 
 
 @dataclass(frozen=True)
-class GSBudget:
+class GSBudget(Budget):
     """Schedule of a 3DGS baseline.
 
     Attributes:
@@ -85,13 +87,7 @@ class GSBudget:
     lr_nets: float = 2e-3
     budget_density: float = TrainConfig.budget_density
 
-    @classmethod
-    def tiny(cls) -> "GSBudget":
-        return cls(static_steps=60, dynamic_steps=40, densify_every=20)
-
-    @classmethod
-    def quick(cls) -> "GSBudget":
-        return cls()
+    TINY = {"static_steps": 60, "dynamic_steps": 40, "densify_every": 20}
 
 
 # ----------------------------------------------------------------------------- lmgs configurations
@@ -142,8 +138,7 @@ class LMGSConfigMethod:
     def cost(self) -> dict:
         if self.model is None:
             return {}
-        n = sum(p.numel() for p in self.model.parameters())
-        out = {"n_params": int(n), "n_gaussians": self.model.n_gaussians(), "model_mb": n * 4 / 2**20}
+        out = cost_of(self.model, self.model.n_gaussians())
         if self.fit_seconds is not None:
             out["fit_seconds"] = float(self.fit_seconds)
         return out
@@ -282,34 +277,25 @@ class GaussianTalker(Adapter):
         return GaussianTalkerModel(**build)
 
     def _train(self, clip, seed: int, progress: bool):
-        dev = self.dev
-        rng = seed_all(seed)
+        dev, rng, n, feats = self._start(clip, seed)
         b = self.cfg
         lt = TrainConfig()  # the Gaussian learning rates and loss weights of the lmgs schedule (SHARED_TRAIN_KEYS)
-        n = len(clip)
-        feats = audio_windows(clip.audio, n).to(dev)
         budget = budget_from_face_area(face_area_px(clip), b.budget_density)
         gs0 = init_face(clip, max(200, int(budget * 0.6)), seed)
-        pts = gs0.means.detach()
-        lo, hi = pts.min(0).values, pts.max(0).values
-        margin = (hi - lo) * 0.25 + 1e-3
+        box_min, box_max, extent = scene_box(gs0)
         build = {"n_gaussians": len(gs0), "in_channels": int(feats.shape[2]), "window": int(feats.shape[1]),
-                 "box_min": (lo - margin).tolist(), "box_max": (hi + margin).tolist(),
-                 "intrinsics": [clip.focal, clip.cx, clip.cy, clip.width, clip.height], "n_train_frames": n}
+                 "box_min": box_min, "box_max": box_max, "intrinsics": [clip.focal, clip.cx, clip.cy, clip.width, clip.height], "n_train_frames": n}
         model = GaussianTalkerModel(**build)
         model.gs.load_tensors({k: getattr(gs0, k) for k in PARAM_NAMES})
         model.train_w2c.copy_(torch.from_numpy(np.asarray(clip.w2c, np.float32)))
         model.default_background.copy_(torch.from_numpy(mean_background(clip)))
         model = model.to(dev)
         model.audio_net.encoder.fit_normalization(feats)
-        rates = {"means": lt.lr_means, "quats": lt.lr_quats, "log_scales": lt.lr_scales, "opacity_logits": lt.lr_opacity,
-                 "color_logits": lt.lr_colors}
-        g_opt = torch.optim.Adam([{"params": [getattr(model.gs, k)], "lr": rates[k], "name": k} for k in PARAM_NAMES], eps=1e-15)
-        n_opt = torch.optim.AdamW(list(model.audio_net.parameters()) + list(model.deform.parameters()), lr=b.lr_nets, weight_decay=1e-4)
+        g_opt = gaussian_adam((model.gs,), lt)
+        n_opt = network_adamw((model.audio_net, model.deform), b.lr_nets)
         total = b.static_steps + b.dynamic_steps
         strategy = Strategy(start=b.densify_every, stop=int(total * lt.densify_until), every=b.densify_every, budget=budget)
         state = initialize_state(len(model.gs), dev)
-        extent = float((hi - lo).norm())
         order = rng.integers(0, n, size=total)
         bar = progress_bar(total, "gaussiantalker fit", progress)
         for step in range(total):
@@ -320,16 +306,8 @@ class GaussianTalker(Adapter):
             audio = model.audio_net(feats, index=torch.tensor([i], device=dev))[0] if dynamic else None
             res = model.render_frame(model.train_w2c[i], bg, audio, float(clip.blink[i]))
             loss = losses.photometric(_composite(res, bg), gt, lt.lambda_dssim)
-            g_opt.zero_grad(set_to_none=True)
-            n_opt.zero_grad(set_to_none=True)
-            loss.backward()
-            g_opt.step()
-            if dynamic:
-                n_opt.step()
-            with torch.no_grad():
-                model.gs.quats.data = torch.nn.functional.normalize(model.gs.quats.data, dim=-1)
-            accumulate(state, res.means2d, res.visible, clip.width, clip.height)
-            step_post_backward(strategy, model.gs, g_opt, state, step + 1, extent)
+            optimise(loss, g_opt, n_opt, dynamic, (model.gs,))
+            densify([(strategy, model.gs, state, res.means2d, res.visible)], g_opt, step + 1, extent, clip.width, clip.height)
             if bar is not None:
                 bar.update(1)
         if bar is not None:

@@ -6,11 +6,14 @@ from pathlib import Path
 
 import numpy as np
 
+from baselines.common import cost_of
 from baselines.protocol import MethodInfo, register
+from lmgs.checkpoint import load_model, save_model
 from lmgs.config import override
+from lmgs.device import choose_device
 from lmgs.errors import InputError
 from lmgs.presets import preset as make_preset
-from lmgs.train import fit, load_model, save_model
+from lmgs.train import fit
 
 LANDMARK_STANDIN = ("audio-to-landmark: a per-subject temporal CNN trained on the training split (GeneFace's pretrained "
                     "model cannot be had offline)")
@@ -98,7 +101,7 @@ class LMGSMethod:
         workdir = Path(workdir)
         final = workdir / "model.pt"
         if final.exists():
-            self.model = load_model(final, cfg=self.cfg, device=self.device or "cpu")
+            self.model = load_model(final, cfg=self.cfg, device=choose_device(self.device))
             self.report = None
             return
         self.model, self.report = fit(clip, self.cfg, seed=seed, workdir=workdir, progress=progress, device=self.device)
@@ -149,8 +152,7 @@ class LMGSMethod:
     def cost(self) -> dict:
         if self.model is None:
             return {}
-        n_params = sum(p.numel() for p in self.model.parameters())
-        return {"n_params": int(n_params), "n_gaussians": self.model.n_gaussians(), "model_mb": n_params * 4 / 2**20}
+        return cost_of(self.model, self.model.n_gaussians())
 
 
 for _name in VARIANTS:

@@ -4,8 +4,13 @@ This module is the bottom of the adapter layer: it imports nothing of the toolki
 adapter (and the reference model behind it) never depends on protocols, metrics or results.
 A method is any object with ``fit`` / ``render`` / ``describe`` / ``cost``
 (:class:`TalkingHead`, a structural ``typing.Protocol``), built by a factory registered
-under a name with :func:`register`. The adapters' modules are listed in
+under a name with :func:`register` (or, for a family of names ``PREFIX + NAME`` such as
+``external:ernerf``, with :func:`register_prefix`). The adapters' modules are listed in
 :data:`baselines.ADAPTERS`; :func:`create_method` imports them on first use.
+
+What only the toolkit can do (read a video, a differentiable sync loss from its scorer) reaches an
+adapter as a *hook*: a callable the toolkit passes to :func:`create_method` in ``hooks``; a factory
+takes the hooks it names in its ``hooks`` attribute, as keyword arguments.
 """
 
 from __future__ import annotations
@@ -70,6 +75,7 @@ class TalkingHead(Protocol):
 
 
 _REGISTRY: dict[str, Callable[..., TalkingHead]] = {}
+_PREFIXED: dict[str, Callable[..., TalkingHead]] = {}  # prefix -> factory taking the NAME after it
 # Methods whose Gaussian count is ``budget_density`` x face area (the lmgs backbone family):
 # they take a subject's own knee density, all alike, so a comparison between them stays fair.
 _SCENE_BUDGET: set[str] = set()
@@ -94,6 +100,18 @@ def register(name: str, *, scene_budget: bool = False) -> Callable:
     return deco
 
 
+def register_prefix(prefix: str) -> Callable:
+    """Decorator registering a factory for every name ``prefix + NAME``; it takes ``NAME`` first."""
+
+    def deco(factory):
+        if prefix in _PREFIXED:
+            raise ValueError(f"method prefix '{prefix}' registered twice")
+        _PREFIXED[prefix] = factory
+        return factory
+
+    return deco
+
+
 def registration(name: str) -> tuple[Callable[..., TalkingHead], bool] | None:
     """``(factory, scene_budget)`` of a registered method (after loading the adapters), or None."""
     load_adapters()
@@ -112,28 +130,33 @@ def load_adapters() -> None:
 
 def list_methods() -> list[str]:
     load_adapters()
-    return sorted(_REGISTRY) + [f"{EXTERNAL_PREFIX}NAME"]
+    return sorted(_REGISTRY) + [f"{prefix}NAME" for prefix in sorted(_PREFIXED)]
 
 
-def create_method(name: str, subject: Any = None, **options) -> TalkingHead:
+def create_method(name: str, subject: Any = None, hooks: dict[str, Callable] | None = None, **options) -> TalkingHead:
     """Build a method by name; ``external:NAME`` scores renders made by any other code.
 
     With ``subject`` (anything with a ``budget_density`` attribute, e.g. the toolkit's
     ``Subject``), a method sized by face area (``register(..., scene_budget=True)``) takes the
     subject's knee density when it has one and ``options`` set none; the density is in the
-    method's config, so its hash, and the records and model cache, follow it.
+    method's config, so its hash, and the records and model cache, follow it. ``hooks``: the
+    toolkit's callables by name; the factory gets those its ``hooks`` attribute names.
     """
     load_adapters()
-    if name.startswith(EXTERNAL_PREFIX):
-        from baselines.external import ExternalRenders
-
-        return ExternalRenders(name.removeprefix(EXTERNAL_PREFIX), **options)
+    for prefix, factory in _PREFIXED.items():
+        if name.startswith(prefix):
+            return factory(name.removeprefix(prefix), **_hooks_for(factory, hooks), **options)
     if name not in _REGISTRY:
         raise InputError(f"unknown method '{name}'; known: {', '.join(list_methods())}")
     density = getattr(subject, "budget_density", None)
     if density is not None and name in _SCENE_BUDGET:
         options.setdefault("budget_density", density)
-    return _REGISTRY[name](**options)
+    return _REGISTRY[name](**_hooks_for(_REGISTRY[name], hooks), **options)
+
+
+def _hooks_for(factory, hooks: dict[str, Callable] | None) -> dict[str, Callable]:
+    """The ``hooks`` that ``factory`` names (its ``hooks`` attribute; a hook not given is left out)."""
+    return {k: hooks[k] for k in getattr(factory, "hooks", ()) if hooks and k in hooks}
 
 
 def scene_budget_methods() -> list[str]:

@@ -11,8 +11,8 @@ feathered seam.
 * ``wav2lip`` (Prajwal et al., ACM MM 2020): a U-Net takes the target crop with its lower half
   masked plus a reference crop of another frame (6 channels) and, at its bottleneck, the
   audio window's embedding; it outputs the crop, trained with L1 on the lower half. Wav2Lip's
-  expert lip-sync discriminator loss is a hook (:func:`find_sync_loss`) used only when the
-  project's sync scorer exposes a differentiable ``sync_loss``.
+  expert lip-sync discriminator loss is the ``sync_loss`` hook (see :mod:`baselines.protocol`),
+  used only when the toolkit passes one: a differentiable loss of its sync scorer.
 * ``ip_lap`` (Zhong et al., CVPR 2023): audio -> 68 3D landmarks (the project's per-subject
   predictor), projected with the camera; a thin-plate spline driven by the reference frame's
   landmarks moved to the predicted ones warps the reference crop (backward map, anchored at
@@ -23,7 +23,7 @@ feathered seam.
 
 from __future__ import annotations
 
-import importlib
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -31,7 +31,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from baselines.common import Adapter, audio_windows, landmark_targets, n_frames_of, progress_bar, project, seed_all
+from baselines.common import Adapter, Budget, audio_windows, landmark_targets, n_frames_of, progress_bar, project
 from baselines.protocol import register
 from lmgs.audio.encoder import AudioEncoder
 from lmgs.config import AudioConfig
@@ -43,7 +43,7 @@ UPPER = list(range(17, 48))
 
 
 @dataclass(frozen=True)
-class TwoDBudget:
+class TwoDBudget(Budget):
     """Training budget of a 2D baseline.
 
     Attributes:
@@ -64,27 +64,11 @@ class TwoDBudget:
     sync_weight: float = 0.03
     landmark_steps: int = 300
 
-    @classmethod
-    def tiny(cls) -> "TwoDBudget":
-        return cls(steps=250, batch=4, crop=32, width=16, lr=2e-3, landmark_steps=60)
-
-    @classmethod
-    def quick(cls) -> "TwoDBudget":
-        return cls()
+    TINY = {"steps": 250, "batch": 4, "crop": 32, "width": 16, "lr": 2e-3, "landmark_steps": 60}
 
 
-def find_sync_loss():
-    """The project's differentiable sync loss, if its scorer provides one, else None.
-
-    Looks for ``lmgs_eval.metrics.sync.sync_loss(lower_faces [B, 3, h, w] in [0, 1],
-    audio_windows [B, 16, 80]) -> scalar``; any missing piece means the loss stays off.
-    """
-    try:
-        mod = importlib.import_module("lmgs_eval.metrics.sync")
-    except ImportError:
-        return None
-    fn = getattr(mod, "sync_loss", None)
-    return fn if callable(fn) else None
+SyncLoss = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+"""``sync_loss(lower_faces [B, 3, h, w] in [0, 1], audio_windows [B, 16, 80]) -> scalar``."""
 
 
 # ----------------------------------------------------------------------------- geometry of the crop
@@ -279,6 +263,59 @@ class TwoDMethod(Adapter):
             frame = np.where(self.ref_head[j][..., None], frame, b)
         return np.ascontiguousarray(frame)
 
+    def _train_crops(self, crops: torch.Tensor, params, rng: np.random.Generator, predict, progress: bool,
+                     extra_loss=None) -> None:
+        """The 2D methods' training loop: ``steps`` Adam steps, each on ``batch`` target crops ``i``
+        drawn at random and as many reference crops ``j``, with L1 to the target weighted towards
+        its lower half (``0.2 +`` :func:`lower_mask`). ``predict(i, j)`` gives the network's crops;
+        ``extra_loss(pred, i)``, when given, adds to the loss."""
+        b, n = self.cfg, len(crops)
+        opt = torch.optim.Adam(params, lr=b.lr)
+        m = lower_mask(b.crop, crops.device)
+        bar = progress_bar(b.steps, f"{self.name} fit", progress)
+        for _ in range(b.steps):
+            i = torch.from_numpy(rng.integers(0, n, size=b.batch)).to(crops.device)
+            j = torch.from_numpy(rng.integers(0, n, size=b.batch)).to(crops.device)
+            pred = predict(i, j)
+            loss = ((pred - crops[i]).abs() * (0.2 + m)).mean()
+            if extra_loss is not None:
+                loss = loss + extra_loss(pred, i)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            if bar is not None:
+                bar.update(1)
+        if bar is not None:
+            bar.close()
+
+    @torch.no_grad()
+    def render(self, driving) -> np.ndarray:
+        """Each driven frame: the nearest training frame (:meth:`_base`), its face box edited by
+        :meth:`_edit` and pasted back into its lower half."""
+        self._check_fitted()
+        m = self.model
+        dev = next(m.parameters()).device
+        n = n_frames_of(driving)
+        H, W = self.ref_frames.shape[1:3]
+        out = np.empty((n, H, W, 3), np.uint8)
+        if n == 0:
+            return out
+        audio = self._audio(m, audio_windows(driving.audio, n).to(dev))
+        for t in range(n):
+            w2c = None if driving.w2c is None else np.asarray(driving.w2c[t], np.float32)
+            j = self._nearest(w2c, t)
+            base = self._base(driving, j, t)
+            out[t] = paste(base, self._edit(m, dev, base, audio, w2c, j, t), m.box)
+        return out
+
+    def _audio(self, model, windows: torch.Tensor):  # pragma: no cover - abstract
+        """What :meth:`_edit` reads of the driving audio windows ``[T, 16, 80]``."""
+        raise NotImplementedError
+
+    def _edit(self, model, dev, base: np.ndarray, audio, w2c: np.ndarray | None, j: int, t: int) -> torch.Tensor:  # pragma: no cover
+        """The edited face crop ``[3, s, s]`` of frame ``t`` (``base``: training frame ``j`` over the driving background)."""
+        raise NotImplementedError
+
 
 @register("wav2lip")
 class Wav2Lip(TwoDMethod):
@@ -293,8 +330,14 @@ class Wav2Lip(TwoDMethod):
         "differentiable sync_loss ({sync})."
     )
 
+    hooks = ("sync_loss",)
+
+    def __init__(self, preset: str = "quick", device: str | None = None, sync_loss: SyncLoss | None = None, **overrides):
+        super().__init__(preset, device, **overrides)
+        self.sync_loss = sync_loss  # the toolkit's hook (see baselines.protocol); None: no sync loss
+
     def config(self) -> dict:
-        return {**super().config(), "sync_loss": find_sync_loss() is not None and self.cfg.sync_weight > 0}
+        return {**super().config(), "sync_loss": self.sync_loss is not None and self.cfg.sync_weight > 0}
 
     def describe(self):
         info = super().describe()
@@ -305,53 +348,24 @@ class Wav2Lip(TwoDMethod):
         return Wav2LipNet(**build)
 
     def _train(self, clip, seed: int, progress: bool):
-        dev = self.dev
-        rng = seed_all(seed)
+        dev, rng, n, feats = self._start(clip, seed)
         b = self.cfg
-        n = len(clip)
-        feats = audio_windows(clip.audio, n).to(dev)
         box = face_box(self._points2d(clip), clip.height, clip.width)
         crops = crop(clip.frames, box, b.crop).to(dev)
         build = {"in_channels": int(feats.shape[2]), "window": int(feats.shape[1]), "width": b.width, "box": list(box), "crop_size": b.crop}
         model = Wav2LipNet(**build).to(dev)
         model.audio.fit_normalization(feats)
-        sync = find_sync_loss() if b.sync_weight > 0 else None
-        opt = torch.optim.Adam(model.parameters(), lr=b.lr)
-        m = lower_mask(b.crop, dev)
-        bar = progress_bar(b.steps, "wav2lip fit", progress)
-        for step in range(b.steps):
-            i = torch.from_numpy(rng.integers(0, n, size=b.batch)).to(dev)
-            j = torch.from_numpy(rng.integers(0, n, size=b.batch)).to(dev)
-            pred = model(crops[i], crops[j], feats[i])
-            loss = ((pred - crops[i]).abs() * (0.2 + m)).mean()
-            if sync is not None:
-                loss = loss + b.sync_weight * sync(pred[:, :, b.crop // 2 :], feats[i])
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            if bar is not None:
-                bar.update(1)
-        if bar is not None:
-            bar.close()
+        sync = self.sync_loss if b.sync_weight > 0 else None
+        extra = None if sync is None else (lambda pred, i: b.sync_weight * sync(pred[:, :, b.crop // 2 :], feats[i]))
+        self._train_crops(crops, model.parameters(), rng, lambda i, j: model(crops[i], crops[j], feats[i]), progress, extra)
         return model, build
 
-    @torch.no_grad()
-    def render(self, driving) -> np.ndarray:
-        self._check_fitted()
-        m = self.model
-        dev = next(m.parameters()).device
-        n = n_frames_of(driving)
-        H, W = self.ref_frames.shape[1:3]
-        out = np.empty((n, H, W, 3), np.uint8)
-        if n == 0:
-            return out
-        feats = audio_windows(driving.audio, n).to(dev)
-        for t in range(n):
-            j = self._nearest(None if driving.w2c is None else np.asarray(driving.w2c[t], np.float32), t)
-            base = self._base(driving, j, t)
-            c = crop(base[None], m.box, m.crop_size).to(dev)
-            out[t] = paste(base, m(c, c, feats[t : t + 1])[0], m.box)
-        return out
+    def _audio(self, model, windows: torch.Tensor) -> torch.Tensor:
+        return windows
+
+    def _edit(self, model, dev, base, audio, w2c, j, t) -> torch.Tensor:
+        c = crop(base[None], model.box, model.crop_size).to(dev)
+        return model(c, c, audio[t : t + 1])[0]
 
 
 @register("ip_lap")
@@ -378,11 +392,8 @@ class IPLAP(TwoDMethod):
         return np.stack([project(lms3d[k], w2c[k], *self.intr) for k in range(len(lms3d))]).astype(np.float32)
 
     def _train(self, clip, seed: int, progress: bool):
-        dev = self.dev
-        rng = seed_all(seed)
+        dev, rng, n, feats = self._start(clip, seed)
         b = self.cfg
-        n = len(clip)
-        feats = audio_windows(clip.audio, n).to(dev)
         targets = landmark_targets(clip)
         lms2d = torch.from_numpy(self._lms2d(targets, np.asarray(clip.w2c, np.float32))).to(dev)
         box = face_box(lms2d.cpu().numpy(), clip.height, clip.width)
@@ -393,42 +404,17 @@ class IPLAP(TwoDMethod):
         model.predictor.load_state_dict(predictor.state_dict())
         model.predictor.requires_grad_(False)
         crops = crop(clip.frames, box, b.crop).to(dev)
-        opt = torch.optim.Adam(model.unet.parameters(), lr=b.lr)
-        m = lower_mask(b.crop, dev)
-        bar = progress_bar(b.steps, "ip_lap fit", progress)
-        for step in range(b.steps):
-            i = torch.from_numpy(rng.integers(0, n, size=b.batch)).to(dev)
-            j = torch.from_numpy(rng.integers(0, n, size=b.batch)).to(dev)
-            pred = model(crops[i], crops[j], lms2d[j], lms2d[i])
-            loss = ((pred - crops[i]).abs() * (0.2 + m)).mean()
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            if bar is not None:
-                bar.update(1)
-        if bar is not None:
-            bar.close()
+        self._train_crops(crops, model.unet.parameters(), rng, lambda i, j: model(crops[i], crops[j], lms2d[j], lms2d[i]),
+                          progress)
         return model, build
 
-    @torch.no_grad()
-    def render(self, driving) -> np.ndarray:
-        self._check_fitted()
-        m = self.model
-        dev = next(m.parameters()).device
-        n = n_frames_of(driving)
-        H, W = self.ref_frames.shape[1:3]
-        out = np.empty((n, H, W, 3), np.uint8)
-        if n == 0:
-            return out
-        pred3d = m.predictor.predict(audio_windows(driving.audio, n).to(dev)).cpu().numpy()
-        for t in range(n):
-            w2c = None if driving.w2c is None else np.asarray(driving.w2c[t], np.float32)
-            j = self._nearest(w2c, t)
-            cam = self.ref_w2c[j] if w2c is None else w2c
-            target = torch.from_numpy(project(pred3d[t], cam, *self.intr)[None].astype(np.float32)).to(dev)
-            ref = torch.from_numpy(project(self.ref_lms3d[j], self.ref_w2c[j], *self.intr)[None].astype(np.float32)).to(dev)
-            base = self._base(driving, j, t)
-            c = crop(base[None], m.box, m.crop_size).to(dev)
-            rc = crop(self.ref_frames[j][None], m.box, m.crop_size).to(dev)
-            out[t] = paste(base, m(c, rc, ref, target)[0], m.box)
-        return out
+    def _audio(self, model, windows: torch.Tensor) -> np.ndarray:
+        return model.predictor.predict(windows).cpu().numpy()  # the predicted 3D landmarks
+
+    def _edit(self, model, dev, base, audio, w2c, j, t) -> torch.Tensor:
+        cam = self.ref_w2c[j] if w2c is None else w2c
+        target = torch.from_numpy(project(audio[t], cam, *self.intr)[None].astype(np.float32)).to(dev)
+        ref = torch.from_numpy(project(self.ref_lms3d[j], self.ref_w2c[j], *self.intr)[None].astype(np.float32)).to(dev)
+        c = crop(base[None], model.box, model.crop_size).to(dev)
+        rc = crop(self.ref_frames[j][None], model.box, model.crop_size).to(dev)
+        return model(c, rc, ref, target)[0]

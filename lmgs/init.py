@@ -28,6 +28,16 @@ def face_area_px(clip: TrainingClip) -> float:
     return 0.25 * clip.width * clip.height
 
 
+def scene_box(gs: GaussianSet) -> tuple[list[float], list[float], float]:
+    """The box a model's deformation encoders cover, from its initial Gaussians: their bounding
+    box grown on each side by a quarter of its size plus 1 mm (``box_min``, ``box_max`` as lists),
+    and the scene extent the densification scales by (the bounding box's diagonal)."""
+    pts = gs.means.detach()
+    lo, hi = pts.min(0).values, pts.max(0).values
+    margin = (hi - lo) * 0.25 + 1e-3
+    return (lo - margin).tolist(), (hi + margin).tolist(), float((hi - lo).norm())
+
+
 def hull_area(points: np.ndarray) -> float:
     """Area in pixels of the convex hull of 2D points ``[K, 2]``; 0 when they span no area.
 

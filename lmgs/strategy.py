@@ -68,11 +68,12 @@ def accumulate(state: dict[str, torch.Tensor], means2d: torch.Tensor, visible: t
     state["count"][visible] += 1
 
 
-def _edit_optimizer(opt: torch.optim.Optimizer, gs: GaussianSet, fn) -> None:
-    """Apply ``fn(tensor) -> tensor`` to each parameter of ``gs`` and to its Adam moments."""
+def _swap_params(opt: torch.optim.Optimizer, gs: GaussianSet, param_fn, moment_fn) -> None:
+    """Replace each parameter of ``gs`` by ``Parameter(param_fn(name, tensor))`` in the set and in
+    ``opt``, its Adam moments by ``moment_fn(moment)`` (a parameter without state keeps none)."""
     for name in PARAM_NAMES:
         old = getattr(gs, name)
-        new = torch.nn.Parameter(fn(old.detach()))
+        new = torch.nn.Parameter(param_fn(name, old.detach()))
         for group in opt.param_groups:
             for k, p in enumerate(group["params"]):
                 if p is old:
@@ -80,7 +81,7 @@ def _edit_optimizer(opt: torch.optim.Optimizer, gs: GaussianSet, fn) -> None:
                     if st:
                         for key in ("exp_avg", "exp_avg_sq"):
                             if key in st:
-                                st[key] = fn(st[key])
+                                st[key] = moment_fn(st[key])
                         opt.state[new] = st
                     group["params"][k] = new
         setattr(gs, name, new)
@@ -89,7 +90,7 @@ def _edit_optimizer(opt: torch.optim.Optimizer, gs: GaussianSet, fn) -> None:
 @torch.no_grad()
 def remove(gs: GaussianSet, opt: torch.optim.Optimizer, state: dict, mask: torch.Tensor) -> None:
     keep = ~mask
-    _edit_optimizer(opt, gs, lambda t: t[keep])
+    _swap_params(opt, gs, lambda name, t: t[keep], lambda m: m[keep])
     for k in state:
         state[k] = state[k][keep]
 
@@ -123,23 +124,15 @@ def split(gs: GaussianSet, opt: torch.optim.Optimizer, state: dict, mask: torch.
 
 
 def _copy_rows(gs: GaussianSet, opt: torch.optim.Optimizer, idx: torch.Tensor, jitter: torch.Tensor | None) -> None:
-    for name in PARAM_NAMES:
-        old = getattr(gs, name)
-        rows = old.detach()[idx].clone()
+    """Append copies of rows ``idx`` (the means moved by ``jitter``), their Adam moments zero."""
+
+    def grown(name: str, t: torch.Tensor) -> torch.Tensor:
+        rows = t[idx].clone()
         if name == "means" and jitter is not None:
             rows = rows + jitter
-        new = torch.nn.Parameter(torch.cat([old.detach(), rows]))
-        for group in opt.param_groups:
-            for k, p in enumerate(group["params"]):
-                if p is old:
-                    st = opt.state.pop(old, None)
-                    if st:
-                        for key in ("exp_avg", "exp_avg_sq"):
-                            if key in st:
-                                st[key] = torch.cat([st[key], torch.zeros_like(st[key][idx])])
-                        opt.state[new] = st
-                    group["params"][k] = new
-        setattr(gs, name, new)
+        return torch.cat([t, rows])
+
+    _swap_params(opt, gs, grown, lambda m: torch.cat([m, torch.zeros_like(m[idx])]))
 
 
 def _rotate(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:

@@ -12,7 +12,7 @@ import numpy as np
 from tqdm import tqdm
 
 from lmgs.types import DrivingAudio, TrainingClip
-from lmgs_eval.data.io import to_u8
+from lmgs_eval.data.images import to_u8
 from lmgs_eval.data.subject import Subject
 
 PARSING_HEAD = (255, 0, 0)
@@ -44,7 +44,7 @@ def subject_to_clip(subject: Subject, ids: np.ndarray, *, progress: bool = False
     if progress:
         it = tqdm(list(it), desc=f"loading {subject.name}", unit="frame", leave=False)
     for k, i in it:
-        frames[k] = to_u8(subject.frame(i))
+        frames[k] = subject.frame(i)
         backs[k] = to_u8(_background(subject, i, bc))
         m = subject.mouth_mask(i)
         if m is not None:

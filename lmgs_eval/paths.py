@@ -9,10 +9,9 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
-from lmgs.fileio import atomic_path, atomic_write_bytes, public_mode
+from lmgs.fileio import atomic_write_bytes, public_mode
 
-__all__ = ["atomic_dir", "atomic_path", "atomic_write_bytes", "atomic_write_text", "cache_root", "check_out_dir", "claim",
-           "data_root", "existing_ancestor", "public_mode"]
+__all__ = ["atomic_dir", "atomic_write_text", "cache_root", "check_out_dir", "claim", "data_root", "existing_ancestor"]
 
 
 def cache_root() -> Path:
@@ -135,3 +134,24 @@ def claim(lock: Path, what: str, say=None) -> Iterator[None]:
             f.truncate()
             f.flush()
             fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def git_state(dirty: bool = True) -> tuple[str | None, bool | None]:
+    """The commit of the checkout this code runs from and whether its tracked files differ from it:
+    ``(commit, dirty)``; the commit is None outside git, ``dirty`` None when not asked for or unknown."""
+    import subprocess
+
+    here = Path(__file__).resolve().parent
+    commit: str | None = None
+    changed: bool | None = None
+    try:
+        r = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=10)
+        if r.returncode == 0:
+            commit = r.stdout.strip() or None
+            if dirty:
+                s = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here,
+                                   capture_output=True, text=True, timeout=10)
+                changed = bool(s.stdout.strip()) if s.returncode == 0 else None
+    except (OSError, subprocess.SubprocessError):
+        pass
+    return commit, changed

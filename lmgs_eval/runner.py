@@ -19,11 +19,11 @@ from pathlib import Path
 import numpy as np
 
 from baselines.protocol import TalkingHead, create_method
-from lmgs.device import choose_device
 from lmgs.types import DrivingAudio
 from lmgs_eval import results as store
-from lmgs_eval.data.io import write_video
+from lmgs_eval.data.video import write_video
 from lmgs_eval.errors import UserError
+from lmgs_eval.hooks import adapter_hooks
 from lmgs_eval.hosttime import HostSpeed, OthersCPU, peak_rss_mb
 from lmgs_eval.metrics.metric_suite import MetricSuite
 from lmgs_eval.paths import atomic_write_text, cache_root, claim
@@ -66,7 +66,7 @@ def build_method(cfg: RunConfig, name: str, subject, **options) -> TalkingHead:
     else:
         opts.setdefault("preset", cfg.preset)
         opts.setdefault("device", cfg.device)
-    return create_method(name, subject=subject, **opts)
+    return create_method(name, subject=subject, hooks=adapter_hooks(), **opts)
 
 
 def log(msg: str) -> None:
@@ -257,8 +257,8 @@ def cost_block(method, fit_cost: dict | None, render_cost: dict, timings: dict |
         "model_mb": c.get("model_mb"),
         # the protocol's peak: this process's, or the training's that made a reused checkpoint if higher
         "peak_mb": None if pre else max(peak_rss_mb(), (fit_cost or {}).get("train_peak_mb") or 0.0),
-        # the device the method ran on, chosen as the method chose it (--device, LMGS_DEVICE, else CUDA when present)
-        "device": c.get("device") or (None if pre else str(choose_device(getattr(method, "device", None)))),
+        # the device the method's model is on (its cost(); an external method's sidecar says it or nobody does)
+        "device": c.get("device"),
     }
 
 
@@ -279,8 +279,8 @@ def write_render(root: Path, rel: str, frames: np.ndarray, audio: np.ndarray) ->
 
 
 def fit_render_score(cfg: RunConfig, method, subject, seed: int, train, driving: DrivingAudio, gt: np.ndarray, render_rel: str,
-                     protocol: str = "self", clip: str = "test", workdir: Path | None = None) -> dict:
-    """Fit (or reload) one method, render the test split from its audio, score, record; returns the record.
+                     protocol: str = "self", clip: str = "test", workdir: Path | None = None) -> store.Record:
+    """Fit (or reload) one method, render the test split from its audio, score, record; returns the (typed) record.
 
     ``workdir``: where the model is trained (:func:`fit_method`; default the model cache)."""
     info = method.describe()

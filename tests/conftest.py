@@ -26,17 +26,6 @@ def _isolated_cache(tmp_path_factory):
         yield
 
 
-@pytest.fixture(autouse=True)
-def _sync_scorer_choice_reset():
-    """``--sync`` and ``MetricSuite(sync=...)`` choose the sync scorer for the rest of the process:
-    each test starts from the default choice, whatever an earlier test chose."""
-    from lmgs_eval.metrics import sync_select
-
-    sync_select.set_backend("auto")
-    yield
-    sync_select.set_backend("auto")
-
-
 def write_pcm_wav(path: Path, x: np.ndarray, sr: int) -> None:
     """Write float audio ``[S]`` or ``[S, C]`` as 16-bit PCM with the stdlib (an outside writer)."""
     x = np.asarray(x, np.float64)

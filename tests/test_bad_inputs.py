@@ -180,7 +180,7 @@ def test_a_frame_folder_with_a_numbering_gap(world):
         one_line_error(rc, out, err, str(tmp / "gap"), "from 9 to 11", "frame 10 missing")
     # numbered the other way ER-NeRF writes them, with no gap: scored in numeric order
     write_frames(tmp / "ok", range(12))
-    from lmgs_eval.data.io import list_frames
+    from lmgs_eval.data.frames import list_frames
     from lmgs_eval.errors import UserError
 
     assert [p.stem for p in list_frames(tmp / "ok")] == [str(i) for i in range(12)]
@@ -190,7 +190,7 @@ def test_a_frame_folder_with_a_numbering_gap(world):
 
 
 def test_external_renders_with_a_gap(tmp_path):
-    from baselines.external import read_frames
+    from lmgs_eval.hooks import read_frames
     from lmgs.errors import InputError
 
     write_frames(tmp_path / "r", [0, 1, 2, 4, 5])
@@ -257,11 +257,13 @@ def test_table_out_not_writable_as_the_os_reports_it(world, monkeypatch):
 # ----------------------------------------------------------------------------- ingest: checked before anything is made
 def _short_clip(truth: Path, out: Path, n: int, seconds: float | None = None) -> Path:
     """The first ``n`` frames of the bundled truth as a video with ``seconds`` of its audio (default: as long)."""
-    from lmgs_eval.data import io
+    from lmgs_eval.data.audio import load_audio
+    from lmgs_eval.data.images import read_rgb_u8
+    from lmgs_eval.data.video import write_video
 
-    frames = np.stack([io.read_rgb_u8(truth / "ori_imgs" / f"{i}.jpg") for i in range(n)])
-    audio, _ = io.load_audio(truth / "aud.wav")
-    io.write_video(out, frames, 25, audio[: int((n / 25 if seconds is None else seconds) * 16000)])
+    frames = np.stack([read_rgb_u8(truth / "ori_imgs" / f"{i}.jpg") for i in range(n)])
+    audio, _ = load_audio(truth / "aud.wav")
+    write_video(out, frames, 25, audio[: int((n / 25 if seconds is None else seconds) * 16000)])
     return out
 
 
@@ -307,7 +309,7 @@ def test_ingest_refuses_an_empty_name_and_a_folder_given_as_a_file(truth, tmp_pa
 
 def test_ingest_refuses_too_few_frames_or_too_little_audio(truth, tmp_path):
     from conftest import ingest_error_line
-    from lmgs_eval.data.ingest.pipeline import MIN_FRAMES
+    from lmgs_eval.data.ingest.checks import MIN_FRAMES
 
     root = tmp_path / "data"
     one = _short_clip(truth, tmp_path / "one.mp4", 1, seconds=2.0)  # one frame, 2 s of audio
@@ -354,7 +356,7 @@ def _remux(src: Path, out: Path, interleave: bool) -> bytes:
 def test_a_truncated_video_is_refused_or_flagged(truth, tmp_path):
     from conftest import TRUTH_SECONDS, ingest_error_line
     from lmgs_eval.data.ingest import decode
-    from lmgs_eval.data.ingest.pipeline import check_decoded
+    from lmgs_eval.data.ingest.checks import check_decoded
 
     data = _remux(truth / "astronaut.mp4", tmp_path / "whole.mp4", interleave=True)
     assert check_decoded(decode.probe(tmp_path / "whole.mp4")) is None
@@ -427,14 +429,14 @@ def test_report_out_under_a_file_and_renders_not_there(world):
 
 
 def test_verify_a_folder_without_records(tmp_path):
-    from lmgs_eval.data import io
+    from lmgs_eval.data.images import write_rgb
 
     empty = tmp_path / "empty"
     empty.mkdir()
     jpgs = tmp_path / "jpgs"
     jpgs.mkdir()
     for i in range(3):
-        io.write_rgb(jpgs / f"{i}.jpg", np.full((16, 16, 3), 40 * i, np.uint8))
+        write_rgb(jpgs / f"{i}.jpg", np.full((16, 16, 3), 40 * i, np.uint8))
     for folder in (empty, jpgs):
         rc, out, err = run_cli("verify", str(folder))
         assert rc == 1 and "Traceback" not in err, (rc, out, err)

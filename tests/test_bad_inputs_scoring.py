@@ -25,7 +25,7 @@ from test_bad_inputs import world as _world  # noqa: F401  (a results store and 
 def world(_world):
     """:func:`test_bad_inputs.world`, after this process has loaded an ONNX Runtime session once (onnxruntime
     makes its own folder under the cache then: not a file of the commands)."""
-    from lmgs_eval.metrics.sync_select import load
+    from lmgs_eval.metrics.sync.scorers import load
 
     load("landmark")
     return _world
@@ -38,7 +38,7 @@ def _tone(seconds: float, sr: int = 16000) -> np.ndarray:
 
 def _video(path: Path, n: int = 12, size: int = 64, audio: bool = True) -> Path:
     """A short faceless 25 fps clip (noise), with a tone as its audio track unless ``audio`` is False."""
-    from lmgs_eval.data.io import write_video
+    from lmgs_eval.data.video import write_video
 
     frames = np.random.default_rng(0).integers(0, 256, (n, size, size, 3), dtype=np.uint8)
     write_video(path, frames, 25, _tone(n / 25) if audio else None, 16000)
@@ -77,11 +77,11 @@ def test_audio_too_short_for_one_lse_window_names_its_length_and_the_minimum(wor
 
 
 def test_lse_on_audio_shorter_than_a_window_is_unavailable_not_an_index_error():
-    from lmgs_eval.metrics.sync import lse
+    from lmgs_eval.metrics.metric_suite import MetricSuite
 
     crops = np.zeros((8, 224, 224, 3), np.uint8)
     for n in (0, 100, 3000):
-        r = lse(None, np.zeros(n, np.float32), crops=crops)
+        r = MetricSuite().lse(None, np.zeros(n, np.float32), crops=crops)
         assert not r.available and "too short" in r.reason
 
 
@@ -151,13 +151,13 @@ def test_the_rule_is_in_score_help():
 
 def test_protocol_rows_give_the_reason_of_an_unavailable_metric(capsys):
     from lmgs_eval.commands._common import print_rows
+    from test_results import metric, record, typed
 
     why = "unavailable: no audio"
-    rec = {"method": {"display_name": "lmgs"}, "protocol": {"clip": "test"}, "seed": 0, "cost": {},
-           "metrics": {"psnr": {"value": 30.0, "flags": []},
-                       "lse_d": {"value": None, "flags": [why], "backend": "onnxruntime:landmark-sync"},
-                       "lse_c": {"value": None, "flags": [why]}}}
-    print_rows([rec])
+    rec = record("lmgs", "lmgs", "3DGS", 0, {
+        "psnr": metric("psnr", None, value=30.0), "lse_d": dict(metric("lse_d", None), flags=[why]),
+        "lse_c": dict(metric("lse_c", None), flags=[why])})
+    print_rows(typed([rec]))
     lines = [ln for ln in capsys.readouterr().out.splitlines() if "unavailable" in ln]
     assert lines == ["  lmgs/test seed 0: lse unavailable: no audio"]
 
@@ -166,7 +166,7 @@ def test_protocol_rows_give_the_reason_of_an_unavailable_metric(capsys):
 def _syncnet_state(bad: str | None = None) -> dict:
     import torch
 
-    from lmgs_eval.metrics.sync_nets import nets
+    from lmgs_eval.metrics.sync.nets import nets
 
     torch.manual_seed(0)
     sd = nets()[0]().state_dict()
@@ -192,33 +192,31 @@ def test_nan_weights_found_on_load_are_refused(world, monkeypatch):
     """An imported graph that holds NaN (imported by an older version, or damaged since) is refused when loaded."""
     import torch
 
-    from lmgs_eval.metrics import sync, sync_select
-    from lmgs_eval.metrics.ort import sha256_file
+    from lmgs.fileio import sha256_file
+    from lmgs_eval.metrics.sync import nets, scorers
 
     tmp, res, snap = world
-    S, _ = sync.nets()
+    S, _ = nets.nets()
     net = S()
     net.load_state_dict(_syncnet_state("netcnnlip.0.weight"))
     onnx_path = tmp / "nan.onnx"
-    sync._export_sync(net, onnx_path, (224, 224))
+    nets._export_sync(net, onnx_path, (224, 224))
     manifest = tmp / "weights" / "syncnet_v2.json"
     manifest.parent.mkdir()
     manifest.write_text(json.dumps({"name": "syncnet-v2", "source": str(tmp / "syncnet_v2.model"), "source_sha256": "0" * 64,
                                     "onnx": str(onnx_path), "onnx_sha256": sha256_file(onnx_path),
                                     "input_hw": [224, 224], "region": "full", "pixel": "bgr_0_255"}))
-    monkeypatch.setattr(sync, "syncnet_manifest_path", lambda: manifest)
+    monkeypatch.setattr(scorers, "syncnet_manifest_path", lambda: manifest)
     v = _video(tmp / "v.mp4", n=30)
-    try:
-        rc, out, err = run_cli("score", "--pred", str(v), "--metrics", "lse")
-        one_line_error(rc, out, err, str(onnx_path), "NaN or Inf", "import-syncnet")
-    finally:
-        sync_select.set_backend("auto")
+    rc, out, err = run_cli("score", "--pred", str(v), "--metrics", "lse")
+    one_line_error(rc, out, err, str(onnx_path), "NaN or Inf", "import-syncnet")
 
 
 def test_non_finite_embeddings_are_an_error_not_a_trusted_null():
     from lmgs_eval.errors import UserError
     from lmgs_eval.metrics.suite import format_record
-    from lmgs_eval.metrics.sync import SyncScorer, lse
+    from lmgs_eval.metrics.sync.pixel import SyncScorer
+    from lmgs_eval.metrics.sync.scoring import lse
 
     class _NaN:
         def run(self, names, feeds):
@@ -240,7 +238,7 @@ PROBE = textwrap.dedent("""
     import json, resource, sys
     from lmgs_eval.cli import main
     from lmgs_eval.metrics.landmarks import DlibBackend
-    from lmgs_eval.metrics.sync_select import load
+    from lmgs_eval.metrics.sync.scorers import load
 
     DlibBackend(); load("landmark")  # models loaded before the baseline: only the clip's share is measured
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss

@@ -99,7 +99,7 @@ def test_bench_ingested_on_hair_that_moves_with_the_head(tmp_path):
 
 def test_swapped_copy_takes_the_generators_cameras_and_moves_the_depth(tmp_path):
     from lmgs_eval.commands._bench_ingested import CAMERA_FILES, swapped_copy
-    from lmgs_eval.data import io
+    from lmgs_eval.data.images import read_depth, write_depth
 
     truth, ing = tmp_path / "truth", tmp_path / "ing"
     z_truth = np.zeros((2, 6, 6))
@@ -111,7 +111,7 @@ def test_swapped_copy_takes_the_generators_cameras_and_moves_the_depth(tmp_path)
         for d in ("depth", "normal", "parsing"):
             (root / d).mkdir(parents=True)
         for i in range(2):
-            io.write_depth(root / "depth" / f"{i}.png", z[i], 10000.0)
+            write_depth(root / "depth" / f"{i}.png", z[i], 10000.0)
             (root / "normal" / f"{i}.png").write_bytes(bytes([val, i]))
             (root / "parsing" / f"{i}.png").write_bytes(bytes([val]))
         for name in CAMERA_FILES:
@@ -121,7 +121,7 @@ def test_swapped_copy_takes_the_generators_cameras_and_moves_the_depth(tmp_path)
     for name in CAMERA_FILES:
         assert (cams / name).read_bytes() == bytes([1])  # the generator's cameras and 3D landmarks
     for i, want_median in ((0, 1.00), (1, 1.02)):
-        got = io.read_depth(cams / "depth" / f"{i}.png", 10000.0)
+        got = read_depth(cams / "depth" / f"{i}.png", 10000.0)
         want = np.where(z_ing[i] > 0, z_ing[i] - 1.85 + want_median, 0.0)  # the ingest's shape, the generator's distance
         np.testing.assert_allclose(got, want, atol=1e-4)
         assert (cams / "normal" / f"{i}.png").read_bytes() == bytes([2, i])  # its own normals
@@ -155,23 +155,26 @@ def test_decoded_copy_is_the_generators_folder_with_the_videos_frames(tmp_path):
 
 
 def test_lossless_video_holds_the_generators_frames_exactly(tmp_path):
+    from lmgs_eval.data.audio import write_wav
+    from lmgs_eval.data.frames import FrameFile
+    from lmgs_eval.data.images import read_rgb_u8, write_rgb
     from lmgs_eval.data.ingest.compare import lossless_video
-    from lmgs_eval.data import io
+    from lmgs_eval.data.video import write_video
 
     rng = np.random.default_rng(0)
     truth = tmp_path / "truth"
     (truth / "ori_imgs").mkdir(parents=True)
     frames = rng.integers(0, 256, (4, 32, 48, 3), dtype=np.uint8)  # noise: what a lossy codec loses most
     for i, f in enumerate(frames):
-        io.write_rgb(truth / "ori_imgs" / f"{i}.jpg", f)
+        write_rgb(truth / "ori_imgs" / f"{i}.jpg", f)
     audio = 0.3 * np.sin(2 * np.pi * 440 * np.arange(6400) / 16000)
-    io.write_wav(truth / "aud.wav", audio)
-    want = np.stack([io.read_rgb_u8(truth / "ori_imgs" / f"{i}.jpg") for i in range(4)])
-    got, fps, sound, sr = io.read_video(lossless_video(truth, tmp_path / "v" / "x.mp4"))
-    assert fps == 25 and np.array_equal(np.rint(got * 255).astype(np.uint8), want)  # every RGB value
-    assert sr == 16000 and np.corrcoef(sound[:6000, 0], audio[:6000])[0, 1] > 0.99  # AAC, as the raw video's
-    io.write_video(tmp_path / "lossy.mp4", want)  # the raw video's own settings lose some of them
-    lossy = np.rint(io.read_video(tmp_path / "lossy.mp4")[0] * 255)
+    write_wav(truth / "aud.wav", audio)
+    want = np.stack([read_rgb_u8(truth / "ori_imgs" / f"{i}.jpg") for i in range(4)])
+    got = FrameFile(lossless_video(truth, tmp_path / "v" / "x.mp4"))
+    assert got.fps == 25 and np.array_equal(got.read(), want)  # every RGB value
+    assert got.sr == 16000 and np.corrcoef(got.audio[:6000, 0], audio[:6000])[0, 1] > 0.99  # AAC, as the raw video's
+    write_video(tmp_path / "lossy.mp4", want)  # the raw video's own settings lose some of them
+    lossy = FrameFile(tmp_path / "lossy.mp4").read().astype(np.float64)
     assert np.abs(lossy - want).mean() > 5
 
 

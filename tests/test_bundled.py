@@ -305,7 +305,7 @@ def test_synthesize_clip_is_consistent():
 def test_dlib_agrees_with_ground_truth_landmarks(tmp_path):
     """dlib's 68 points on rendered 256 px frames lie within a few pixels of the written .lms."""
     from lmgs_eval.data.bundled.photo import detect_landmarks
-    from lmgs_eval.data.io import read_rgb_u8
+    from lmgs_eval.data.images import read_rgb_u8
 
     out = tmp_path / "s"
     out.mkdir()
@@ -322,7 +322,7 @@ def test_dlib_agrees_with_ground_truth_landmarks(tmp_path):
 
 
 def test_only_the_measured_bundled_subject_has_its_own_knee_density():
-    from lmgs_eval.data.registry import KNEE_DENSITY, BundledSpec, knee_density
+    from lmgs_eval.data.bundled_spec import KNEE_DENSITY, BundledSpec, knee_density
 
     meta = {"bundled": True, "name": "hopper", "size": 256, "seconds": 60.0, "seed": 0}
     assert knee_density(meta) == KNEE_DENSITY[BundledSpec("hopper")] == 0.548559

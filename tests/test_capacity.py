@@ -51,17 +51,17 @@ def test_capacity_command_records_each_budget(tmp_path):
     recs, warnings = load_records(tmp_path)
     assert warnings == [] and len(recs) == 2
     for r in recs:
-        assert validate(r) == [] and r["protocol"]["name"] == "capacity"
+        assert validate(r) == [] and r.protocol.name == "capacity"
         # every budget re-timed in one run, interleaved; the chart's FPS is that one
-        assert r["cost"]["fps_side_by_side"] > 0 and any(n.startswith("fps_side_by_side:") for n in r["notes"])
+        assert r.cost.fps_side_by_side > 0 and any(n.startswith("fps_side_by_side:") for n in r.notes)
     pts = sorted(points_from_records(recs)["astronaut-64px-2s"], key=lambda p: p["budget"])
     assert [p["budget"] for p in pts] == [500, 900]
     assert all(p["fps_side_by_side"] for p in pts)
-    assert [p["fps"] for p in pts] == [r["cost"]["fps_side_by_side"] for r in sorted(recs, key=lambda r: r["protocol"]["clip"])]
+    assert [p["fps"] for p in pts] == [r.cost.fps_side_by_side for r in sorted(recs, key=lambda r: r.protocol.clip)]
     # the budget reached the model: the larger budget ends with more Gaussians, within its cap
     assert pts[0]["n_gaussians"] < pts[1]["n_gaussians"] <= 900 * 1.3
     assert "<- knee" in out and (tmp_path / "tables" / "capacity_astronaut-64px-2s.png").exists()
-    assert recs[0]["config_hash"] != recs[1]["config_hash"]
+    assert recs[0].config_hash != recs[1].config_hash
     rc, _, err = run_cli("capacity", "--subject", "astronaut-64px-2s", "--results", str(tmp_path), "--no-progress",
                          "--budget", "500", *FAST)
     assert rc == 0 and "already in" in err
@@ -75,31 +75,32 @@ def test_capacity_command_records_each_budget(tmp_path):
     # That second run re-timed budget 500 alone: the two budgets no longer share a timing run,
     # so the chart falls back to each record's own FPS rather than call them side by side.
     now = load_records(tmp_path)[0]
-    assert len({r["cost"]["fps_side_by_side_run"] for r in now}) == 2
+    assert len({r.cost.fps_side_by_side_run for r in now}) == 2
     assert not any(p["fps_side_by_side"] for p in points_from_records(now)["astronaut-64px-2s"])
-    by_budget = {r["protocol"]["clip"]: r for r in now}
-    ck = next((cache_root() / "models").glob(f"astronaut-64px-2s*/lmgs/{by_budget['budget-900']['config_hash']}-seed0/model.pt"))
+    by_budget = {r.protocol.clip: r for r in now}
+    ck = next((cache_root() / "models").glob(f"astronaut-64px-2s*/lmgs/{by_budget['budget-900'].config_hash}-seed0/model.pt"))
     ck.unlink()
     rc, _, err = run_cli("capacity", "--subject", "astronaut-64px-2s", "--results", str(tmp_path), "--no-progress",
                          "--budget", "500", "--budget", "900", *FAST)
     assert rc == 0 and "side-by-side timing skipped" in err and "budget(s) 900 " in err
     assert not ck.exists()  # not retrained
-    again = {r["protocol"]["clip"]: r for r in load_records(tmp_path)[0]}
-    assert {k: r["cost"] for k, r in again.items()} == {k: r["cost"] for k, r in by_budget.items()}
+    again = {r.protocol.clip: r for r in load_records(tmp_path)[0]}
+    assert {k: r.cost for k, r in again.items()} == {k: r.cost for k, r in by_budget.items()}
 
 
 def test_capacity_points_never_mix_side_by_side_and_per_run_fps():
+    from test_results import record, typed
+
     def rec(budget, fps, side=None, run="2026-11-24T04:00:00"):
         cost = {"fps": fps, "n_gaussians": budget,
                 **({"fps_side_by_side": side, "fps_side_by_side_run": run} if side is not None else {})}
-        return {"protocol": {"name": "capacity", "clip": f"budget-{budget}"}, "subject": {"name": "s"}, "seed": 0,
-                "metrics": {}, "cost": cost}
+        return typed([record("lmgs", "Ours", "3DGS", 0, {}, protocol="capacity", clip=f"budget-{budget}", cost=cost)])[0]
 
-    both = points_from_records([rec(500, 40.0, 61.0), rec(900, 30.0, 45.0)])["s"]
+    both = points_from_records([rec(500, 40.0, 61.0), rec(900, 30.0, 45.0)])["astronaut"]
     assert [(p["fps"], p["fps_side_by_side"]) for p in both] == [(61.0, True), (45.0, True)]
-    mixed = points_from_records([rec(500, 40.0, 61.0), rec(900, 30.0)])["s"]
+    mixed = points_from_records([rec(500, 40.0, 61.0), rec(900, 30.0)])["astronaut"]
     assert [(p["fps"], p["fps_side_by_side"]) for p in mixed] == [(40.0, False), (30.0, False)]
-    two_runs = points_from_records([rec(500, 40.0, 61.0), rec(900, 30.0, 45.0, run="2026-11-24T05:00:00")])["s"]
+    two_runs = points_from_records([rec(500, 40.0, 61.0), rec(900, 30.0, 45.0, run="2026-11-24T05:00:00")])["astronaut"]
     assert [(p["fps"], p["fps_side_by_side"]) for p in two_runs] == [(40.0, False), (30.0, False)]
 
 
@@ -121,8 +122,8 @@ def test_a_budget_whose_training_collapses_is_recorded_as_failed_and_the_rest_go
     assert rc == 0, err
     recs, warnings = load_records(tmp_path)
     assert warnings == [] and all(validate(r) == [] for r in recs)
-    bad = [r for r in recs if r["protocol"]["clip"] == "budget-900"]
-    assert len(bad) == 1 and bad[0]["status"]["state"] == "failed" and "collapsed at step 41" in bad[0]["status"]["reason"]
+    bad = [r for r in recs if r.protocol.clip == "budget-900"]
+    assert len(bad) == 1 and bad[0].status.state == "failed" and "collapsed at step 41" in bad[0].status.reason
     assert [p["budget"] for p in points_from_records(recs)["astronaut-64px-2s"]] == [500]  # no point made of nothing
     assert failed_points(recs)["astronaut-64px-2s"][0]["budget"] == 900
     assert "900 FAILED (seed 0): training diverged: training collapsed at step 41" in out
@@ -139,10 +140,10 @@ def test_a_subject_knee_density_is_the_default_of_capacity_and_of_the_other_prot
     trained with the very config `self` builds; the preset's budget is trained at the preset's
     exact density (so its models are the ones made before the knee was known)."""
     from lmgs.presets import TrainConfig
-    from lmgs_eval.data import registry
+    from lmgs_eval.data import bundled_spec, registry
     from baselines.protocol import create_method
 
-    monkeypatch.setitem(registry.KNEE_DENSITY, registry.BundledSpec("astronaut", 64, 2.0), 0.8)
+    monkeypatch.setitem(bundled_spec.KNEE_DENSITY, bundled_spec.BundledSpec("astronaut", 64, 2.0), 0.8)
     subject = registry.find_subject("astronaut-64px-2s", progress=False)
     assert subject.budget_density == 0.8 and subject.describe()["budget_density"] == 0.8
     rc, out, err = run_cli("capacity", "--subject", "astronaut-64px-2s", "--results", str(tmp_path), "--no-progress",
@@ -150,17 +151,17 @@ def test_a_subject_knee_density_is_the_default_of_capacity_and_of_the_other_prot
     assert rc == 0, err
     # face area 870 px: 0.8 x 870 = 696 (the default); the preset's 0.358 x 870 clamps to 500
     assert "(default 696 = 0.8 x face area, this subject's knee; the preset's 0.358438 gives 500)" in err
-    recs = {r["protocol"]["clip"]: r for r in load_records(tmp_path)[0]}
+    recs = {r.protocol.clip: r for r in load_records(tmp_path)[0]}
     assert sorted(recs) == ["budget-500", "budget-696"]
     knee_rec, preset_rec = recs["budget-696"], recs["budget-500"]
-    assert knee_rec["config"]["train"]["budget_density"] == 0.8
-    assert any("this subject's capacity knee" in n for n in knee_rec["notes"])
-    assert preset_rec["config"]["train"]["budget_density"] == TrainConfig.budget_density
-    assert not any("capacity knee" in n for n in preset_rec["notes"])
+    assert knee_rec.config["train"]["budget_density"] == 0.8
+    assert any("this subject's capacity knee" in n for n in knee_rec.notes)
+    assert preset_rec.config["train"]["budget_density"] == TrainConfig.budget_density
+    assert not any("capacity knee" in n for n in preset_rec.notes)
     over = {"overrides": {"train.static_steps": 30, "train.dynamic_steps": 30, "train.landmark_steps": 10, "train.densify_every": 20}}
-    assert preset_rec["config_hash"] == create_method("lmgs", **over).describe().config_hash
+    assert preset_rec.config_hash == create_method("lmgs", **over).describe().config_hash
     rc, _, err = run_cli("self", "--subject", "astronaut-64px-2s", "--results", str(tmp_path / "self"), "--no-progress", *FAST)
     assert rc == 0, err
-    self_rec = next(r for r in load_records(tmp_path / "self")[0] if r["method"]["name"] == "lmgs")
-    assert self_rec["config_hash"] == knee_rec["config_hash"]
-    assert self_rec["cost"]["n_gaussians"] == knee_rec["cost"]["n_gaussians"]  # the capacity run's model, reloaded
+    self_rec = next(r for r in load_records(tmp_path / "self")[0] if r.method.name == "lmgs")
+    assert self_rec.config_hash == knee_rec.config_hash
+    assert self_rec.cost.n_gaussians == knee_rec.cost.n_gaussians  # the capacity run's model, reloaded

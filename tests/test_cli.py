@@ -67,7 +67,7 @@ def demo_store(tmp_path_factory):
 def test_smoke_demo_self_cross_and_tables(demo_store):
     res, out_dir, out = demo_store
     recs = load_records(res)[0]
-    got = {(r["protocol"]["name"], r["protocol"]["clip"], r["method"]["name"]) for r in recs}
+    got = {(r.protocol.name, r.protocol.clip, r.method.name) for r in recs}
     assert {("self", "test", "lmgs"), ("cross", "A", "lmgs"), ("cross", "B", "lmgs")} <= got
     assert (out_dir / "table1_self.md").is_file() and (out_dir / "table2_cross.md").is_file()
     assert "demo finished" in out and (res / "report" / "index.html").is_file()  # the demo ends with the report
@@ -106,15 +106,15 @@ def test_smoke_self_rerun_is_skipped_and_seeds_device_preset_are_honoured(demo_s
                            *FAST)
     assert rc == 2 and "banana" in err and "Traceback" not in err
     # two seeds with --force: seed 0 is redone from its cached model, seed 1 is trained
-    before = {r["seed"]: r for r in load_records(res)[0] if r["protocol"]["name"] == "self" and r["method"]["name"] == "lmgs"}
+    before = {r.seed: r for r in load_records(res)[0] if r.protocol.name == "self" and r.method.name == "lmgs"}
     rc, out, err = run_cli("self", "--subject", SUBJECT, "--results", str(res), "--seed", "0", "--seed", "1", "--force",
                            "--no-progress", *FAST)
     assert rc == 0, err
-    after = {r["seed"]: r for r in load_records(res)[0] if r["protocol"]["name"] == "self" and r["method"]["name"] == "lmgs"}
+    after = {r.seed: r for r in load_records(res)[0] if r.protocol.name == "self" and r.method.name == "lmgs"}
     assert set(after) == {0, 1} and set(before) == {0}
-    ck = {k: r["artefacts"]["checkpoint"]["sha256"] for k, r in after.items()}
-    assert ck[0] == before[0]["artefacts"]["checkpoint"]["sha256"] and ck[1] != ck[0]  # seed 0 reused, seed 1 new
-    assert after[0]["cost"]["train_seconds"] == pytest.approx(before[0]["cost"]["train_seconds"])  # its fit.json
+    ck = {k: r.artefacts["checkpoint"].sha256 for k, r in after.items()}
+    assert ck[0] == before[0].artefacts["checkpoint"].sha256 and ck[1] != ck[0]  # seed 0 reused, seed 1 new
+    assert after[0].cost.train_seconds == pytest.approx(before[0].cost.train_seconds)  # its fit.json
     rc, out, err = run_cli("methods", "--preset", "paper", "--json")
     assert rc == 0, err
     rows = {m["name"]: m for m in json.loads(out)["methods"]}
@@ -129,8 +129,8 @@ def test_smoke_table_formats_verify_and_score(demo_store, tmp_path):
     assert {p.suffix for p in (tmp_path / "md").iterdir()} == {".md"}
     rc, out, err = run_cli("verify", str(res))
     assert rc == 0 and "all inputs unchanged" in out, out + err
-    render = next(r for r in load_records(res)[0] if r["protocol"]["name"] == "self" and r["method"]["name"] == "lmgs")
-    mp4 = res / render["artefacts"]["render"]["path"]
+    render = next(r for r in load_records(res)[0] if r.protocol.name == "self" and r.method.name == "lmgs")
+    mp4 = res / render.artefacts["render"].path
     rc, out, err = run_cli("score", "--pred", str(mp4), "--gt", str(mp4), "--metrics", "psnr,ssim", "--json")
     assert rc == 0, err
     got = json.loads(out)["results"]
@@ -142,7 +142,7 @@ def test_smoke_stress_one_condition(demo_store):
     rc, out, err = run_cli("stress", "--subject", SUBJECT, "--results", str(res), "--condition", "silence",
                            "--no-progress", *FAST)
     assert rc == 0, err
-    conds = {r["protocol"]["clip"] for r in load_records(res)[0] if r["protocol"]["name"] == "stress"}
+    conds = {r.protocol.clip for r in load_records(res)[0] if r.protocol.name == "stress"}
     assert {"clean", "silence"} <= conds
 
 

@@ -36,15 +36,15 @@ def test_round_trip_and_damage(tmp_path):
 
 
 def test_pcm16_is_what_the_writers_store(tmp_path):
-    from lmgs_eval.data import io
+    from lmgs_eval.data.audio import write_wav
 
     x = np.array([-1.5, -1.0, -0.5, 0.0, 1e-6, 0.3333, 0.99999, 1.0, 2.0], np.float32)
     q = sp.pcm16(x)
     assert q.tolist() == [-32767, -32767, -16384, 0, 0, 10921, 32767, 32767, 32767]
-    # io.write_wav writes exactly these steps, for the (clipped, as the generator's) float audio and
+    # write_wav writes exactly these steps, for the (clipped, as the generator's) float audio and
     # for the audio rebuilt from them
     for audio in (np.clip(x, -1, 1), q.astype(np.float32) / sp.PCM_SCALE):
-        io.write_wav(tmp_path / "a.wav", audio)
+        write_wav(tmp_path / "a.wav", audio)
         with wave.open(str(tmp_path / "a.wav")) as w:
             assert np.frombuffer(w.readframes(w.getnframes()), "<i2").tolist() == q.tolist()
 

@@ -256,12 +256,12 @@ def test_phone_rotation_metadata_is_applied(tmp_path):
 
 
 def test_given_audio_is_used_sample_for_sample(truth):
-    from lmgs_eval.data import io
+    from lmgs_eval.data.audio import load_audio
     from lmgs_eval.data.ingest import decode
 
     info = decode.probe(truth / "astronaut.mp4")
     got, _, _ = decode.read_audio(truth / "astronaut.mp4", truth / "aud.wav", info)
-    want, _ = io.load_audio(truth / "aud.wav")
+    want, _ = load_audio(truth / "aud.wav")
     np.testing.assert_array_equal(got, want)
 
 
@@ -276,10 +276,10 @@ def test_corrupt_file(tmp_path):
 
 
 def test_no_face(tmp_path):
-    from lmgs_eval.data import io
+    from lmgs_eval.data.video import write_video
 
     frames = np.tile(np.linspace(0, 255, 128, dtype=np.uint8)[None, :, None], (128, 1, 3))[None].repeat(30, 0)
-    io.write_video(tmp_path / "wall.mp4", frames, 25, np.zeros(30 * 640, np.float32))
+    write_video(tmp_path / "wall.mp4", frames, 25, np.zeros(30 * 640, np.float32))
     root = tmp_path / "data"
     rc, _, err = run_cli("ingest", str(tmp_path / "wall.mp4"), "--data-root", str(root), "--quiet")
     ingest_error_line(rc, err, "wall.mp4", "no face found")
@@ -287,10 +287,11 @@ def test_no_face(tmp_path):
 
 
 def test_no_audio_track(truth, tmp_path):
-    from lmgs_eval.data import io
+    from lmgs_eval.data.images import read_rgb_u8
+    from lmgs_eval.data.video import write_video
 
-    frames = np.stack([io.read_rgb_u8(truth / "ori_imgs" / f"{i}.jpg") for i in range(10)])
-    io.write_video(tmp_path / "mute.mp4", frames, 25, None)
+    frames = np.stack([read_rgb_u8(truth / "ori_imgs" / f"{i}.jpg") for i in range(10)])
+    write_video(tmp_path / "mute.mp4", frames, 25, None)
     root = tmp_path / "data"
     rc, _, err = run_cli("ingest", str(tmp_path / "mute.mp4"), "--data-root", str(root), "--quiet")
     ingest_error_line(rc, err, "mute.mp4", "no audio track", "--audio")
@@ -306,11 +307,13 @@ def test_existing_subject_needs_force(ingested, truth):
 def test_interrupted_ingest_resumes_after_the_last_stage(truth, tmp_path, monkeypatch):
     from lmgs_eval.data.ingest import IngestConfig, ingest, stages
 
-    from lmgs_eval.data import io
+    from lmgs_eval.data.audio import load_audio
+    from lmgs_eval.data.images import read_rgb_u8
+    from lmgs_eval.data.video import write_video
 
-    frames_ = np.stack([io.read_rgb_u8(truth / "ori_imgs" / f"{i}.jpg") for i in range(25)])
-    audio, _ = io.load_audio(truth / "aud.wav")
-    io.write_video(tmp_path / "one.mp4", frames_, 25, audio[: 25 * 640])
+    frames_ = np.stack([read_rgb_u8(truth / "ori_imgs" / f"{i}.jpg") for i in range(25)])
+    audio, _ = load_audio(truth / "aud.wav")
+    write_video(tmp_path / "one.mp4", frames_, 25, audio[: 25 * 640])
     root = tmp_path / "data"
     real_parsing = stages.parsing
 

@@ -13,11 +13,12 @@ from conftest import TRUTH_SIZE as SIZE, entries, ingest_error_line, run_cli
 
 
 def test_scene_cut_is_refused_with_its_frame(truth, tmp_path):
-    from lmgs_eval.data import io
+    from lmgs_eval.data.images import read_rgb_u8
+    from lmgs_eval.data.video import write_video
 
-    frames = np.stack([io.read_rgb_u8(truth / "ori_imgs" / f"{i}.jpg") for i in range(30)])
+    frames = np.stack([read_rgb_u8(truth / "ori_imgs" / f"{i}.jpg") for i in range(30)])
     frames[18:] = frames[18:, ::-1, ::-1] // 3  # another "shot" from frame 18
-    io.write_video(tmp_path / "cut.mp4", frames, 25, np.zeros(30 * 640, np.float32))
+    write_video(tmp_path / "cut.mp4", frames, 25, np.zeros(30 * 640, np.float32))
     root = tmp_path / "data"
     rc, _, err = run_cli("ingest", str(tmp_path / "cut.mp4"), "--data-root", str(root), "--quiet")
     ingest_error_line(rc, err, "cut.mp4", "scene cut", "frame 18")
@@ -27,10 +28,11 @@ def test_scene_cut_is_refused_with_its_frame(truth, tmp_path):
 def test_a_sudden_change_of_light_is_refused_as_such(truth, tmp_path):
     """The same picture 40 % brighter from frame 18 (a lamp switched on) is not called a scene
     cut but a change of light, with its frame; a cut to another picture still is a cut."""
-    from lmgs_eval.data import io
+    from lmgs_eval.data.images import read_rgb_u8
+    from lmgs_eval.data.video import write_video
     from lmgs_eval.data.ingest import decode
 
-    frames = np.stack([io.read_rgb_u8(truth / "ori_imgs" / f"{i}.jpg") for i in range(30)])
+    frames = np.stack([read_rgb_u8(truth / "ori_imgs" / f"{i}.jpg") for i in range(30)])
     lit = frames.copy()
     lit[18:] = np.clip(lit[18:].astype(np.float32) * 1.4, 0, 255).astype(np.uint8)
     thumbs = lambda x: np.stack([f.mean(-1)[::4, ::4] / 255.0 for f in x])  # noqa: E731
@@ -38,7 +40,7 @@ def test_a_sudden_change_of_light_is_refused_as_such(truth, tmp_path):
     cut = frames.copy()
     cut[18:] = cut[18:, ::-1, ::-1] // 3
     assert decode.scene_cuts(thumbs(cut)) == [18] and decode.light_jumps(thumbs(cut), [18]) == []
-    io.write_video(tmp_path / "lamp.mp4", lit, 25, np.zeros(30 * 640, np.float32))
+    write_video(tmp_path / "lamp.mp4", lit, 25, np.zeros(30 * 640, np.float32))
     root = tmp_path / "data"
     rc, _, err = run_cli("ingest", str(tmp_path / "lamp.mp4"), "--data-root", str(root), "--quiet")
     ingest_error_line(rc, err, "lamp.mp4", "the light changes at once", "frame 18")
@@ -46,16 +48,18 @@ def test_a_sudden_change_of_light_is_refused_as_such(truth, tmp_path):
 
 
 def test_two_faces_track_the_central_one_and_say_so(truth, tmp_path):
-    from lmgs_eval.data import io
+    from lmgs_eval.data.audio import load_audio
+    from lmgs_eval.data.images import read_rgb_u8
+    from lmgs_eval.data.video import write_video
 
     frames = []
     for i in range(25):
-        face = io.read_rgb_u8(truth / "ori_imgs" / f"{i}.jpg")
+        face = read_rgb_u8(truth / "ori_imgs" / f"{i}.jpg")
         pad = np.full((SIZE, 64, 3), 128, np.uint8)
         # two faces of one size; the right-hand one is nearer the frame's centre
         frames.append(np.concatenate([face[:, ::-1], face, pad], axis=1))
-    audio, _ = io.load_audio(truth / "aud.wav")
-    io.write_video(tmp_path / "two.mp4", np.stack(frames), 25, audio[: 25 * 640])
+    audio, _ = load_audio(truth / "aud.wav")
+    write_video(tmp_path / "two.mp4", np.stack(frames), 25, audio[: 25 * 640])
     root = tmp_path / "data"
     rc, out, err = run_cli("ingest", str(tmp_path / "two.mp4"), "--size", "128", "--data-root", str(root), "--quiet")
     assert rc == 0, err
@@ -68,19 +72,21 @@ def test_a_briefly_hidden_face_is_not_swapped_for_another(truth, tmp_path):
     """The tracked face is hidden for three frames at a re-detection frame while another face
     stays in view: the hidden frames are interpolated and the track stays on its face (taking
     the other one there would carry the track, the crop and every later frame to it)."""
-    from lmgs_eval.data import io
+    from lmgs_eval.data.audio import load_audio
+    from lmgs_eval.data.images import read_rgb_u8
+    from lmgs_eval.data.video import write_video
     from lmgs_eval.data.ingest.track import REDETECT
 
     n, hidden = 2 * REDETECT, range(REDETECT, REDETECT + 3)
     frames = []
     for i in range(n):
-        face = io.read_rgb_u8(truth / "ori_imgs" / f"{i}.jpg")
+        face = read_rgb_u8(truth / "ori_imgs" / f"{i}.jpg")
         pad = np.full((SIZE, 64, 3), 128, np.uint8)
         mine = np.full_like(face, 128) if i in hidden else face
         # the right-hand face is nearer the frame's centre: it is the one tracked
         frames.append(np.concatenate([face[:, ::-1], mine, pad], axis=1))
-    audio, _ = io.load_audio(truth / "aud.wav")
-    io.write_video(tmp_path / "hide.mp4", np.stack(frames), 25, audio[: n * 640])
+    audio, _ = load_audio(truth / "aud.wav")
+    write_video(tmp_path / "hide.mp4", np.stack(frames), 25, audio[: n * 640])
     root = tmp_path / "data"
     rc, out, err = run_cli("ingest", str(tmp_path / "hide.mp4"), "--size", "128", "--data-root", str(root), "--quiet")
     assert rc == 0, err
@@ -94,13 +100,15 @@ def test_a_long_faceless_stretch_is_left_out_with_its_audio(truth, tmp_path):
     """The face hidden for 20 frames (longer than interpolation bridges) in the middle: those
     frames and their audio are left out, listed, and the frames after them follow on."""
     from conftest import write_pcm_wav
-    from lmgs_eval.data import io
+    from lmgs_eval.data.audio import load_audio
+    from lmgs_eval.data.images import read_rgb_u8
+    from lmgs_eval.data.video import write_video
     from lmgs_eval.data.ingest.track import MAX_GAP
     from lmgs_eval.data.layout import read_subject
 
     n, hidden = 60, range(20, 40)
     assert len(hidden) > MAX_GAP
-    truth_frames = [io.read_rgb_u8(truth / "ori_imgs" / f"{i}.jpg") for i in range(n)]
+    truth_frames = [read_rgb_u8(truth / "ori_imgs" / f"{i}.jpg") for i in range(n)]
     frames = []
     for i, f in enumerate(truth_frames):
         if i in hidden:  # a hand before the face: its landmarks' box, filled with skin colour
@@ -109,8 +117,8 @@ def test_a_long_faceless_stretch_is_left_out_with_its_audio(truth, tmp_path):
             f = f.copy()
             f[max(y0, 0) : y1, max(x0, 0) : x1] = (200, 150, 120)
         frames.append(f)
-    audio, _ = io.load_audio(truth / "aud.wav")
-    io.write_video(tmp_path / "away.mp4", np.stack(frames), 25, audio[: n * 640])
+    audio, _ = load_audio(truth / "aud.wav")
+    write_video(tmp_path / "away.mp4", np.stack(frames), 25, audio[: n * 640])
     write_pcm_wav(tmp_path / "away.wav", audio[: n * 640], 16000)  # given, so the samples can be compared exactly
     root = tmp_path / "data"
     rc, out, err = run_cli("ingest", str(tmp_path / "away.mp4"), "--audio", str(tmp_path / "away.wav"), "--size", str(SIZE),
@@ -126,7 +134,7 @@ def test_a_long_faceless_stretch_is_left_out_with_its_audio(truth, tmp_path):
     kept = np.concatenate([audio[: hidden[0] * 640], audio[(hidden[-1] + 1) * 640 : n * 640]])
     np.testing.assert_allclose(s.audio, kept, atol=3 / 32767)
     # subject frame 20 is source frame 40: the frame after the gap, not the hidden one
-    after = s.frame(hidden[0])
+    after = s.frame(hidden[0]) / 255.0
     assert np.abs(after - truth_frames[hidden[-1] + 1] / 255.0).mean() < 0.03
     assert np.abs(after - truth_frames[hidden[-1]] / 255.0).mean() > np.abs(after - truth_frames[hidden[-1] + 1] / 255.0).mean()
 
@@ -134,7 +142,9 @@ def test_a_long_faceless_stretch_is_left_out_with_its_audio(truth, tmp_path):
 def test_moving_camera_is_flagged_with_its_frames(truth, tmp_path):
     import cv2
 
-    from lmgs_eval.data import io
+    from lmgs_eval.data.audio import load_audio
+    from lmgs_eval.data.images import read_rgb_u8
+    from lmgs_eval.data.video import write_video
 
     # a textured background that pans 1.5 px a frame behind the person (no cut): the plate,
     # which assumes a still camera, cannot match it
@@ -142,13 +152,13 @@ def test_moving_camera_is_flagged_with_its_frames(truth, tmp_path):
     texture = np.repeat((60 + 140 * (((xx // 12) + (yy // 12)) % 2))[..., None], 3, 2).astype(np.float32)  # checks
     frames = []
     for i in range(40):
-        img = io.read_rgb_u8(truth / "ori_imgs" / f"{i}.jpg")
-        bg = np.all(io.read_rgb_u8(truth / "parsing" / f"{i}.png") == 255, axis=-1)
+        img = read_rgb_u8(truth / "ori_imgs" / f"{i}.jpg")
+        bg = np.all(read_rgb_u8(truth / "parsing" / f"{i}.png") == 255, axis=-1)
         m = np.array([[1.0, 0, -1.5 * i], [0, 1.0, 0]])
         back = cv2.warpAffine(texture, m, (SIZE, SIZE))
         frames.append(np.where(bg[..., None], np.clip(back, 0, 255).astype(np.uint8), img))
-    audio, _ = io.load_audio(truth / "aud.wav")
-    io.write_video(tmp_path / "pan.mp4", np.stack(frames), 25, audio[: 40 * 640])
+    audio, _ = load_audio(truth / "aud.wav")
+    write_video(tmp_path / "pan.mp4", np.stack(frames), 25, audio[: 40 * 640])
     root = tmp_path / "data"
     rc, _, err = run_cli("ingest", str(tmp_path / "pan.mp4"), "--size", "128", "--data-root", str(root), "--quiet")
     assert rc == 0, err
@@ -159,10 +169,10 @@ def test_moving_camera_is_flagged_with_its_frames(truth, tmp_path):
 
 def test_shorter_audio_drops_the_frames_it_does_not_cover(truth, tmp_path):
     from conftest import write_pcm_wav
-    from lmgs_eval.data import io
+    from lmgs_eval.data.audio import load_audio
     from lmgs_eval.data.layout import read_subject
 
-    audio, _ = io.load_audio(truth / "aud.wav")
+    audio, _ = load_audio(truth / "aud.wav")
     write_pcm_wav(tmp_path / "short.wav", audio[: 50 * 640 + 100], 16000)  # 2 s for a 3 s video
     root = tmp_path / "data"
     rc, out, err = run_cli("ingest", str(truth / "astronaut.mp4"), "--audio", str(tmp_path / "short.wav"), "--name", "cut",

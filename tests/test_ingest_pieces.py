@@ -149,7 +149,7 @@ def test_depth_prior_is_the_ellipsoid_and_beyond_it_the_sheet_through_its_outlin
     """A sphere of radius 0.1 m, 1 m in front of the camera (world = camera, OpenCV axes), seen at
     focal 100 on a 41 px frame: a ray that meets it takes the nearer intersection, one that misses
     takes its point nearest the centre, facing the camera; ``rim=False`` leaves it empty."""
-    from lmgs_eval.data.ingest.geometry import render_prior
+    from lmgs_eval.data.geometry import render_prior
 
     f, w, r, dist = 100.0, 41, 0.1, 1.0
     mask = np.ones((w, w), bool)

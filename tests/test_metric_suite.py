@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import lmgs_eval.metrics.metric_suite as MS
+from lmgs_eval.metrics.config import SuiteConfig
 
 
 def _clip(seed: int) -> np.ndarray:
@@ -23,14 +24,15 @@ def test_each_metric_is_built_once_and_scores_as_a_fresh_one(monkeypatch):
     first = suite.score(_clip(1), gt, None, lmd=False)
     second = suite.score(_clip(2), gt, None, lmd=False)
     lp = suite.lpips_name
-    assert sorted(built) == sorted(["psnr", "ssim", lp])  # two clips, one build each
+    assert sorted(built) == sorted(["psnr", "ssim", "lpips", "lse"])  # two clips, one build each
     assert first["psnr"].value != second["psnr"].value  # the reused metrics hold no state between clips
     fresh = MS.MetricSuite().score(_clip(2), gt, None, lmd=False)
     for name in ("psnr", "ssim", lp):
         assert second[name].value == pytest.approx(fresh[name].value, rel=1e-6, abs=1e-9)
     assert second["lse"].available is False  # no audio: LSE says so instead of a number
     clone = pickle.loads(pickle.dumps(suite))
-    assert clone.alexnet == suite.alexnet and clone._metrics == {}  # a worker loads its own networks
+    assert clone.config == suite.config and clone._metrics == {}  # a worker loads its own networks
+    assert clone.sync.names == suite.sync.names  # and resolves the run's --sync choice from the config
 
 
 def test_a_ground_truth_of_another_shape_is_one_line():
@@ -105,14 +107,14 @@ def test_lpips_features_over_the_budget_are_kept_in_part_and_say_so(monkeypatch)
 
 def test_the_suite_scores_the_ground_truth_side_once_and_lse_reads_lmds_landmarks(monkeypatch):
     from lmgs_eval.metrics import landmarks as L
-    from lmgs_eval.metrics.sync import lse
-    from lmgs_eval.metrics.sync_select import load
+    from lmgs_eval.metrics.sync.scorers import load
+    from lmgs_eval.metrics.sync.scoring import lse
 
     gt, pred = _face_clip(40, 128)
     audio = (0.1 * np.random.default_rng(3).standard_normal(40 * 640)).astype(np.float32)
-    suite = MS.MetricSuite(sync="landmark")
+    suite = MS.MetricSuite(SuiteConfig(sync="landmark"))
     suite.score(gt, gt, audio, in_sync=True)
-    lp = suite.metric(suite.lpips_name)
+    lp = suite.metric("lpips")
     count = _Counting(lp, monkeypatch)
     calls = []
     real = L.DlibBackend.landmarks
@@ -122,7 +124,7 @@ def test_the_suite_scores_the_ground_truth_side_once_and_lse_reads_lmds_landmark
     assert calls == [40]  # one landmark pass (LMD's on the prediction), reused by LSE; the ground truth's from cache
     assert set(suite.timings) >= {"psnr", "ssim", suite.lpips_name, "lmd", "lse", "total"}
     sc, _ = load("landmark")
-    alone = lse(pred.astype(np.float32) / 255, audio, scorer=sc)  # LSE finding its own landmarks
+    alone = lse(pred, audio, scorer=sc)  # LSE finding its own landmarks
     assert res["lse"].values["lse_d"] == pytest.approx(alone.values["lse_d"], abs=1e-9)
     assert res["lse"].values["offset"] == alone.values["offset"]
     assert "given with the clip" in " ".join(res["lse"].notes)

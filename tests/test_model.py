@@ -10,7 +10,8 @@ import torch
 
 from lmgs.errors import InputError
 from lmgs.presets import config_from_dict, quick
-from lmgs.train import TrainingDiverged, fit, load_model, save_model
+from lmgs.checkpoint import load_model, save_model
+from lmgs.train import TrainingDiverged, fit
 from lmgs.types import DrivingAudio
 from model_fixtures import synthetic_clip
 

@@ -69,7 +69,7 @@ def _one_thread():
 def plain(tmp_path_factory):
     """The stripped folder, read; its clips; and a copy with DeepSpeech features (the field's optional aud_ds.npy)."""
     from lmgs_eval.convert import driving_from_subject, subject_to_clip
-    from lmgs_eval.data.ingest.complete import PLAIN_LAYOUT, strip_to_plain
+    from lmgs_eval.data.complete import PLAIN_LAYOUT, strip_to_plain
     from lmgs_eval.data.layout import read_subject
     from lmgs_eval.data.registry import resolve_subject_dir
 
@@ -154,14 +154,14 @@ def test_every_method_trains_and_renders_on_a_plain_folder(name, plain, tmp_path
     got, head = _psnr(frames, test.frames), _psnr(frames, test.frames, test.head_masks)
     assert got > PSNR_FLOOR, f"{name}: {got:.2f} dB"
     assert head > HEAD_PSNR_FLOOR, f"{name}: {head:.2f} dB inside the head"
-    assert rec["metrics"]["psnr"]["value"] == pytest.approx(got, abs=0.5)  # the run scored these frames
+    assert rec.metrics["psnr"].value == pytest.approx(got, abs=0.5)  # the run scored these frames
 
     # the record says what was derived, and where it is
-    derived = [n for n in rec["notes"] if "derived 3D landmarks" in n]
+    derived = [n for n in rec.notes if "derived 3D landmarks" in n]
     assert len(derived) == 1 and "depth / normal priors" in derived[0] and str(plain["root"]) in derived[0]
     cache = derived[0].split("cached at ")[1].split(" (")[0]
     assert (Path(cache) / "lms3d.npy").is_file()
-    assert rec["subject"]["path"] == str(plain["root"]) and rec["subject"]["sha256"] is None  # no manifest
+    assert rec.subject.path == str(plain["root"]) and rec.subject.sha256 is None  # no manifest
 
 
 
@@ -190,11 +190,11 @@ def test_bench_stripped_prints_the_full_and_the_stripped_run_side_by_side(tmp_pa
     stripped_root = got["stripped"].split(" (")[0]
     assert not Path(stripped_root).exists()  # the copy is temporary
 
-    recs = sorted(load_records(tmp_path / "res")[0], key=lambda r: r["subject"]["name"])
-    assert [r["subject"]["name"] for r in recs] == [SUBJECT, f"{SUBJECT}-plain"]
-    assert recs[0]["config_hash"] == recs[1]["config_hash"] and recs[0]["seed"] == recs[1]["seed"] == 0
-    assert not any("derived" in n for n in recs[0]["notes"]) and any("derived 3D landmarks" in n for n in recs[1]["notes"])
-    assert recs[1]["metrics"]["psnr"]["value"] == pytest.approx(psnr["stripped"])
+    recs = sorted(load_records(tmp_path / "res")[0], key=lambda r: r.subject.name)
+    assert [r.subject.name for r in recs] == [SUBJECT, f"{SUBJECT}-plain"]
+    assert recs[0].config_hash == recs[1].config_hash and recs[0].seed == recs[1].seed == 0
+    assert not any("derived" in n for n in recs[0].notes) and any("derived 3D landmarks" in n for n in recs[1].notes)
+    assert recs[1].metrics["psnr"].value == pytest.approx(psnr["stripped"])
     assert not _in_all("stripped") and _in_all("raster")  # `bench all` stays a speed benchmark
 
 
@@ -221,7 +221,7 @@ def _load(root: Path) -> dict:
 
 @pytest.fixture(scope="module")
 def both(tmp_path_factory):
-    from lmgs_eval.data.ingest.complete import strip_to_plain
+    from lmgs_eval.data.complete import strip_to_plain
     from lmgs_eval.data.registry import resolve_subject_dir
 
     full = resolve_subject_dir(LARGER, progress=False)

@@ -152,15 +152,15 @@ def test_a_failing_run_is_retried_then_recorded_as_failed_and_retried_on_the_nex
     s = run_plan(plan_from_dict(_toy_plan(marks / "a", fail_times=1)), make_executor("serial"), res, progress=_quiet)
     assert s.failed == [] and len(s.done) == 1 and len(plan_toys.fits(marks / "a", 0)) == 2
     recs, _ = load_records(res)
-    assert sorted(r["protocol"]["clip"] for r in recs) == ["A", "B"] and not any(is_failed(r) for r in recs)
-    assert all((res / r["artefacts"]["render"]["path"]).is_file() for r in recs)
+    assert sorted(r.protocol.clip for r in recs) == ["A", "B"] and not any(is_failed(r) for r in recs)
+    assert all((res / r.artefacts["render"].path).is_file() for r in recs)
     # fails on both tries: each record it would have made is a failed record with the message
     plan = plan_from_dict(_toy_plan(marks / "b", fail_times=2))
     s = run_plan(plan, make_executor("serial"), res, progress=_quiet)
     assert len(s.failed) == 1 and "RuntimeError: toy failure 2" in s.failed[0]
     failed = [r for r in load_records(res)[0] if is_failed(r)]
-    assert sorted(r["protocol"]["clip"] for r in failed) == ["A", "B"]
-    assert all(r["status"]["reason"] == "RuntimeError: toy failure 2" for r in failed)
+    assert sorted(r.protocol.clip for r in failed) == ["A", "B"]
+    assert all(r.status.reason == "RuntimeError: toy failure 2" for r in failed)
     # the next start retries it (a failed record is not a finished run); the third fit succeeds
     s = run_plan(plan, make_executor("serial"), res, progress=_quiet)
     assert s.failed == [] and s.skipped == 0 and len(plan_toys.fits(marks / "b", 0)) == 3
@@ -173,7 +173,7 @@ def test_a_stopped_driver_resumes_without_redoing_finished_runs(tmp_path):
     with pytest.raises(KeyboardInterrupt):
         run_plan(plan, make_executor("serial"), res, progress=_quiet)
     recs, _ = load_records(res)
-    assert sorted((r["seed"], r["protocol"]["clip"]) for r in recs) == [(0, "A"), (0, "B")]  # seed 1 left nothing
+    assert sorted((r.seed, r.protocol.clip) for r in recs) == [(0, "A"), (0, "B")]  # seed 1 left nothing
     before = {p: p.read_bytes() for p in res.rglob("*.json")}
     lines = []
     s = run_plan(plan, make_executor("serial"), res, progress=lines.append)
@@ -182,7 +182,7 @@ def test_a_stopped_driver_resumes_without_redoing_finished_runs(tmp_path):
     assert [len(plan_toys.fits(marks, seed)) for seed in (0, 1, 2)] == [1, 2, 1]  # seed 0 was not fitted again
     assert all(p.read_bytes() == b for p, b in before.items())  # its records untouched
     recs, _ = load_records(res)
-    assert sorted((r["seed"], r["protocol"]["clip"]) for r in recs) == [(s, c) for s in (0, 1, 2) for c in "AB"]
+    assert sorted((r.seed, r.protocol.clip) for r in recs) == [(s, c) for s in (0, 1, 2) for c in "AB"]
     # a third start finds everything in the store and runs nothing
     s = run_plan(plan, make_executor("serial"), res, progress=_quiet)
     assert s.skipped == 3 and s.done == [] and [len(plan_toys.fits(marks, seed)) for seed in (0, 1, 2)] == [1, 2, 1]
@@ -223,7 +223,7 @@ def test_a_stress_run_is_found_done_by_the_records_of_its_conditions(tmp_path):
     s = run_plan(plan, make_executor("serial"), res, progress=_quiet)
     assert s.failed == [] and len(s.done) == 1
     recs, _ = load_records(res)
-    assert sorted(r["protocol"]["clip"] for r in recs) == ["clean", "silence"]
+    assert sorted(r.protocol.clip for r in recs) == ["clean", "silence"]
     s = run_plan(plan, make_executor("serial"), res, progress=_quiet)
     assert s.skipped == 1 and s.done == [] and len(plan_toys.fits(tmp_path / "marks", 0)) == 1
 

@@ -89,10 +89,10 @@ def test_a_plan_on_a_two_node_ray_cluster_records_what_the_serial_executor_recor
         recs, _ = load_records(tmp_path / "killed")
         ok = [r for r in recs if not is_failed(r)]
         failed = [r for r in recs if is_failed(r)]
-        assert sorted(r["protocol"]["clip"] for r in ok) == ["A", "B"] and {r["config"]["kill_times"] for r in ok} == {1}
-        assert sorted(r["protocol"]["clip"] for r in failed) == ["A", "B"]
-        assert all("died" in r["status"]["reason"].lower() or "crash" in r["status"]["reason"].lower() for r in failed), \
-            failed[0]["status"]["reason"]
+        assert sorted(r.protocol.clip for r in ok) == ["A", "B"] and {r.config["kill_times"] for r in ok} == {1}
+        assert sorted(r.protocol.clip for r in failed) == ["A", "B"]
+        assert all("died" in r.status.reason.lower() or "crash" in r.status.reason.lower() for r in failed), \
+            failed[0].status.reason
     finally:
         ray.shutdown()
         cluster.shutdown()

@@ -32,30 +32,30 @@ def test_self_writes_valid_records_renders_and_rows(store):
     assert warnings == []
     for r in records:
         assert validate(r) == []
-    controls = [r for r in records if r["method"]["family"] == "control"]
-    assert sorted(r["method"]["name"] for r in controls) == [
+    controls = [r for r in records if r.method.family == "control"]
+    assert sorted(r.method.name for r in controls) == [
         "control:gt-audio+10", "control:gt-audio+5", "control:gt-audio-10", "control:gt-audio-5",
         "control:gt-other-audio", "control:still-frame"]
-    assert all(r["protocol"]["name"] == "calibration" and r["method"]["control"]["targets"] for r in controls)
-    by = {r["method"]["name"]: r for r in records if r["method"]["family"] != "control"}
+    assert all(r.protocol.name == "calibration" and r.method.control.targets for r in controls)
+    by = {r.method.name: r for r in records if r.method.family != "control"}
     assert set(by) == {"ground-truth", "plate-reference", "lmgs"}
     for r in by.values():
-        render = root / r["artefacts"]["render"]["path"]
+        render = root / r.artefacts["render"].path
         assert render.exists() and render.stat().st_size > 0
     lm = by["lmgs"]
-    assert lm["subject"]["bundled"] and lm["subject"]["standin"]
-    assert lm["protocol"] == {"name": "self", "version": "1", "clip": "test", "split": "test", "n_frames": 5}
-    assert lm["config"]["train"]["dynamic_steps"] == 40  # --set reached the config and its hash
-    assert lm["cost"]["fps"] > 0 and lm["cost"]["n_gaussians"] > 0 and lm["cost"]["train_seconds"] > 0
-    assert 0 <= lm["cost"]["others_cpu_share"] <= 1  # how busy the host was while the FPS was timed
-    assert any("GeneFace" in s for s in lm["method"]["standins"])
-    assert any(n.startswith("spatial enhancement selected") and "theta = 0.6" in n for n in lm["notes"])
-    assert lm["metrics"]["lpips"]["backend"] in ("stlpips-alex", "lpips-alex")
+    assert lm.subject.bundled and lm.subject.standin
+    assert lm.to_dict()["protocol"] == {"name": "self", "version": "1", "clip": "test", "split": "test", "n_frames": 5}
+    assert lm.config["train"]["dynamic_steps"] == 40  # --set reached the config and its hash
+    assert lm.cost.fps > 0 and lm.cost.n_gaussians > 0 and lm.cost.train_seconds > 0
+    assert 0 <= lm.cost.others_cpu_share <= 1  # how busy the host was while the FPS was timed
+    assert any("GeneFace" in s for s in lm.method.standins)
+    assert any(n.startswith("spatial enhancement selected") and "theta = 0.6" in n for n in lm.notes)
+    assert lm.metrics["lpips"].backend in ("stlpips-alex", "lpips-alex")
     # verify re-hashes the inputs too: the subject's ground truth and the LPIPS weights
-    assert lm["artefacts"]["ground_truth"]["path"].endswith("manifest.json")
-    assert any(k.startswith("weights:") and "lpips" in k for k in lm["artefacts"])
-    assert by["ground-truth"]["metrics"]["psnr"]["value"] == 100.0  # identical frames: the cap
-    assert by["ground-truth"]["metrics"]["lpips"]["value"] == pytest.approx(0.0, abs=1e-6)
+    assert lm.artefacts["ground_truth"].path.endswith("manifest.json")
+    assert any(k.startswith("weights:") and "lpips" in k for k in lm.artefacts)
+    assert by["ground-truth"].metrics["psnr"].value == 100.0  # identical frames: the cap
+    assert by["ground-truth"].metrics["lpips"].value == pytest.approx(0.0, abs=1e-6)
     assert "Ground Truth" in out and "Ours (lmgs)" in out
 
 
@@ -68,21 +68,21 @@ def test_the_lmgs_row_scores_the_checkpoints_render_of_the_test_split(store):
     from lmgs_eval.commands._common import parse_overrides
     from lmgs_eval.convert import driving_from_subject, subject_to_clip
     from lmgs_eval.data.registry import find_subject
-    from lmgs_eval.results import sha256_file
+    from lmgs.fileio import sha256_file
 
     root, _, _ = store
-    lm = next(r for r in load_records(root)[0] if r["method"]["name"] == "lmgs")
-    ck = Path(lm["artefacts"]["checkpoint"]["path"])
-    assert sha256_file(ck) == lm["artefacts"]["checkpoint"]["sha256"]
+    lm = next(r for r in load_records(root)[0] if r.method.name == "lmgs")
+    ck = Path(lm.artefacts["checkpoint"].path)
+    assert sha256_file(ck) == lm.artefacts["checkpoint"].sha256
     subject = find_subject(SUBJECT, None, progress=False)
     method = create_method("lmgs", subject=subject, preset="quick", **parse_overrides(FAST[1::2]))
-    assert method.describe().config_hash == lm["config_hash"]
+    assert method.describe().config_hash == lm.config_hash
     method.fit(subject_to_clip(subject, subject.train_ids), seed=0, workdir=ck.parent, progress=False)  # reloads
     test = subject_to_clip(subject, subject.test_ids)
     frames = method.render(driving_from_subject(subject, subject.test_ids, test))
     assert frames.shape == test.frames.shape and frames.dtype == np.uint8
     want = [peak_signal_noise_ratio(g, f, data_range=255) for g, f in zip(test.frames, frames)]
-    assert lm["metrics"]["psnr"]["value"] == pytest.approx(np.mean(want), abs=1e-6)
+    assert lm.metrics["psnr"].value == pytest.approx(np.mean(want), abs=1e-6)
     assert np.mean(want) < 60  # a render, not the ground truth
 
 
@@ -90,25 +90,25 @@ def test_the_plate_reference_row_is_the_ground_truth_head_on_the_subjects_plate(
     # recomputed from the subject's files (parsing, torso_imgs, bc.jpg, gt_imgs) with skimage's PSNR
     from skimage.metrics import peak_signal_noise_ratio
 
-    from lmgs_eval.data.io import to_u8
+    from lmgs_eval.data.images import to_u8
     from lmgs_eval.data.registry import find_subject
 
     root, out, _ = store
-    ref = next(r for r in load_records(root)[0] if r["method"]["name"] == "plate-reference")
-    assert ref["method"]["family"] == "reference" and ref["protocol"]["name"] == "self"
+    ref = next(r for r in load_records(root)[0] if r.method.name == "plate-reference")
+    assert ref.method.family == "reference" and ref.protocol.name == "self"
     subject = find_subject(SUBJECT, None, progress=False)
     bc = subject.background()
     want = []
     for i in subject.test_ids:
-        gt = to_u8(subject.frame(i))
+        gt = subject.frame(i)
         torso = subject.torso(i)
         plate = to_u8(torso[..., :3] * torso[..., 3:] + bc * (1 - torso[..., 3:]))
         head = np.all(subject.parsing(i) == (255, 0, 0), axis=-1)
         assert 0 < head.mean() < 1
         comp = np.where(head[..., None], gt, plate)
         want.append(peak_signal_noise_ratio(gt, comp, data_range=255))
-    assert ref["metrics"]["psnr"]["value"] == pytest.approx(np.mean(want), abs=1e-6)
-    assert ref["metrics"]["psnr"]["value"] < 100
+    assert ref.metrics["psnr"].value == pytest.approx(np.mean(want), abs=1e-6)
+    assert ref.metrics["psnr"].value < 100
     assert "GT head on plate" in out
     lines = out.splitlines()
     assert [k for k, l in enumerate(lines) if "Ground Truth" in l][0] < [k for k, l in enumerate(lines) if "GT head on plate" in l][0]
@@ -141,10 +141,10 @@ def test_a_second_config_keeps_the_first_configs_render(store, tmp_path):
     rc, _, err = run_cli("self", "--subject", SUBJECT, "--results", str(copy), "--no-progress", *FAST,
                          "--set", "train.lambda_lips=0.5")
     assert rc == 0, err
-    runs = [r for r in load_records(copy)[0] if r["method"]["name"] == "lmgs"]
-    assert len({r["config_hash"] for r in runs}) == 2
-    paths = {r["artefacts"]["render"]["path"] for r in runs}
-    assert len(paths) == 2 and all(r["config_hash"][:8] in r["artefacts"]["render"]["path"] for r in runs)
+    runs = [r for r in load_records(copy)[0] if r.method.name == "lmgs"]
+    assert len({r.config_hash for r in runs}) == 2
+    paths = {r.artefacts["render"].path for r in runs}
+    assert len(paths) == 2 and all(r.config_hash[:8] in r.artefacts["render"].path for r in runs)
     rc, out, err = run_cli("verify", str(copy))
     assert rc == 0, out + err
 
@@ -155,8 +155,8 @@ def test_verify_catches_a_changed_render(store, tmp_path):
     root, _, _ = store
     copy = tmp_path / "copy"
     shutil.copytree(root, copy)
-    rec = next(r for r in load_records(copy)[0] if r["method"]["name"] == "lmgs")
-    with open(copy / rec["artefacts"]["render"]["path"], "ab") as f:
+    rec = next(r for r in load_records(copy)[0] if r.method.name == "lmgs")
+    with open(copy / rec.artefacts["render"].path, "ab") as f:
         f.write(b"tampered")
     rc, out, err = run_cli("verify", str(copy))
     assert rc == 1 and "changed" in (out + err)
@@ -193,11 +193,11 @@ def test_cross_with_user_audio_and_a_bad_file(tmp_path):
     assert len(records) == 1
     r = records[0]
     sha = hashlib.sha256(good.read_bytes()).hexdigest()
-    assert r["protocol"]["name"] == "cross" and r["protocol"]["clip"] == f"good-{sha[:12]}"
-    assert r["protocol"]["n_frames"] == 30
-    assert r["protocol"]["split"] == str(good.resolve()) and Path(r["protocol"]["split"]).is_absolute()
-    assert r["artefacts"]["driving_audio"] == {"path": str(good.resolve()), "sha256": sha}
-    assert any("mixed to mono" in n for n in r["notes"]) and any("44100" in n for n in r["notes"])
+    assert r.protocol.name == "cross" and r.protocol.clip == f"good-{sha[:12]}"
+    assert r.protocol.n_frames == 30
+    assert r.protocol.split == str(good.resolve()) and Path(r.protocol.split).is_absolute()
+    assert r.to_dict()["artefacts"]["driving_audio"] == {"path": str(good.resolve()), "sha256": sha}
+    assert any("mixed to mono" in n for n in r.notes) and any("44100" in n for n in r.notes)
     assert validate(r) == []
 
 
@@ -217,16 +217,16 @@ def test_cross_clips_are_their_audio_not_their_name(tmp_path, monkeypatch):
             "--no-progress", *FAST]
     rc, out, err = run_cli(*args)
     assert rc == 0, err
-    clips = sorted(r["protocol"]["clip"] for r in load_records(res)[0])
+    clips = sorted(r.protocol.clip for r in load_records(res)[0])
     assert len(clips) == 3 and "A" not in clips and sum(c.startswith("a-") for c in clips) == 2
-    assert all(Path(r["protocol"]["split"]).is_absolute() for r in load_records(res)[0])
+    assert all(Path(r.protocol.split).is_absolute() for r in load_records(res)[0])
     rc, out, err = run_cli(*args)
     assert rc == 0 and "already in" in err
-    victim = next(r for r in load_records(res)[0] if r["protocol"]["clip"].startswith("A-"))
-    (res / victim["artefacts"]["render"]["path"]).unlink()
+    victim = next(r for r in load_records(res)[0] if r.protocol.clip.startswith("A-"))
+    (res / victim.artefacts["render"].path).unlink()
     rc, out, err = run_cli(*args)
     assert rc == 0 and "is missing" in err, err
-    assert (res / victim["artefacts"]["render"]["path"]).is_file()
+    assert (res / victim.artefacts["render"].path).is_file()
     rc, out, err = run_cli("verify", str(res))
     assert rc == 0, out + err
 
@@ -235,18 +235,18 @@ def test_cross_bundled_clips_score_lmd_against_their_ground_truth_or_say_why(tmp
     rc, _, err = run_cli("cross", "--subject", SUBJECT, "--results", str(tmp_path), "--no-progress", *FAST)
     assert rc == 0, err
     records, _ = load_records(tmp_path)
-    assert sorted(r["protocol"]["clip"] for r in records) == ["A", "B"]
+    assert sorted(r.protocol.clip for r in records) == ["A", "B"]
     from lmgs_eval.data.registry import find_subject
 
     subject = find_subject(SUBJECT, progress=False)
     for r in records:
-        n_gt = len(list((subject.root / "cross" / r["protocol"]["clip"] / "gt_imgs").glob("*.jpg")))
-        m = r["metrics"]["lmd"]
+        n_gt = len(list((subject.root / "cross" / r.protocol.clip / "gt_imgs").glob("*.jpg")))
+        m = r.metrics["lmd"]
         # every frame of the clip is paired with its own ground truth ...
-        assert m["n_original"] == r["protocol"]["n_frames"] == n_gt == len(m["per_item"])
+        assert m.n_original == r.protocol.n_frames == n_gt == len(m.per_item)
         # ... and at 64x64 no detector finds a face: no number, and the record says why
-        assert m["value"] is None and m["n_effective"] == 0
-        assert any(f.startswith("unavailable: no face found") for f in m["flags"])
+        assert m.value is None and m.n_effective == 0
+        assert any(f.startswith("unavailable: no face found") for f in m.flags)
 
 
 def test_unknown_method_and_subject(tmp_path):
@@ -266,7 +266,7 @@ def test_a_training_that_diverges_is_one_line_and_exit_1(tmp_path, monkeypatch):
     monkeypatch.setattr(runner, "fit_method", diverge)
     rc, out, err = run_cli("self", "--subject", SUBJECT, "--results", str(tmp_path), "--no-progress", *FAST)
     assert rc == 1 and "lmgs-eval self: training failed: training collapsed at step 1040" in err
-    assert "Traceback" not in err and not [r for r in load_records(tmp_path)[0] if r["method"]["name"] == "lmgs"]  # no record made of it
+    assert "Traceback" not in err and not [r for r in load_records(tmp_path)[0] if r.method.name == "lmgs"]  # no record made of it
 
 
 def test_timed_render_reports_the_median_of_repeats(monkeypatch):
@@ -309,7 +309,7 @@ def _handmade_renders(folder: Path, offset: int = 0, drop: int = 0) -> tuple[np.
     """The tiny subject's test frames, brightened by ``offset`` levels, written as numbered PNGs: ``(gt, pred)``."""
     import cv2
 
-    from lmgs_eval.data.io import to_u8
+    from lmgs_eval.data.images import to_u8
     from lmgs_eval.data.registry import find_subject
     from lmgs_eval.convert import subject_to_clip
 
@@ -332,15 +332,15 @@ def test_external_scores_a_handmade_renders_folder(tmp_path):
     rc, out, err = run_cli("self", "--subject", SUBJECT, "--method", "external:ernerf", "--renders", str(renders),
                            "--results", str(root), "--no-progress")
     assert rc == 0, err
-    rec = next(r for r in load_records(root)[0] if r["method"]["name"] == "external:ernerf")
-    assert validate(rec) == [] and rec["method"]["family"] == "external"
+    rec = next(r for r in load_records(root)[0] if r.method.name == "external:ernerf")
+    assert validate(rec) == [] and rec.method.family == "external"
     expected = np.mean([peak_signal_noise_ratio(g, p, data_range=255) for g, p in zip(gt, pred)])
-    assert rec["metrics"]["psnr"]["value"] == pytest.approx(expected, abs=1e-3)
-    assert rec["metrics"]["psnr"]["n_original"] == len(gt) == rec["protocol"]["n_frames"]
+    assert rec.metrics["psnr"].value == pytest.approx(expected, abs=1e-3)
+    assert rec.metrics["psnr"].n_original == len(gt) == rec.protocol.n_frames
     # cost from the sidecar only: given figures kept, missing ones empty, never guessed
-    assert rec["cost"]["fps"] == 34.5 and rec["cost"]["train_seconds"] == 7200.0
-    assert rec["cost"]["n_gaussians"] is None and rec["cost"]["model_mb"] is None
-    assert rec["cost"]["others_cpu_share"] is None  # nothing was timed here
+    assert rec.cost.fps == 34.5 and rec.cost.train_seconds == 7200.0
+    assert rec.cost.n_gaussians is None and rec.cost.model_mb is None
+    assert rec.cost.others_cpu_share is None  # nothing was timed here
 
 
 def test_external_with_a_missing_frame_is_a_clear_error(tmp_path):
@@ -350,7 +350,7 @@ def test_external_with_a_missing_frame_is_a_clear_error(tmp_path):
                            "--results", str(tmp_path / "results"), "--no-progress")
     assert rc != 0 and "Traceback" not in err
     assert str(renders) in err and f"{len(gt) - 1} frames" in err and f"has {len(gt)}" in err
-    assert not any(r["method"]["name"] == "external:ernerf" for r in load_records(tmp_path / "results")[0])
+    assert not any(r.method.name == "external:ernerf" for r in load_records(tmp_path / "results")[0])
 
 
 @pytest.mark.parametrize("sidecar, words", [

@@ -144,16 +144,15 @@ def test_the_worked_example_of_adding_a_method_runs_in_the_protocol(tmp_path, mo
     rc, out, err = run_cli("self", "--subject", "astronaut-64px-2s", "--method", "mean-frame", "--results", str(tmp_path),
                            "--no-progress")
     assert rc == 0, err
-    (rec,) = [r for r in load_records(tmp_path)[0] if r["method"]["name"] == "mean-frame"]
-    assert rec["method"]["family"] == "2D"
+    (rec,) = [r for r in load_records(tmp_path)[0] if r.method.name == "mean-frame"]
+    assert rec.method.family == "2D"
     # the PSNR the record holds is the mean frame's, recomputed from the subject's files with skimage
     from skimage.metrics import peak_signal_noise_ratio
 
-    from lmgs_eval.data.io import to_u8
     from lmgs_eval.data.registry import find_subject
 
     subject = find_subject("astronaut-64px-2s", None, progress=False)
-    mean = np.mean([to_u8(subject.frame(i)) for i in subject.train_ids], axis=0).round().astype(np.uint8)
-    want = np.mean([peak_signal_noise_ratio(to_u8(subject.frame(i)), mean, data_range=255) for i in subject.test_ids])
-    assert rec["metrics"]["psnr"]["value"] == pytest.approx(want, abs=1e-6)
+    mean = np.mean([subject.frame(i) for i in subject.train_ids], axis=0).round().astype(np.uint8)
+    want = np.mean([peak_signal_noise_ratio(subject.frame(i), mean, data_range=255) for i in subject.test_ids])
+    assert rec.metrics["psnr"].value == pytest.approx(want, abs=1e-6)
     assert "Mean frame" in out  # the run's row

@@ -32,40 +32,40 @@ def test_the_committed_version_1_records_load_as_the_current_schema(committed):
     # most were written by version 1 (the migration is what is exercised here); later runs by the current one
     assert set(raw) <= {"1", SCHEMA_VERSION} and raw.count("1") > 200
     for path, rec in committed:
-        assert rec["schema_version"] == SCHEMA_VERSION and validate(rec) == [], path
-        typed = Record.from_dict(rec)
-        assert typed.to_dict() == json.loads(json.dumps(rec)), path  # the typed form loses nothing
-        assert typed.method.name == rec["method"]["name"] and typed.seed == rec["seed"]
+        assert rec.schema_version == SCHEMA_VERSION and validate(rec) == [], path
+        migrated = migrate(json.loads(path.read_text()))
+        assert rec.to_dict() == json.loads(json.dumps(migrated)), path  # the typed form loses nothing
+        assert rec.method.name == migrated["method"]["name"] and rec.seed == migrated["seed"]
 
 
 def test_migrated_components_are_what_the_lmgs_adapter_declares(committed):
     """The components a version-1 record's config implies equal the adapter's for the same config hash."""
     checked = set()
     for path, rec in committed:
-        name = rec["method"]["name"]
-        if not (name == "lmgs" or name.startswith("lmgs-")) or rec["protocol"]["name"] != "self":
+        name = rec.method.name
+        if not (name == "lmgs" or name.startswith("lmgs-")) or rec.protocol.name != "self":
             continue
-        method = LMGSMethod(name, budget_density=(rec.get("run") or {}).get("budget", {}).get("density"))
+        method = LMGSMethod(name, budget_density=rec.run.budget.density if rec.run and rec.run.budget else None)
         info = method.describe()
-        if info.config_hash != rec["config_hash"]:
+        if info.config_hash != rec.config_hash:
             continue  # a config of an older code version: nothing today declares it
-        assert rec["method"]["components"] == info.components, path
+        assert rec.method.components == info.components, path
         checked.add(name)
     # the full model and its Table IV switches are all covered
     assert {"lmgs", "lmgs-no-se", "lmgs-no-lc", "lmgs-no-gr", "lmgs-uncapped", "lmgs-oof"} <= checked
 
 
 def test_prose_facts_become_fields_and_print_as_before(committed):
-    se = [(p, r) for p, r in committed if (r.get("run") or {}).get("se_fraction") is not None]
-    budget = [(p, r) for p, r in committed if (r.get("run") or {}).get("budget")]
+    se = [(p, r) for p, r in committed if r.run and r.run.se_fraction is not None]
+    budget = [(p, r) for p, r in committed if r.run and r.run.budget]
     assert se and budget
     for path, rec in se:
         raw = json.loads(path.read_text())
         note = next(n for n in raw["notes"] if n.startswith("spatial enhancement selected"))
-        assert note.startswith(f"spatial enhancement selected {100 * rec['run']['se_fraction']:.1f}%")
+        assert note.startswith(f"spatial enhancement selected {100 * rec.run.se_fraction:.1f}%")
     for path, rec in budget:
-        b = rec["run"]["budget"]
-        assert budget_note(b["density"], b["preset_density"]) in json.loads(path.read_text())["notes"], path
+        b = rec.run.budget
+        assert budget_note(b.density, b.preset_density) in json.loads(path.read_text())["notes"], path
 
 
 def test_a_current_record_is_left_as_it_is_and_a_wrong_type_is_named():

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from conftest import run_cli
-from lmgs_eval.results import sha256_file, write_record
+from lmgs.fileio import sha256_file
+from lmgs_eval.results import write_record
 from test_results import N_ITEMS, fixture_records
 
 FPS = 25
@@ -31,7 +32,7 @@ def _frames(level: float) -> np.ndarray:
 
 def _store(root: Path) -> list[dict]:
     """The tables' fixture store, with renders for the ground truth and two methods (seed 0); ER-NeRF's is absent."""
-    from lmgs_eval.data.io import write_video
+    from lmgs_eval.data.video import write_video
 
     recs = fixture_records()
     t = np.arange(N_ITEMS * 640) / 16000
@@ -200,7 +201,7 @@ def test_each_driving_clip_has_a_watch_page_without_ground_truth(site):
 def test_capacity_panels_mark_the_knee_and_name_each_budgets_runs():
     from lmgs_eval.report.capacity import budget_means, knee, points_from_records
     from lmgs_eval.report.site.svgcharts import capacity_svgs
-    from test_results import items, metric, record
+    from test_results import items, metric, record, typed
 
     recs = []
     for b, (psnr, fps) in {500: (30.0, 90.0), 2000: (33.0, 60.0), 8000: (33.1, 30.0)}.items():
@@ -208,6 +209,7 @@ def test_capacity_panels_mark_the_knee_and_name_each_budgets_runs():
             recs.append(record("lmgs", "Ours (lmgs)", "3DGS", seed, {"psnr": metric("psnr", items(psnr, 0.2, b + seed))},
                                protocol="capacity", clip=f"budget-{b}", config={"budget": b},
                                cost={"fps": fps, "n_gaussians": b}))
+    recs = typed(recs)
     ids = {id(r): f"run{k}" for k, r in enumerate(recs)}
     (cap,) = capacity_svgs(recs, ids)
     want = knee(budget_means(points_from_records(recs)["astronaut"]))
@@ -407,7 +409,7 @@ LONG = 100  # frames (4 s): long enough to see the players converge and stay tog
 @pytest.fixture(scope="module")
 def long_site(tmp_path_factory) -> Path:
     """A store of one subject with a 4 s ground truth (with audio) and two methods' renders, per-frame PSNR."""
-    from lmgs_eval.data.io import write_video
+    from lmgs_eval.data.video import write_video
     from lmgs_eval.report.site import build_site
     from lmgs_eval.results import make_record
 

@@ -1,14 +1,14 @@
-"""The results store: schema, atomic writes, loading with warnings, resume lookup, ``verify``.
+"""The results store: schema, typed records, atomic writes, loading with warnings, resume lookup, the DataFrame
+view (``verify`` and the committed snapshot: ``test_results_verify.py``).
 
-Also home of the hand-written results store that the table tests use (:func:`fixture_records`).
+Also home of the hand-written results store that the table tests use (:func:`fixture_records`, in
+the JSON form a test edits; :func:`typed` makes the records the store hands out).
 """
 
 from __future__ import annotations
 
 import json
 import multiprocessing
-import os
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -138,6 +138,11 @@ def fixture_records() -> list[dict]:
     return recs
 
 
+def typed(recs: list[dict]) -> list[R.Record]:
+    """Records in their JSON form as the typed records the store hands out."""
+    return [R.Record.from_dict(r) for r in recs]
+
+
 def write_store(root: Path, recs: list[dict] | None = None) -> list[Path]:
     return [R.write_record(root, r) for r in (recs or fixture_records())]
 
@@ -150,11 +155,35 @@ def test_fixture_records_validate_and_round_trip(tmp_path):
     paths = write_store(tmp_path, recs)
     assert len(set(paths)) == len(recs)  # one file per (method, subject, protocol, clip, seed, config)
     loaded, warnings = R.load_records(tmp_path)
-    assert warnings == []
+    assert warnings == [] and all(isinstance(r, R.Record) for r in loaded)
     key = lambda r: str(R.record_path("", r))  # noqa: E731
-    assert sorted(loaded, key=key) == sorted(json.loads(json.dumps(recs)), key=key)
-    p = R.record_path(tmp_path, recs[1])
+    assert sorted(loaded, key=key) == sorted(typed(recs), key=key)
+    # the typed record gives back the JSON it was read from, explicit nulls included ("variant": null)
+    written = {p: json.loads(json.dumps(r)) for p, r in zip(paths, recs)}
+    assert all(rec.to_dict() == written[p] for p, rec in R.iter_store(tmp_path)[0])
+    assert loaded[0].to_dict()["method"]["variant"] is None
+    p = R.record_path(tmp_path, typed(recs)[1])
     assert p == tmp_path / "astronaut" / "self" / f"ernerf--test--seed0--{recs[1]['config_hash']}.json"
+    assert p == R.run_path(tmp_path, "astronaut", "self", "ernerf", "test", 0, recs[1]["config_hash"])
+
+
+def test_a_typed_record_is_written_as_the_json_it_came_from(tmp_path):
+    """Writing the typed record or its JSON form gives the same file, byte for byte; a changed copy
+    (:func:`replace`) keeps the nulls of what it does not change."""
+    rec = fixture_records()[3]
+    rec["cost"]["others_cpu_share"] = None  # an optional field written as null
+    a, b = R.write_record(tmp_path / "a", rec), R.write_record(tmp_path / "b", R.Record.from_dict(rec))
+    assert a.read_bytes() == b.read_bytes() and '"others_cpu_share": null' in a.read_text()
+    (loaded,) = R.load_records(tmp_path / "a")[0]
+    assert loaded.failed is False and loaded.value("psnr") == rec["metrics"]["psnr"]["value"]
+    assert loaded.value("jitter") is None
+    faster = R.replace(loaded, cost=R.replace(loaded.cost, fps=99.0))
+    assert faster.to_dict()["cost"] == {**rec["cost"], "fps": 99.0}
+    assert loaded.cost.fps != 99.0  # the record itself is unchanged (frozen)
+    bad = R.replace(loaded, metrics={"psnr": R.replace(loaded.metrics["psnr"], n_effective=99)})
+    with pytest.raises(UserError, match="n_effective 99 > n_original"):
+        R.write_record(tmp_path / "c", bad)
+    assert not (tmp_path / "c").exists()
 
 
 def test_validate_names_the_field():
@@ -208,12 +237,12 @@ def test_find_record_for_resume(tmp_path):
     assert R.find_record(tmp_path, "ernerf", "astronaut", "self", "test", 1, rec["config_hash"]) is None
     write_store(tmp_path, [rec])
     got = R.find_record(tmp_path, rec["method"]["name"], "astronaut", "self", "test", rec["seed"], rec["config_hash"])
-    assert got == rec
+    assert got == R.Record.from_dict(rec)
     assert R.find_record(tmp_path, rec["method"]["name"], "astronaut", "self", "test", rec["seed"], "other") is None
     assert R.find_record(tmp_path, rec["method"]["name"], "astronaut", "cross", "A", rec["seed"], rec["config_hash"]) is None
     # a record of other data of a subject of the same name is neither reused nor overwritten
     key = (tmp_path, rec["method"]["name"], "astronaut", "self", "test", rec["seed"], rec["config_hash"])
-    assert R.find_record(*key, subject_sha="a" * 64) == rec
+    assert R.find_record(*key, subject_sha="a" * 64) == got
     with pytest.raises(UserError, match=r"made on other data of subject 'astronaut' \(manifest sha256 aaaaaaaaaaaa, now bbbbbbbbbbbb\)"):
         R.find_finished(*key, subject_sha="b" * 64)
 
@@ -252,7 +281,7 @@ def test_concurrent_writers_leave_valid_files(tmp_path):
         assert p.exitcode == 0
     recs, warnings = R.load_records(tmp_path)
     assert warnings == [] and len(recs) == 6
-    assert {r["notes"][0] for r in recs} <= {"writer 0", "writer 1"}
+    assert {r.notes[0] for r in recs} <= {"writer 0", "writer 1"}
     assert not [p for p in tmp_path.rglob("*") if p.name.startswith(".")]
 
 
@@ -291,174 +320,81 @@ def test_helpers(tmp_path):
     assert R.machine_info()["cpu_kernels"] == torch.backends.cpu.get_cpu_capability()
 
 
-# ----------------------------------------------------------------------------- verify
-def cli_main(argv: list[str]) -> int:
-    """Run one of this module's commands as ``lmgs-eval`` would (parse, run, UserError -> 2)."""
-    import argparse
-    import importlib
-
-    from lmgs.errors import InputError
-
-    mod = importlib.import_module(f"lmgs_eval.commands.{argv[0]}")
-    parser = argparse.ArgumentParser(prog=f"lmgs-eval {argv[0]}")
-    mod.add_arguments(parser)
-    try:
-        return mod.run(parser.parse_args(argv[1:]))
-    except InputError as exc:
-        print(f"lmgs-eval {argv[0]}: error: {exc}", file=sys.stderr)
-        return 2
-
-
-def _store_with_artefacts(root: Path) -> list[dict]:
-    (root / "renders").mkdir(parents=True)
-    (root / "renders" / "lmgs.mp4").write_bytes(b"frames of lmgs")
-    weights = root / "w" / "sync.onnx"
-    weights.parent.mkdir()
-    weights.write_bytes(b"weights")
-    recs = fixture_records()[:4]
-    recs[3]["artefacts"] = {
-        "renders": {"path": "renders/lmgs.mp4", "sha256": R.sha256_file(root / "renders" / "lmgs.mp4")},
-        "weights:lse": {"path": str(weights), "sha256": R.sha256_file(weights)},
-    }
-    write_store(root, recs)
-    return recs
-
-
-def test_verify_passes_an_intact_store(tmp_path, capsys):
-    _store_with_artefacts(tmp_path)
-    assert cli_main(["verify", str(tmp_path)]) == 0
-    out = capsys.readouterr().out
-    assert "4 records, 2 artefacts checked: all inputs unchanged" in out
-
-
-def test_verify_catches_changed_render_and_missing_weights(tmp_path, capsys):
-    _store_with_artefacts(tmp_path)
-    (tmp_path / "renders" / "lmgs.mp4").write_bytes(b"frames of something else")
-    os.unlink(tmp_path / "w" / "sync.onnx")
-    assert cli_main(["verify", str(tmp_path)]) == 1
-    out = capsys.readouterr().out
-    assert f"renders {tmp_path / 'renders' / 'lmgs.mp4'}: changed" in out
-    assert f"weights:lse {tmp_path / 'w' / 'sync.onnx'}: missing" in out
-    assert "1 of 4 records" in out
-
-
-def test_verify_finds_the_bundled_weights_of_a_record_made_in_another_checkout(tmp_path, capsys):
-    """A record made in another clone names that clone's weights; verify hashes this clone's file
-    at the same place in the package (same bytes: unchanged; other bytes: changed)."""
-    import lmgs_eval
-
-    ours = Path(lmgs_eval.__file__).resolve().parent / "metrics" / "weights" / "bundled_sync.onnx"
-    elsewhere = tmp_path / "gone" / "clone" / "lmgs_eval" / "metrics" / "weights" / "bundled_sync.onnx"
-    recs = fixture_records()[:1]
-    recs[0]["artefacts"] = {"weights:sync": {"path": str(elsewhere), "sha256": R.sha256_file(ours)}}
-    write_store(tmp_path / "a", recs)
-    assert cli_main(["verify", str(tmp_path / "a")]) == 0
-    assert "1 artefacts checked: all inputs unchanged" in capsys.readouterr().out
-    recs[0]["artefacts"]["weights:sync"]["sha256"] = "0" * 64
-    write_store(tmp_path / "b", recs)
-    assert cli_main(["verify", str(tmp_path / "b")]) == 1
-    assert f"weights:sync {ours}: changed (recorded sha256 000000000000" in capsys.readouterr().out
-    recs[0]["artefacts"]["weights:sync"]["path"] = str(tmp_path / "gone" / "lmgs_eval" / "no-such.onnx")
-    write_store(tmp_path / "c", recs)
-    assert cli_main(["verify", str(tmp_path / "c")]) == 1
-    assert "no-such.onnx: missing" in capsys.readouterr().out
-
-
-def test_verify_of_a_missing_store_is_a_user_error(tmp_path, capsys):
-    assert cli_main(["verify", str(tmp_path / "nope")]) == 2
-    assert "nope" in capsys.readouterr().err
-
-
-# ----------------------------------------------------------------------------- committed records
-def test_records_snapshot_makes_the_same_tables_and_lets_a_fresh_store_resume(tmp_path, capsys):
-    """``table --records``: the snapshot regenerates byte-identical tables; importing it resumes."""
-    recs = fixture_records()
-    write_store(tmp_path / "results", recs)
-    snap = tmp_path / "tables" / "records"
-    assert cli_main(["table", "--results", str(tmp_path / "results"), "--out", str(tmp_path / "tables"),
-                     "--records", str(snap), "--no-charts"]) == 0
-    assert cli_main(["table", "--results", str(snap), "--out", str(tmp_path / "again"), "--no-charts"]) == 0
-    made = sorted(p.name for p in (tmp_path / "tables").glob("*.*"))
-    assert made and made == sorted(p.name for p in (tmp_path / "again").glob("*.*"))
-    for name in made:
-        assert (tmp_path / "tables" / name).read_bytes() == (tmp_path / "again" / name).read_bytes(), name
-    assert sorted(R.load_records(snap)[0], key=R.config_hash) == sorted(recs, key=R.config_hash)
-
-    # A fresh machine's empty store: every run of the snapshot is found, so it is not redone.
-    fresh = tmp_path / "fresh"
-    assert R.copy_records(snap, fresh) == (len(recs), [])
-    for r in recs:
-        got = R.find_record(fresh, r["method"]["name"], r["subject"]["name"], r["protocol"]["name"],
-                            r["protocol"]["clip"], r["seed"], r["config_hash"])
-        assert got == r
-    # A record already in the store is kept, not overwritten by the snapshot's.
-    mine = json.loads(R.record_path(fresh, recs[1]).read_text())
-    mine["notes"] = ["made here"]
-    R.write_record(fresh, mine)
-    assert R.copy_records(snap, fresh) == (0, [])
-    assert json.loads(R.record_path(fresh, recs[1]).read_text())["notes"] == ["made here"]
-
-    # A snapshot replaces the folder whole: a record no longer in the store leaves it.
-    R.record_path(tmp_path / "results", recs[1]).unlink()
-    assert cli_main(["table", "--results", str(tmp_path / "results"), "--out", str(tmp_path / "tables"),
-                     "--records", str(snap), "--no-charts"]) == 0
-    assert len(R.load_records(snap)[0]) == len(recs) - 1
-
-
-@pytest.mark.parametrize("where", ["same", "inside", "parent"])
-def test_records_folder_overlapping_the_store_is_refused(tmp_path, capsys, where):
-    store = tmp_path / "store"
-    write_store(store)
-    target = {"same": store, "inside": store / "tables" / "records", "parent": tmp_path}[where]
-    assert cli_main(["table", "--results", str(store), "--out", str(tmp_path / "t"), "--records", str(target),
-                     "--no-charts"]) == 2
-    err = capsys.readouterr().err
-    assert "overlaps the results store" in err and str(target) in err
-    assert len(R.load_records(store)[0]) == len(fixture_records())  # nothing was replaced
-
-
-def test_verify_of_imported_records_excuses_only_their_renders_and_checkpoints(tmp_path, capsys):
-    """Records copied from another machine: renders/checkpoints stay there; weights are still checked."""
-    made = tmp_path / "made"
-    (made / "renders").mkdir(parents=True)
-    (made / "renders" / "a.mp4").write_bytes(b"frames")
-    weights = tmp_path / "w.onnx"
-    weights.write_bytes(b"weights")
-    recs = fixture_records()[:3]
-    for r in recs:
-        r["artefacts"] = {"render": {"path": "renders/a.mp4", "sha256": R.sha256_file(made / "renders" / "a.mp4")},
-                          "checkpoint": {"path": str(tmp_path / "gone" / "model.pt"), "sha256": "0" * 64},
-                          "weights:sync": {"path": str(weights), "sha256": R.sha256_file(weights)}}
-    write_store(made, recs)
-    here = tmp_path / "here"
-    assert R.copy_records(made, here)[0] == 3
-    assert len(R.imported_records(here)) == 3 and R.load_records(here)[1] == []  # the ledger is not a record
-    assert cli_main(["verify", str(here)]) == 0
-    out = capsys.readouterr().out
-    assert "3 records were imported" in out and "3 records, 3 artefacts checked: all inputs unchanged" in out
-
-    # a record made here with its render missing is still a problem
-    own = fixture_records()[5]
-    own["artefacts"] = {"render": {"path": "renders/b.mp4", "sha256": "1" * 64}}
-    R.write_record(here, own)
-    weights.write_bytes(b"other weights")  # and a weights file that changed is caught on imported records too
-    assert cli_main(["verify", str(here)]) == 1
-    out = capsys.readouterr().out
-    assert f"render {here / 'renders' / 'b.mp4'}: missing" in out
-    assert out.count(f"weights:sync {weights}: changed") == 3
-    assert "4 of 4 records" in out
-
-
 def test_input_artefacts_name_the_sync_scorer_that_made_the_lse(tmp_path):
     from types import SimpleNamespace
 
-    from lmgs_eval.metrics import sync_landmark
+    from lmgs_eval.metrics.sync.scorers import PIXEL_ONNX, WEIGHTS
+    from lmgs_eval.metrics.sync.landmark import ONNX_NAME
     from lmgs_eval.results.records import input_artefacts
 
     subject = SimpleNamespace(root=tmp_path)
-    for backend, weights in (("onnxruntime:landmark-sync", sync_landmark.WEIGHTS / sync_landmark.ONNX_NAME),
-                             ("onnxruntime:bundled-sync", sync_landmark.WEIGHTS / "bundled_sync.onnx")):
+    for backend, weights in (("onnxruntime:landmark-sync", WEIGHTS / ONNX_NAME),
+                             ("onnxruntime:bundled-sync", WEIGHTS / PIXEL_ONNX)):
         got = input_artefacts({"lse_d": {"backend": backend, "value": 1.0}}, subject)
         assert got["weights:sync"] == {"path": str(weights.resolve()), "sha256": R.sha256_file(weights)}
     assert "weights:sync" not in input_artefacts({"lse_d": {"backend": "onnxruntime:landmark-sync", "value": None}},
                                                   subject)
+
+
+# ----------------------------------------------------------------------------- the DataFrame view
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_frame_has_a_row_per_record_and_metric(tmp_path):
+    from lmgs_eval.results.dataframe import COLUMNS
+
+    recs = fixture_records()
+    paths = write_store(tmp_path, recs)
+    (tmp_path / "junk.json").write_text("[]")
+    with pytest.warns(UserWarning, match="junk.json: skipped"):
+        df = R.frame(tmp_path)
+    assert list(df.columns) == list(COLUMNS)
+    assert len(df) == sum(len(r["metrics"]) for r in recs)
+    per_record = df.groupby("path").size()
+    for p, r in zip(paths, recs):  # a failed run without metrics has no row
+        assert per_record.get(str(p), 0) == len(r["metrics"]), p
+    row = df[(df.method == "lmgs") & (df.protocol == "self") & (df.seed == 1) & (df.metric == "lpips")].iloc[0]
+    rec = next(r for r in recs if r["method"]["name"] == "lmgs" and r["protocol"]["name"] == "self" and r["seed"] == 1)
+    assert row.value == rec["metrics"]["lpips"]["value"] and row.backend == "stlpips-alex" and row.standin
+    assert row.metric_standin.startswith("ST-LPIPS") and row.subject_standin == SUBJECT["standin"]
+    assert [row[c] for c in ("subject", "clip", "split", "config_hash", "status")] == ["astronaut", "test", "test",
+                                                                                      rec["config_hash"], "ok"]
+    assert row.fps == rec["cost"]["fps"] and row.n_gaussians == 11000 and np.isnan(row.ci_low)
+    assert (row.commit, row.created, row.cpu, row.threads) == ("0" * 40, CREATED, "Test CPU", 2)
+    assert df.value.dtype == "float64" and df.seed.dtype == "int64" and df.variant.isna().sum() > 0
+    # from records in memory: the same rows, without their files
+    mem = R.frame(typed(recs))
+    assert mem.path.isna().all() and len(mem) == len(df)
+    assert R.frame(tmp_path / "absent").columns.tolist() == list(COLUMNS) and R.frame([]).empty
+
+
+def test_frame_pivots_to_the_committed_tables():
+    """The committed tables/*.csv are made from tables/records: a pivot of the frame gives their means."""
+    import csv
+
+    df = R.frame(ROOT / "tables" / "records")
+    items, _ = R.iter_store(ROOT / "tables" / "records")
+    assert df.path.nunique() == sum(1 for _, r in items if r.metrics)
+    assert df.groupby("path").size().to_dict() == {str(p): len(r.metrics) for p, r in items if r.metrics}
+    use = df[(df.status == "ok") & df.variant.isna() & (df.family != "control")]
+    self_ = use[use.protocol == "self"]
+    means = self_.pivot_table("value", index=["subject", "method"], columns="metric", aggfunc="mean")
+    fps = self_.drop_duplicates("path").groupby(["subject", "method"]).fps.mean()
+    cross = use[use.protocol == "cross"].pivot_table("value", index=["subject", "method"], columns=["clip", "metric"])
+    checked = 0
+    for name, cols in (("table1_self", ("psnr", "lpips", "lmd", "lse_d", "lse_c")),
+                       ("table2_cross", ("A.lse_d", "A.lse_c", "B.lse_d", "B.lse_c"))):
+        with open(ROOT / "tables" / f"{name}.csv", encoding="utf-8") as f:
+            rows = list(csv.DictReader(f))
+        assert rows
+        for row in rows:
+            key = (row["section"].removesuffix(" (bundled)"), row["method"])
+            for col in cols:
+                if not row[col]:
+                    continue
+                got = means.loc[key, col] if name == "table1_self" else cross.loc[key, tuple(col.split("."))]
+                assert got == pytest.approx(float(row[col]), rel=1e-12), (name, key, col)
+                checked += 1
+            if name == "table1_self" and row["cost.fps"]:
+                assert fps[key] == pytest.approx(float(row["cost.fps"]), rel=1e-12), key
+    assert checked > 100

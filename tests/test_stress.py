@@ -4,7 +4,6 @@ recorded as failed without stopping the suite, and the stress metrics match hand
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -78,11 +77,11 @@ def test_every_condition_runs_and_broken_methods_are_recorded_as_failed(monkeypa
     assert warnings == [] and len(recs) == len(records)
     for r in recs:
         assert validate(r) == [], validate(r)
-    by = {(r["method"]["name"], r["protocol"]["clip"]): r for r in recs}
+    by = {(r.method.name, r.protocol.clip): r for r in recs}
     conds = {c.name for c in make_conditions(np.ones(16000, np.float32), other_voice=np.ones(8000, np.float32), long_seconds=60.0)}
     for name in names:
         assert {c for (m, c) in by if m == name} == conds  # the suite went on after every failure
-    failed = {k: r["status"]["reason"] for k, r in by.items() if r.get("status", {}).get("state") == "failed"}
+    failed = {k: r.status.reason for k, r in by.items() if r.failed}
     assert not any(m == "toy-ok" for m, _ in failed)
     assert failed[("toy-raise", "silence")].startswith("crash: ValueError: cannot handle silence")
     assert [c for (m, c) in failed if m == "toy-raise"] == ["silence"]
@@ -91,26 +90,26 @@ def test_every_condition_runs_and_broken_methods_are_recorded_as_failed(monkeypa
     assert failed[("toy-frozen", "clean")].startswith("frozen output")
     assert ("toy-frozen", "silence") not in failed  # a still mouth on silence is right
     # the stressed inputs went through the user-file path: 44.1 kHz and stereo become 16 kHz mono
-    assert by[("toy-ok", "rate-44k")]["protocol"]["n_frames"] == by[("toy-ok", "clean")]["protocol"]["n_frames"]
-    assert any("resampled from 44100" in n for n in by[("toy-ok", "rate-44k")]["notes"])
-    assert any("channels mixed to mono" in n for n in by[("toy-ok", "stereo")]["notes"])
-    assert by[("toy-ok", "long-1min")]["protocol"]["n_frames"] == 1500
+    assert by[("toy-ok", "rate-44k")].protocol.n_frames == by[("toy-ok", "clean")].protocol.n_frames
+    assert any("resampled from 44100" in n for n in by[("toy-ok", "rate-44k")].notes)
+    assert any("channels mixed to mono" in n for n in by[("toy-ok", "stereo")].notes)
+    assert by[("toy-ok", "long-1min")].protocol.n_frames == 1500
     # the clean clip is timed like the self protocol (median of 3 renders), a perturbed one once
-    assert by[("toy-ok", "clean")]["cost"]["render_repeats"] == 3
-    assert {r["cost"]["render_repeats"] for (m, c), r in by.items() if m == "toy-ok" and c != "clean"} == {1}
+    assert by[("toy-ok", "clean")].cost.render_repeats == 3
+    assert {r.cost.render_repeats for (m, c), r in by.items() if m == "toy-ok" and c != "clean"} == {1}
     # resume: a second run redoes only the failed conditions
     records2, _ = run_stress(RunConfig(subject=SUBJECT, methods=("toy-ok",), results=tmp_path, progress=False), long_seconds=60.0)
     assert records2 == []
     # the stability table and heat-map come from these records
     from lmgs_eval.report import tables
 
-    md = tables.table_stability(recs, "jitter").markdown() if any("jitter" in r["metrics"] for r in recs) else \
+    md = tables.table_stability(recs, "jitter").markdown() if any("jitter" in r.metrics for r in recs) else \
         tables.table_stability(recs, "lse_c").markdown()
     assert "failed" in md
     # the suite's cost beside it: the wall time of each method's stress runs
     t = tables.table_stability(recs, "lse_c")
     for row in t.sections[0].rows:
-        want = sum(r["cost"]["wall_seconds"] for r in row.records) / 60
+        want = sum(r.cost.wall_seconds for r in row.records) / 60
         assert row.cells["suite_min"].text == f"{want:.1f}"
 
 
@@ -144,25 +143,25 @@ def test_stress_lse_of_uint8_frames_equals_lse_of_float_frames(monkeypatch):
     import cv2
     from skimage import data
 
+    from lmgs_eval.metrics.config import SuiteConfig
     from lmgs_eval.metrics.metric_suite import MetricSuite
-    from lmgs_eval.metrics.sync import lse
     from lmgs_eval.protocols import stress
 
     face = cv2.resize(data.astronaut(), (256, 256), interpolation=cv2.INTER_AREA)
     frames = np.stack([np.roll(face, (i % 3, (i // 2) % 3), axis=(0, 1)) for i in range(24)]).astype(np.uint8)
     t = np.arange(24 * 640) / 16000
     audio = (0.3 * np.sin(2 * np.pi * 180 * t) * (0.6 + 0.4 * np.sin(2 * np.pi * 3 * t))).astype(np.float32)
-    want = lse(frames.astype(np.float32) / 255.0, audio)
+    want = MetricSuite().lse(frames.astype(np.float32) / 255.0, audio)
     assert want.available
     got = stress.lse_u8(MetricSuite(), frames, audio)
     assert got.values == want.values and got.flags == want.flags
     monkeypatch.setattr(stress, "LONG_CLIP_FRAMES", 10)
     long_got = stress.lse_u8(MetricSuite(), frames, audio)
-    long_want = lse(frames.astype(np.float32) / 255.0, audio, detect_every=5)
+    long_want = MetricSuite().lse(frames.astype(np.float32) / 255.0, audio, detect_every=5)
     assert long_got.values == long_want.values
     assert any("every 5th frame" in n for n in long_got.notes)
     # the run's --sync choice travels with its suite (stress workers are other processes)
-    assert stress.lse_u8(MetricSuite(sync="pixel"), frames, audio).spec.backend == "onnxruntime:bundled-sync"
+    assert stress.lse_u8(MetricSuite(SuiteConfig(sync="pixel")), frames, audio).spec.backend == "onnxruntime:bundled-sync"
 
 
 def test_jobs_run_the_suites_in_worker_processes_with_the_same_results(monkeypatch, tmp_path):
@@ -179,14 +178,14 @@ def test_jobs_run_the_suites_in_worker_processes_with_the_same_results(monkeypat
         run_stress(cfg, ("silence", "gargle"), jobs=2)
     par, messages = run_stress(dataclasses.replace(cfg, results=tmp_path / "jobs"), conds, long_seconds=60.0, jobs=2)
     assert messages == []
-    key = [(r["method"]["name"], r["protocol"]["clip"]) for r in serial]
-    assert [(r["method"]["name"], r["protocol"]["clip"]) for r in par] == key and len(key) == 6
+    key = [(r.method.name, r.protocol.clip) for r in serial]
+    assert [(r.method.name, r.protocol.clip) for r in par] == key and len(key) == 6
     for a, b in zip(serial, par):
-        assert {k: v["value"] for k, v in a["metrics"].items()} == {k: v["value"] for k, v in b["metrics"].items()}
-        assert a.get("status") == b.get("status")
-        assert any("--jobs 2" in n and "contended" in n for n in b["notes"])
-        assert not any("--jobs" in n for n in a["notes"])
-    assert par[4]["status"]["reason"].startswith("crash: ValueError: cannot handle silence")  # toy-raise / silence
+        assert {k: v.value for k, v in a.metrics.items()} == {k: v.value for k, v in b.metrics.items()}
+        assert a.status == b.status
+        assert any("--jobs 2" in n and "contended" in n for n in b.notes)
+        assert not any("--jobs" in n for n in a.notes)
+    assert par[4].status.reason.startswith("crash: ValueError: cannot handle silence")  # toy-raise / silence
     recs, warnings = load_records(tmp_path / "jobs")
     assert warnings == [] and len(recs) == 6 and all(validate(r) == [] for r in recs)
     with pytest.raises(UserError, match="--jobs"):
@@ -237,7 +236,7 @@ def test_the_training_clip_is_loaded_only_when_a_method_reads_it(monkeypatch, tm
     monkeypatch.setitem(methods._REGISTRY, "toy-ok", ToyOk)
     cfg = RunConfig(subject=SUBJECT, methods=("toy-cached",), results=tmp_path, progress=False)
     recs, _ = run_stress(cfg, ("silence",), long_seconds=60.0)
-    n_test = recs[0]["protocol"]["n_frames"]
+    n_test = recs[0].protocol.n_frames
     assert len(recs) == 2 and loads == [n_test]  # the test clip only
     run_stress(dataclasses.replace(cfg, methods=("toy-ok",)), ("silence",), long_seconds=60.0)
     assert len(loads) == 3 and loads[2] > n_test  # the toy that fits reads the training clip

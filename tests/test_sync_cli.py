@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 
 from lmgs_eval.cli import build_parser
-from lmgs_eval.metrics import sync, sync_select
+from lmgs_eval.metrics.config import SuiteConfig
+from lmgs_eval.metrics.metric_suite import MetricSuite
+from lmgs_eval.metrics.sync import scorers, select
 from tests.conftest import run_cli
 
 SCORING = ("score", "self", "cross", "stress")
@@ -22,9 +24,7 @@ def _args(cmd: str, *extra: str) -> list[str]:
 def _auto_without_official(monkeypatch, tmp_path):
     # other test modules import a random-weight SyncNet into the session's cache; these tests are about
     # the machine without the official weights
-    monkeypatch.setattr(sync, "syncnet_manifest_path", lambda: tmp_path / "weights" / "syncnet_v2.json")
-    yield
-    sync_select.set_backend("auto")
+    monkeypatch.setattr(scorers, "syncnet_manifest_path", lambda: tmp_path / "weights" / "syncnet_v2.json")
 
 
 @pytest.mark.parametrize("cmd", SCORING)
@@ -42,18 +42,18 @@ def test_bad_sync_value_is_one_line_and_exit_2(cmd):
     assert "--sync" in err and "invalid choice: 'wav2lip'" in err and "Traceback" not in err
 
 
-def test_set_backend_rejects_unknown_names():
+def test_an_unknown_sync_choice_is_refused_when_the_suite_is_made():
     from lmgs_eval.errors import UserError
 
     with pytest.raises(UserError, match="--sync 'foo'"):
-        sync_select.set_backend("foo")
+        MetricSuite(SuiteConfig(sync="foo"))
 
 
 def test_auto_is_the_landmark_scorer_without_official_weights():
-    assert not sync.syncnet_manifest_path().is_file()
-    assert sync_select.candidates("auto") == ["landmark", "pixel"]
-    assert sync_select.candidates("pixel") == ["pixel"]
-    ok, why = sync_select.status()
+    assert not scorers.syncnet_manifest_path().is_file()
+    assert select.candidates("auto") == ["landmark", "pixel"]
+    assert select.candidates("pixel") == ["pixel"]
+    ok, why = select.status()
     assert ok and why.startswith("default landmark-sync") and "import-syncnet" in why
 
 
@@ -61,11 +61,9 @@ def test_selection_reaches_lse_and_auto_falls_back_when_a_scorer_cannot_run():
     rng = np.random.default_rng(0)
     crops = rng.uniform(0, 255, (60, 224, 224, 3)).astype(np.float32)
     audio = rng.standard_normal(60 * 640).astype(np.float32) * 0.1
-    sync_select.set_backend("landmark")  # crops alone carry no landmarks
-    r = sync.lse(None, audio, crops=crops)
+    r = MetricSuite(SuiteConfig(sync="landmark")).lse(None, audio, crops=crops)  # crops alone carry no landmarks
     assert not r.available and "landmark" in r.reason
-    sync_select.set_backend("auto")  # the landmark scorer is unavailable here, so auto scores with the pixel one
-    r = sync.lse(None, audio, crops=crops)
+    r = MetricSuite(SuiteConfig(sync="auto")).lse(None, audio, crops=crops)  # so auto scores with the pixel scorer
     assert r.available and r.spec.backend == "onnxruntime:bundled-sync"
     assert any(n.startswith("auto: onnxruntime:landmark-sync was unavailable") for n in r.notes)
     assert r.values["trusted"] is False  # random crops: the pixel scorer's number is kept, marked untrusted
@@ -74,7 +72,7 @@ def test_selection_reaches_lse_and_auto_falls_back_when_a_scorer_cannot_run():
 def test_weights_prints_the_cache_and_metrics_names_the_default():
     rc, out, _ = run_cli("weights")
     assert rc == 0
-    assert f"weights cache: {sync.syncnet_manifest_path().parent}" in out
+    assert f"weights cache: {scorers.syncnet_manifest_path().parent}" in out
     assert "landmark-sync" in out and "not imported" in out
     rc, out, _ = run_cli("metrics", "--json")
     row = {r["name"]: r for r in json.loads(out)}["lse"]
@@ -84,7 +82,7 @@ def test_weights_prints_the_cache_and_metrics_names_the_default():
 def test_score_prints_one_line_when_lse_is_not_trusted(tmp_path):
     """A still face with speech: the scorer's LSE-C is that of its own still-face control, so it is not trusted."""
     from lmgs_eval.data.bundled import synthesize_clip
-    from lmgs_eval.data.io import write_video
+    from lmgs_eval.data.video import write_video
 
     clip = synthesize_clip("astronaut", "Seven bright lamps were lit.", "espeak:en-us+f4", size=160, seed=5)
     n = len(clip.frames)
@@ -101,7 +99,7 @@ def test_sync_check_finds_injected_delays_on_an_in_sync_clip(tmp_path):
     """``sync-check`` on a held-out generated clip written as mp4 (held-out voice and texts)."""
     from lmgs_eval.data.bundled import synthesize_clip
     from lmgs_eval.data.bundled.generator import load_corpus
-    from lmgs_eval.data.io import write_video
+    from lmgs_eval.data.video import write_video
     from tests.conftest import write_pcm_wav
 
     corpus = load_corpus()

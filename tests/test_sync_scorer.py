@@ -1,7 +1,7 @@
 """The shipped bundled SyncNet-style scorer: integrity, and real sync checks on held-out clips.
 
 The clips are synthesised here (no cache) with voices and texts that training never saw
-(the bundled subjects' cross-driven voices and texts, see ``lmgs_eval/metrics/train_sync.py``),
+(the bundled subjects' cross-driven voices and texts, see ``lmgs_eval/metrics/sync/train/pixel.py``),
 and scored through the public ``lse()`` path. With randomly initialised weights these
 checks fail (verified when the scorer was trained).
 """
@@ -13,12 +13,12 @@ import json
 import numpy as np
 import pytest
 
-from lmgs_eval.metrics import sync
-from lmgs_eval.metrics.ort import sha256_file
+from lmgs_eval.metrics.sync import maths, scorers, scoring
+from lmgs.fileio import sha256_file
 
 
 def _files():
-    return sync.BUNDLED_DIR / "bundled_sync.onnx", sync.BUNDLED_DIR / "bundled_sync.json"
+    return scorers.WEIGHTS / scorers.PIXEL_ONNX, scorers.WEIGHTS / scorers.PIXEL_JSON
 
 # (face, held-out voice, held-out text section and index, injected audio delay in frames)
 CASES = [
@@ -30,7 +30,7 @@ CASES = [
 
 @pytest.fixture(scope="module")
 def scorer():
-    sc, why = sync.find_scorer(prefer="bundled-sync")
+    sc, why = scorers.find_scorer(prefer="bundled-sync")
     assert sc is not None, why
     return sc
 
@@ -47,7 +47,7 @@ def clips():
         if voice not in voices:
             continue
         c = synthesize_clip(face, corpus[sec][j], voice, size=128, seed=4242 + i)
-        out.append((c.frames.astype(np.float32) / 255.0, c.audio, k))
+        out.append((c.frames, c.audio, k))  # uint8, as a reader gives them
     assert len(out) >= 2
     return out
 
@@ -67,14 +67,14 @@ def test_find_scorer_loads_the_bundled_net(scorer):
     assert scorer.name == "bundled-sync"
     assert scorer.sha256 == sha256_file(_files()[0])
     assert scorer.standin  # labelled as a stand-in everywhere
-    if not sync.syncnet_manifest_path().is_file():  # the default when the official weights are absent
-        default, _ = sync.find_scorer()
+    if not scorers.syncnet_manifest_path().is_file():  # the default when the official weights are absent
+        default, _ = scorers.find_scorer()
         assert default is not None and default.name == "bundled-sync"
 
 
 def _shift(frames, audio, k):
     """Audio delayed by k frames (k < 0: advanced), both trimmed to the overlap; SyncNet reports offset -k."""
-    spf = sync.SAMPLES_PER_FRAME
+    spf = maths.SAMPLES_PER_FRAME
     t = frames.shape[0]
     if k > 0:
         return frames[k:], audio[:(t - k) * spf]
@@ -83,7 +83,7 @@ def _shift(frames, audio, k):
 
 def test_synced_clips_give_offset_zero(scorer, clips):
     for frames, audio, _ in clips:
-        r = sync.lse(frames, audio, scorer=scorer)
+        r = scoring.lse(frames, audio, scorer=scorer)
         assert r.available and r.values["offset"] == 0, r.values
 
 
@@ -93,7 +93,7 @@ def test_injected_shift_is_recovered(scorer, clips):
     got = []
     for frames, audio, k in clips:
         f2, a2 = _shift(frames, audio, k)
-        got.append((-k, sync.lse(f2, a2, scorer=scorer).values["offset"]))
+        got.append((-k, scoring.lse(f2, a2, scorer=scorer).values["offset"]))
     assert all(abs(o - want) <= 1 for want, o in got), got
     assert sum(o == want for want, o in got) >= len(got) - 1, got
 
@@ -103,8 +103,8 @@ def test_ground_truth_confidence_above_wrong_audio(scorer, clips):
     for i, (frames, audio, _) in enumerate(clips):
         other = clips[(i + 1) % len(clips)][1]
         wrong = np.resize(other, audio.shape)  # another clip's speech, looped to the same length (no silent tail)
-        gt = sync.lse(frames, audio, scorer=scorer).values
-        wr = sync.lse(frames, wrong, scorer=scorer).values
+        gt = scoring.lse(frames, audio, scorer=scorer).values
+        wr = scoring.lse(frames, wrong, scorer=scorer).values
         assert gt["lse_c"] > wr["lse_c"], (gt, wr)
         gts.append(gt["lse_c"])
         wrs.append(wr["lse_c"])
@@ -118,10 +118,10 @@ def test_calibration_controls_separate_on_held_out_clips(scorer, clips):
     from lmgs_eval.protocols.calibration import control_clips
 
     frames, audio, _ = clips[0]
-    gt = sync.lse(frames, audio, scorer=scorer).values
+    gt = scoring.lse(frames, audio, scorer=scorer).values
     seen = set()
     for name, _, control, f, a in control_clips(frames, audio, clips[1][1]):
-        v = sync.lse(f, a, scorer=scorer).values
+        v = scoring.lse(f, a, scorer=scorer).values
         seen.add(control["kind"])
         if control["kind"] == "audio-shift":
             assert v["offset"] == -control["frames"], (name, v)

@@ -23,6 +23,22 @@ def _vertex(vx, vy, r, dense, T):
     return (vx ^ (vy * _PRIME_Y)) & (T - 1)
 
 
+@numba.njit(inline="always", cache=True)
+def _cell(u, n, a, b, r, base, d, T):
+    """Point ``n`` on plane ``(a, b)`` at resolution ``r``: the fractions ``tx, ty`` in its cell, the
+    table rows ``i00, i10, i01, i11`` of the cell's corners and their bilinear weights
+    ``w00, w10, w01, w11`` (one flat tuple: the same cell for the forward and both backwards)."""
+    px = u[n, a] * r
+    py = u[n, b] * r
+    x0 = min(np.int64(np.floor(px)), r - 1)
+    y0 = min(np.int64(np.floor(py)), r - 1)
+    tx = px - x0
+    ty = py - y0
+    return (tx, ty, base + _vertex(x0, y0, r, d, T), base + _vertex(x0 + 1, y0, r, d, T),
+            base + _vertex(x0, y0 + 1, r, d, T), base + _vertex(x0 + 1, y0 + 1, r, d, T),
+            (1 - tx) * (1 - ty), tx * (1 - ty), (1 - tx) * ty, tx * ty)
+
+
 @numba.njit(parallel=True, cache=True, fastmath=False)
 def triplane_forward(u, table, res, dense, offsets, T, out):
     """``out[n, p, l, :]`` = bilinear interpolation of the table at point ``n`` (zeroed here)."""
@@ -31,26 +47,9 @@ def triplane_forward(u, table, res, dense, offsets, T, out):
     F = table.shape[1]
     for n in numba.prange(N):
         for p in range(3):
-            a = _PA[p]
-            b = _PB[p]
             for lv in range(L):
-                r = res[lv]
-                px = u[n, a] * r
-                py = u[n, b] * r
-                x0 = min(np.int64(np.floor(px)), r - 1)
-                y0 = min(np.int64(np.floor(py)), r - 1)
-                tx = px - x0
-                ty = py - y0
-                base = offsets[p, lv]
-                d = dense[lv]
-                i00 = base + _vertex(x0, y0, r, d, T)
-                i10 = base + _vertex(x0 + 1, y0, r, d, T)
-                i01 = base + _vertex(x0, y0 + 1, r, d, T)
-                i11 = base + _vertex(x0 + 1, y0 + 1, r, d, T)
-                w00 = (1 - tx) * (1 - ty)
-                w10 = tx * (1 - ty)
-                w01 = (1 - tx) * ty
-                w11 = tx * ty
+                _, _, i00, i10, i01, i11, w00, w10, w01, w11 = _cell(u, n, _PA[p], _PB[p], res[lv], offsets[p, lv],
+                                                                     dense[lv], T)
                 for f in range(F):
                     out[n, p, lv, f] = w00 * table[i00, f] + w10 * table[i10, f] + w01 * table[i01, f] + w11 * table[i11, f]
 
@@ -70,22 +69,13 @@ def triplane_backward_table(u, grad_out, res, dense, offsets, T, grad_table):
         base = offsets[p, lv]
         d = dense[lv]
         for n in range(N):
-            px = u[n, a] * r
-            py = u[n, b] * r
-            x0 = min(np.int64(np.floor(px)), r - 1)
-            y0 = min(np.int64(np.floor(py)), r - 1)
-            tx = px - x0
-            ty = py - y0
-            i00 = base + _vertex(x0, y0, r, d, T)
-            i10 = base + _vertex(x0 + 1, y0, r, d, T)
-            i01 = base + _vertex(x0, y0 + 1, r, d, T)
-            i11 = base + _vertex(x0 + 1, y0 + 1, r, d, T)
+            _, _, i00, i10, i01, i11, w00, w10, w01, w11 = _cell(u, n, a, b, r, base, d, T)
             for f in range(F):
                 g = grad_out[n, p, lv, f]
-                grad_table[i00, f] += (1 - tx) * (1 - ty) * g
-                grad_table[i10, f] += tx * (1 - ty) * g
-                grad_table[i01, f] += (1 - tx) * ty * g
-                grad_table[i11, f] += tx * ty * g
+                grad_table[i00, f] += w00 * g
+                grad_table[i10, f] += w10 * g
+                grad_table[i01, f] += w01 * g
+                grad_table[i11, f] += w11 * g
 
 
 @numba.njit(parallel=True, cache=True)
@@ -100,18 +90,7 @@ def triplane_backward_points(u, table, grad_out, res, dense, offsets, T, grad_u)
             b = _PB[p]
             for lv in range(L):
                 r = res[lv]
-                px = u[n, a] * r
-                py = u[n, b] * r
-                x0 = min(np.int64(np.floor(px)), r - 1)
-                y0 = min(np.int64(np.floor(py)), r - 1)
-                tx = px - x0
-                ty = py - y0
-                base = offsets[p, lv]
-                d = dense[lv]
-                i00 = base + _vertex(x0, y0, r, d, T)
-                i10 = base + _vertex(x0 + 1, y0, r, d, T)
-                i01 = base + _vertex(x0, y0 + 1, r, d, T)
-                i11 = base + _vertex(x0 + 1, y0 + 1, r, d, T)
+                tx, ty, i00, i10, i01, i11, _, _, _, _ = _cell(u, n, a, b, r, offsets[p, lv], dense[lv], T)
                 gx = 0.0
                 gy = 0.0
                 for f in range(F):

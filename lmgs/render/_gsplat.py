@@ -19,16 +19,11 @@ from lmgs.render._projection import EPS2D, NEAR_PLANE, TILE, project
 from lmgs.types import Camera
 
 
-def rasterize_gsplat(
-    means: torch.Tensor,  # [N, 3]
-    quats: torch.Tensor,  # [N, 4]
-    log_scales: torch.Tensor,  # [N, 3]
-    opacity_logits: torch.Tensor,  # [N]
-    colors: torch.Tensor,  # [N, 3] or [N, K, 3]
-    sh_degree: int | None,
-    camera: Camera,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Return ``features [H, W, 7]``, ``alpha [H, W, 1]``, ``means2d [N, 2]``, ``radii [N]``."""
+def rasterize_gsplat(means: torch.Tensor, quats: torch.Tensor, log_scales: torch.Tensor, opacity_logits: torch.Tensor,
+                     colors: torch.Tensor, sh_degree: int | None,
+                     camera: Camera) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Return ``features [H, W, 7]``, ``alpha [H, W, 1]``, ``means2d [N, 2]``, ``radii [N]`` (the
+    Gaussians' arguments and their shapes are those of :func:`lmgs.render.rasterize`)."""
     from gsplat import rasterization
 
     p = project(means, quats, log_scales, opacity_logits, colors, sh_degree, camera)

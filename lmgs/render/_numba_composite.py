@@ -129,6 +129,17 @@ B_SIZE = (5 + 2 * NF) * PIX
 
 
 @njit(inline="always")
+def _feature_back(st, field, u, wk, tl, inv, v):  # pragma: no cover - compiled
+    """Feature ``v`` (at ``field`` in the scratch) of pixel ``u`` under a Gaussian of weight ``wk``,
+    back to front: the Gaussian's feature gradient ``wk dL/dF`` and the feature's part of its
+    alpha gradient; ``S`` (the features composited behind it) takes the Gaussian in."""
+    gf = st[B_G + field + u]
+    s_f = st[B_S + field + u]
+    st[B_S + field + u] = s_f + wk * v
+    return wk * gf, gf * (v * tl - s_f * inv)
+
+
+@njit(inline="always")
 def _bwd_rows(st, r0, r1, mxl, myl, ca, cb, cc, op, kf, cst, fv):  # pragma: no cover - compiled
     """One Gaussian over the tile pixels ``r0 <= u < r1`` (whole rows), back to front: updates
     ``T`` and ``S`` of those pixels and returns the Gaussian's 13 gradient sums over them
@@ -152,41 +163,16 @@ def _bwd_rows(st, r0, r1, mxl, myl, ca, cb, cc, op, kf, cst, fv):  # pragma: no 
         st[B_T + u] = tl if ok else t_old
         wk = al * tl * okf
         g_al = st[B_G + _U(NF * PIX) + u] * inv
-        gf = st[B_G + u]
-        s_f = st[B_S + u]
-        g6 += wk * gf
-        g_al += gf * (fv[0] * tl - s_f * inv)
-        st[B_S + u] = s_f + wk * fv[0]
-        gf = st[B_G + _U(PIX) + u]
-        s_f = st[B_S + _U(PIX) + u]
-        g7 += wk * gf
-        g_al += gf * (fv[1] * tl - s_f * inv)
-        st[B_S + _U(PIX) + u] = s_f + wk * fv[1]
-        gf = st[B_G + _U(2 * PIX) + u]
-        s_f = st[B_S + _U(2 * PIX) + u]
-        g8 += wk * gf
-        g_al += gf * (fv[2] * tl - s_f * inv)
-        st[B_S + _U(2 * PIX) + u] = s_f + wk * fv[2]
-        gf = st[B_G + _U(3 * PIX) + u]
-        s_f = st[B_S + _U(3 * PIX) + u]
-        g9 += wk * gf
-        g_al += gf * (fv[3] * tl - s_f * inv)
-        st[B_S + _U(3 * PIX) + u] = s_f + wk * fv[3]
-        gf = st[B_G + _U(4 * PIX) + u]
-        s_f = st[B_S + _U(4 * PIX) + u]
-        g10 += wk * gf
-        g_al += gf * (fv[4] * tl - s_f * inv)
-        st[B_S + _U(4 * PIX) + u] = s_f + wk * fv[4]
-        gf = st[B_G + _U(5 * PIX) + u]
-        s_f = st[B_S + _U(5 * PIX) + u]
-        g11 += wk * gf
-        g_al += gf * (fv[5] * tl - s_f * inv)
-        st[B_S + _U(5 * PIX) + u] = s_f + wk * fv[5]
-        gf = st[B_G + _U(6 * PIX) + u]
-        s_f = st[B_S + _U(6 * PIX) + u]
-        g12 += wk * gf
-        g_al += gf * (fv[6] * tl - s_f * inv)
-        st[B_S + _U(6 * PIX) + u] = s_f + wk * fv[6]
+        # the features one by one (a loop would need an array for the sums g6..g12: scalars vectorise)
+        d6, a6 = _feature_back(st, _U(0), u, wk, tl, inv, fv[0])
+        d7, a7 = _feature_back(st, _U(PIX), u, wk, tl, inv, fv[1])
+        d8, a8 = _feature_back(st, _U(2 * PIX), u, wk, tl, inv, fv[2])
+        d9, a9 = _feature_back(st, _U(3 * PIX), u, wk, tl, inv, fv[3])
+        d10, a10 = _feature_back(st, _U(4 * PIX), u, wk, tl, inv, fv[4])
+        d11, a11 = _feature_back(st, _U(5 * PIX), u, wk, tl, inv, fv[5])
+        d12, a12 = _feature_back(st, _U(6 * PIX), u, wk, tl, inv, fv[6])
+        g6, g7, g8, g9, g10, g11, g12 = g6 + d6, g7 + d7, g8 + d8, g9 + d9, g10 + d10, g11 + d11, g12 + d12
+        g_al = g_al + a6 + a7 + a8 + a9 + a10 + a11 + a12
         g_al = g_al * okf if raw <= amax else zero
         g_sig = -g_al * al
         g5 += g_al * e

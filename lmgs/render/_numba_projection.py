@@ -57,6 +57,123 @@ def _clamp(v, lo, hi):  # pragma: no cover - compiled
     return min(max(v, lo), hi)
 
 
+@njit(inline="always")
+def _mat3(a00, a01, a02, a10, a11, a12, a20, a21, a22, b00, b01, b02, b10, b11, b12, b20, b21, b22):  # pragma: no cover
+    """The 3x3 product ``A B``, row by row (each entry summed in the order of ``k``)."""
+    return (a00 * b00 + a01 * b10 + a02 * b20, a00 * b01 + a01 * b11 + a02 * b21, a00 * b02 + a01 * b12 + a02 * b22,
+            a10 * b00 + a11 * b10 + a12 * b20, a10 * b01 + a11 * b11 + a12 * b21, a10 * b02 + a11 * b12 + a12 * b22,
+            a20 * b00 + a21 * b10 + a22 * b20, a20 * b01 + a21 * b11 + a22 * b21, a20 * b02 + a21 * b12 + a22 * b22)
+
+
+# The per-Gaussian steps below are shared by the forward and the backward (which recomputes
+# them). Each returns a flat tuple and takes the earlier steps' tuples whole: numba's parfor
+# analysis rejects a nested tuple unpacked inside a prange loop.
+@njit(inline="always")
+def _view(w2c, fx, fy, cx, cy, width, height):  # pragma: no cover - compiled
+    """The camera's first three rows ``(w00, w01, w02, w03, w10, .., w23)`` and the limits
+    ``(lim_xp, lim_xn, lim_yp, lim_yn)`` of ``x / z`` and ``y / z`` (the field of view plus 30 %
+    of its half-width, where ``project`` clamps them), as one flat tuple."""
+    tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
+    return (w2c[0, 0], w2c[0, 1], w2c[0, 2], w2c[0, 3], w2c[1, 0], w2c[1, 1], w2c[1, 2], w2c[1, 3],
+            w2c[2, 0], w2c[2, 1], w2c[2, 2], w2c[2, 3], (width - cx) / fx + 0.3 * tan_x, cx / fx + 0.3 * tan_x,
+            (height - cy) / fy + 0.3 * tan_y, cy / fy + 0.3 * tan_y)
+
+
+@njit(inline="always")
+def _axes(g, quats, log_scales, view, ls_min, ls_max):  # pragma: no cover - compiled
+    """Gaussian ``g``'s axes in camera space: ``(ok_q, qn, qw, qx, qy, qz)`` of :func:`_rotation`,
+    ``k`` the argmin of the clamped log-scales (the normal's axis; first index on ties, torch's),
+    the scales ``s0, s1, s2`` and ``rot_cw @ R`` row by row (``c00 .. c22``; its columns are the axes)."""
+    w00, w01, w02, _, w10, w11, w12, _, w20, w21, w22 = view[:11]
+    ok_q, qn, qw, qx, qy, qz, r00, r01, r02, r10, r11, r12, r20, r21, r22 = _rotation(
+        quats[g, 0], quats[g, 1], quats[g, 2], quats[g, 3])
+    l0 = _clamp(log_scales[g, 0], ls_min, ls_max)
+    l1 = _clamp(log_scales[g, 1], ls_min, ls_max)
+    l2 = _clamp(log_scales[g, 2], ls_min, ls_max)
+    k = 0
+    if l1 < l0:
+        k = 1
+    if l2 < min(l0, l1):
+        k = 2
+    return (ok_q, qn, qw, qx, qy, qz, k, math.exp(l0), math.exp(l1), math.exp(l2),
+            *_mat3(w00, w01, w02, w10, w11, w12, w20, w21, w22, r00, r01, r02, r10, r11, r12, r20, r21, r22))
+
+
+@njit(inline="always")
+def _centre(g, means, view, near):  # pragma: no cover - compiled
+    """``(x, y, z_raw, in_front, z)``: the camera-space mean; ``z`` is 1 behind the near plane."""
+    w00, w01, w02, w03, w10, w11, w12, w13, w20, w21, w22, w23 = view[:12]
+    px, py, pz = means[g, 0], means[g, 1], means[g, 2]
+    x = w00 * px + w01 * py + w02 * pz + w03
+    y = w10 * px + w11 * py + w12 * pz + w13
+    z_raw = w20 * px + w21 * py + w22 * pz + w23
+    in_front = z_raw >= near
+    return x, y, z_raw, in_front, z_raw if in_front else 1.0
+
+
+@njit(inline="always")
+def _jacobian(centre, view, fx, fy):  # pragma: no cover - compiled
+    """``(ux, uy, cux, cuy, tx, ty, z2, j00, j02, j11, j12)``: ``u = x / z`` and its clamp ``cu``,
+    ``t = z cu``, ``z2 = z^2`` and the EWA Jacobian's non-zero entries."""
+    x, y, _, _, z = centre
+    lim_xp, lim_xn, lim_yp, lim_yn = view[12:]
+    ux, uy = x / z, y / z
+    cux, cuy = _clamp(ux, -lim_xn, lim_xp), _clamp(uy, -lim_yn, lim_yp)
+    tx, ty = z * cux, z * cuy
+    z2 = z * z
+    return ux, uy, cux, cuy, tx, ty, z2, fx / z, -fx * tx / z2, fy / z, -fy * ty / z2
+
+
+@njit(inline="always")
+def _conic_rows(axes, jac, eps2d):  # pragma: no cover - compiled
+    """``rs = rot S`` (``rs00 .. rs22``), ``m = J rs`` (its two rows ``m00 .. m12``) and the 2D
+    covariance ``a, b, c`` (low-passed by ``eps2d``) with its determinant ``det``."""
+    s0, s1, s2, c00, c01, c02, c10, c11, c12, c20, c21, c22 = axes[7:]
+    j00, j02, j11, j12 = jac[7:]
+    rs00, rs01, rs02 = c00 * s0, c01 * s1, c02 * s2
+    rs10, rs11, rs12 = c10 * s0, c11 * s1, c12 * s2
+    rs20, rs21, rs22 = c20 * s0, c21 * s1, c22 * s2
+    m00 = j00 * rs00 + j02 * rs20
+    m01 = j00 * rs01 + j02 * rs21
+    m02 = j00 * rs02 + j02 * rs22
+    m10 = j11 * rs10 + j12 * rs20
+    m11 = j11 * rs11 + j12 * rs21
+    m12 = j11 * rs12 + j12 * rs22
+    a = m00 * m00 + m01 * m01 + m02 * m02 + eps2d
+    b = m00 * m10 + m01 * m11 + m02 * m12
+    c = m10 * m10 + m11 * m11 + m12 * m12 + eps2d
+    return (rs00, rs01, rs02, rs10, rs11, rs12, rs20, rs21, rs22, m00, m01, m02, m10, m11, m12, a, b, c, a * c - b * b)
+
+
+@njit(inline="always")
+def _normal(axes, centre):  # pragma: no cover - compiled
+    """``(nx, ny, nz, sgn)``: the axis of the smallest scale, times ``sgn = -1`` where that faces
+    away from the camera (at the origin), else ``sgn = 1``."""
+    k = axes[6]
+    c00, c01, c02, c10, c11, c12, c20, c21, c22 = axes[10:]
+    x, y, z_raw = centre[:3]
+    if k == 0:
+        nx, ny, nz = c00, c10, c20
+    elif k == 1:
+        nx, ny, nz = c01, c11, c21
+    else:
+        nx, ny, nz = c02, c12, c22
+    sgn = -1.0 if nx * x + ny * y + nz * z_raw > 0 else 1.0
+    return sgn * nx, sgn * ny, sgn * nz, sgn
+
+
+@njit(inline="always")
+def _put_features(out, g, j, colors, z, nx, ny, nz):  # pragma: no cover - compiled
+    """``out[g, j:j + 7]``: the features rgb, camera z and normal (their order in rows and props)."""
+    out[g, j] = colors[g, 0]
+    out[g, j + 1] = colors[g, 1]
+    out[g, j + 2] = colors[g, 2]
+    out[g, j + 3] = z
+    out[g, j + 4] = nx
+    out[g, j + 5] = ny
+    out[g, j + 6] = nz
+
+
 @njit(parallel=True, cache=True)
 def project_forward(means, quats, log_scales, opacity_logits, colors, w2c, fx, fy, cx, cy, width, height,
                     near, eps2d, ls_min, ls_max, rows, means2d, props):  # pragma: no cover - compiled
@@ -76,55 +193,12 @@ def project_forward(means, quats, log_scales, opacity_logits, colors, w2c, fx, f
     with_props = props.shape[0] > 0
     tw = (width + TILE - 1) // TILE
     th = (height + TILE - 1) // TILE
-    tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
-    lim_xp, lim_xn = (width - cx) / fx + 0.3 * tan_x, cx / fx + 0.3 * tan_x
-    lim_yp, lim_yn = (height - cy) / fy + 0.3 * tan_y, cy / fy + 0.3 * tan_y
-    w00, w01, w02, w03 = w2c[0, 0], w2c[0, 1], w2c[0, 2], w2c[0, 3]
-    w10, w11, w12, w13 = w2c[1, 0], w2c[1, 1], w2c[1, 2], w2c[1, 3]
-    w20, w21, w22, w23 = w2c[2, 0], w2c[2, 1], w2c[2, 2], w2c[2, 3]
+    view = _view(w2c, fx, fy, cx, cy, width, height)
     for g in prange(n):
-        _, _, _, _, _, _, r00, r01, r02, r10, r11, r12, r20, r21, r22 = _rotation(
-            quats[g, 0], quats[g, 1], quats[g, 2], quats[g, 3])
-        l0 = _clamp(log_scales[g, 0], ls_min, ls_max)
-        l1 = _clamp(log_scales[g, 1], ls_min, ls_max)
-        l2 = _clamp(log_scales[g, 2], ls_min, ls_max)
-        k = 0  # argmin, first index on ties (torch's)
-        if l1 < l0:
-            k = 1
-        if l2 < min(l0, l1):
-            k = 2
-        s0, s1, s2 = math.exp(l0), math.exp(l1), math.exp(l2)
-        # rot_cw @ R: columns are the Gaussian's axes in camera space
-        c00 = w00 * r00 + w01 * r10 + w02 * r20
-        c01 = w00 * r01 + w01 * r11 + w02 * r21
-        c02 = w00 * r02 + w01 * r12 + w02 * r22
-        c10 = w10 * r00 + w11 * r10 + w12 * r20
-        c11 = w10 * r01 + w11 * r11 + w12 * r21
-        c12 = w10 * r02 + w11 * r12 + w12 * r22
-        c20 = w20 * r00 + w21 * r10 + w22 * r20
-        c21 = w20 * r01 + w21 * r11 + w22 * r21
-        c22 = w20 * r02 + w21 * r12 + w22 * r22
-        px, py, pz = means[g, 0], means[g, 1], means[g, 2]
-        x = w00 * px + w01 * py + w02 * pz + w03
-        y = w10 * px + w11 * py + w12 * pz + w13
-        z_raw = w20 * px + w21 * py + w22 * pz + w23
-        in_front = z_raw >= near
-        z = z_raw if in_front else 1.0
-        tx = z * _clamp(x / z, -lim_xn, lim_xp)
-        ty = z * _clamp(y / z, -lim_yn, lim_yp)
-        j00, j02 = fx / z, -fx * tx / (z * z)
-        j11, j12 = fy / z, -fy * ty / (z * z)
-        # m = J (rot_c S): rows m0, m1
-        m00 = j00 * (c00 * s0) + j02 * (c20 * s0)
-        m01 = j00 * (c01 * s1) + j02 * (c21 * s1)
-        m02 = j00 * (c02 * s2) + j02 * (c22 * s2)
-        m10 = j11 * (c10 * s0) + j12 * (c20 * s0)
-        m11 = j11 * (c11 * s1) + j12 * (c21 * s1)
-        m12 = j11 * (c12 * s2) + j12 * (c22 * s2)
-        a = m00 * m00 + m01 * m01 + m02 * m02 + eps2d
-        b = m00 * m10 + m01 * m11 + m02 * m12
-        c = m10 * m10 + m11 * m11 + m12 * m12 + eps2d
-        det = a * c - b * b
+        axes = _axes(g, quats, log_scales, view, ls_min, ls_max)
+        centre = _centre(g, means, view, near)
+        x, y, _, in_front, z = centre
+        a, b, c, det = _conic_rows(axes, _jacobian(centre, view, fx, fy), eps2d)[15:]
         ok = in_front and det > 0
         det_s = det if ok else 1.0
         mx = fx * x / z + cx
@@ -139,23 +213,10 @@ def project_forward(means, quats, log_scales, opacity_logits, colors, w2c, fx, f
             rects[g, 1] = np.int64(min(max(math.ceil((mx + radius) / TILE), 0.0), tw))
             rects[g, 2] = np.int64(min(max(math.floor((my - radius) / TILE), 0.0), th))
             rects[g, 3] = np.int64(min(max(math.ceil((my + radius) / TILE), 0.0), th))
-        if k == 0:
-            nx, ny, nz = c00, c10, c20
-        elif k == 1:
-            nx, ny, nz = c01, c11, c21
-        else:
-            nx, ny, nz = c02, c12, c22
-        if nx * x + ny * y + nz * z_raw > 0:  # face the camera (at the origin)
-            nx, ny, nz = -nx, -ny, -nz
+        nx, ny, nz, _ = _normal(axes, centre)
         ca, cb, cc = c / det_s, -b / det_s, a / det_s
         op = 1.0 / (1.0 + math.exp(-opacity_logits[g]))
-        rows[g, 7] = colors[g, 0]
-        rows[g, 8] = colors[g, 1]
-        rows[g, 9] = colors[g, 2]
-        rows[g, 10] = z
-        rows[g, 11] = nx
-        rows[g, 12] = ny
-        rows[g, 13] = nz
+        _put_features(rows, g, 7, colors, z, nx, ny, nz)
         _fill_row(rows, g, mx, my, ca, cb, cc, op)
         means2d[g, 0] = mx
         means2d[g, 1] = my
@@ -165,13 +226,7 @@ def project_forward(means, quats, log_scales, opacity_logits, colors, w2c, fx, f
             props[g, 1] = cb
             props[g, 2] = cc
             props[g, 3] = op
-            props[g, 4] = colors[g, 0]
-            props[g, 5] = colors[g, 1]
-            props[g, 6] = colors[g, 2]
-            props[g, 7] = z
-            props[g, 8] = nx
-            props[g, 9] = ny
-            props[g, 10] = nz
+            _put_features(props, g, 4, colors, z, nx, ny, nz)
     return depths, radii, rects
 
 
@@ -180,8 +235,8 @@ def project_backward(means, quats, log_scales, opacity_logits, w2c, fx, fy, cx, 
                      near, eps2d, ls_min, ls_max, g_means2d, g_props):  # pragma: no cover - compiled
     """Gradients of the projection from those of ``means2d [N, 2]`` and ``props [N, NPROP]``.
 
-    Recomputes each Gaussian's forward quantities (cheaper than storing them) and applies
-    the chain rule backwards through the same formulas as :func:`project_forward`.
+    Recomputes each Gaussian's forward quantities (cheaper than storing them) with the steps
+    :func:`project_forward` takes, and applies the chain rule backwards through them.
 
     Returns float64 ``g_means [N, 3]``, ``g_quats [N, 4]``, ``g_log_scales [N, 3]``,
     ``g_opacity_logits [N]`` and ``g_colors [N, 3]``.
@@ -192,66 +247,21 @@ def project_backward(means, quats, log_scales, opacity_logits, w2c, fx, fy, cx, 
     g_ls = np.zeros((n, 3), np.float64)
     g_logit = np.zeros(n, np.float64)
     g_col = np.zeros((n, 3), np.float64)
-    tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
-    lim_xp, lim_xn = (width - cx) / fx + 0.3 * tan_x, cx / fx + 0.3 * tan_x
-    lim_yp, lim_yn = (height - cy) / fy + 0.3 * tan_y, cy / fy + 0.3 * tan_y
-    w00, w01, w02, w03 = w2c[0, 0], w2c[0, 1], w2c[0, 2], w2c[0, 3]
-    w10, w11, w12, w13 = w2c[1, 0], w2c[1, 1], w2c[1, 2], w2c[1, 3]
-    w20, w21, w22, w23 = w2c[2, 0], w2c[2, 1], w2c[2, 2], w2c[2, 3]
+    view = _view(w2c, fx, fy, cx, cy, width, height)
+    w00, w01, w02, _, w10, w11, w12, _, w20, w21, w22, _, lim_xp, lim_xn, lim_yp, lim_yn = view
     for g in prange(n):
         # ---- forward, as in project_forward ----
-        ok_q, qn, qw, qx, qy, qz, r00, r01, r02, r10, r11, r12, r20, r21, r22 = _rotation(
-            quats[g, 0], quats[g, 1], quats[g, 2], quats[g, 3])
-        lr0, lr1, lr2 = log_scales[g, 0], log_scales[g, 1], log_scales[g, 2]
-        l0, l1, l2 = _clamp(lr0, ls_min, ls_max), _clamp(lr1, ls_min, ls_max), _clamp(lr2, ls_min, ls_max)
-        k = 0
-        if l1 < l0:
-            k = 1
-        if l2 < min(l0, l1):
-            k = 2
-        s0, s1, s2 = math.exp(l0), math.exp(l1), math.exp(l2)
-        c00 = w00 * r00 + w01 * r10 + w02 * r20
-        c01 = w00 * r01 + w01 * r11 + w02 * r21
-        c02 = w00 * r02 + w01 * r12 + w02 * r22
-        c10 = w10 * r00 + w11 * r10 + w12 * r20
-        c11 = w10 * r01 + w11 * r11 + w12 * r21
-        c12 = w10 * r02 + w11 * r12 + w12 * r22
-        c20 = w20 * r00 + w21 * r10 + w22 * r20
-        c21 = w20 * r01 + w21 * r11 + w22 * r21
-        c22 = w20 * r02 + w21 * r12 + w22 * r22
-        px, py, pz = means[g, 0], means[g, 1], means[g, 2]
-        x = w00 * px + w01 * py + w02 * pz + w03
-        y = w10 * px + w11 * py + w12 * pz + w13
-        z_raw = w20 * px + w21 * py + w22 * pz + w23
-        in_front = z_raw >= near
-        z = z_raw if in_front else 1.0
-        ux, uy = x / z, y / z
-        cux, cuy = _clamp(ux, -lim_xn, lim_xp), _clamp(uy, -lim_yn, lim_yp)
-        tx, ty = z * cux, z * cuy
-        z2 = z * z
-        j00, j02 = fx / z, -fx * tx / z2
-        j11, j12 = fy / z, -fy * ty / z2
-        rs00, rs01, rs02 = c00 * s0, c01 * s1, c02 * s2
-        rs10, rs11, rs12 = c10 * s0, c11 * s1, c12 * s2
-        rs20, rs21, rs22 = c20 * s0, c21 * s1, c22 * s2
-        m00 = j00 * rs00 + j02 * rs20
-        m01 = j00 * rs01 + j02 * rs21
-        m02 = j00 * rs02 + j02 * rs22
-        m10 = j11 * rs10 + j12 * rs20
-        m11 = j11 * rs11 + j12 * rs21
-        m12 = j11 * rs12 + j12 * rs22
-        a = m00 * m00 + m01 * m01 + m02 * m02 + eps2d
-        b = m00 * m10 + m01 * m11 + m02 * m12
-        c = m10 * m10 + m11 * m11 + m12 * m12 + eps2d
-        det = a * c - b * b
+        axes = _axes(g, quats, log_scales, view, ls_min, ls_max)
+        ok_q, qn, qw, qx, qy, qz, k, s0, s1, s2, c00, c01, c02, c10, c11, c12, c20, c21, c22 = axes
+        centre = _centre(g, means, view, near)
+        x, y, z_raw, in_front, z = centre
+        jac = _jacobian(centre, view, fx, fy)
+        ux, uy, cux, cuy, tx, ty, z2, j00, j02, j11, j12 = jac
+        rs00, rs01, rs02, rs10, rs11, rs12, rs20, rs21, rs22, m00, m01, m02, m10, m11, m12, a, b, c, det = _conic_rows(
+            axes, jac, eps2d)
         ok = in_front and det > 0
-        if k == 0:
-            nx, ny, nz = c00, c10, c20
-        elif k == 1:
-            nx, ny, nz = c01, c11, c21
-        else:
-            nx, ny, nz = c02, c12, c22
-        sgn = -1.0 if nx * x + ny * y + nz * z_raw > 0 else 1.0
+        sgn = _normal(axes, centre)[3]
+        lr0, lr1, lr2 = log_scales[g, 0], log_scales[g, 1], log_scales[g, 2]
         # ---- backward ----
         gmx, gmy = g_means2d[g, 0], g_means2d[g, 1]
         gc0, gc1, gc2 = g_props[g, 0], g_props[g, 1], g_props[g, 2]
@@ -332,16 +342,9 @@ def project_backward(means, quats, log_scales, opacity_logits, w2c, fx, fy, cx, 
         g_means[g, 2] = w02 * gx + w12 * gy + w22 * gzr
         if not ok_q:
             continue  # the identity: no gradient to the quaternion
-        # rot_c = W R
-        g00 = w00 * gc00 + w10 * gc10 + w20 * gc20
-        g01 = w00 * gc01 + w10 * gc11 + w20 * gc21
-        g02 = w00 * gc02 + w10 * gc12 + w20 * gc22
-        g10 = w01 * gc00 + w11 * gc10 + w21 * gc20
-        g11 = w01 * gc01 + w11 * gc11 + w21 * gc21
-        g12 = w01 * gc02 + w11 * gc12 + w21 * gc22
-        g20 = w02 * gc00 + w12 * gc10 + w22 * gc20
-        g21 = w02 * gc01 + w12 * gc11 + w22 * gc21
-        g22 = w02 * gc02 + w12 * gc12 + w22 * gc22
+        # rot_c = W R: the gradient of R is W^T times that of rot_c
+        g00, g01, g02, g10, g11, g12, g20, g21, g22 = _mat3(w00, w10, w20, w01, w11, w21, w02, w12, w22,
+                                                            gc00, gc01, gc02, gc10, gc11, gc12, gc20, gc21, gc22)
         # R of the unit quaternion
         gw = 2.0 * (-qz * g01 + qy * g02 + qz * g10 - qx * g12 - qy * g20 + qx * g21)
         gxq = 2.0 * (-2.0 * qx * (g11 + g22) + qy * (g01 + g10) + qz * (g02 + g20) + qw * (g21 - g12))

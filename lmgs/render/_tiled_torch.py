@@ -12,17 +12,10 @@ import torch
 from lmgs.render._projection import ALPHA_MAX, ALPHA_MIN, N_FEATURES, T_MIN, TILE, tile_rects
 
 
-def composite(
-    means2d: torch.Tensor,  # [N, 2]
-    conics: torch.Tensor,  # [N, 3]
-    opacities: torch.Tensor,  # [N]
-    features: torch.Tensor,  # [N, 7]
-    radii: torch.Tensor,  # [N] int
-    depths: torch.Tensor,  # [N] sort keys
-    width: int,
-    height: int,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Composite to ``features [H, W, 7]`` and ``alpha [H, W, 1]``, tile by tile."""
+def composite(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor, features: torch.Tensor,
+              radii: torch.Tensor, depths: torch.Tensor, width: int, height: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Composite to ``features [H, W, 7]`` and ``alpha [H, W, 1]``, tile by tile (the arguments
+    and their shapes are those of :func:`lmgs.render._cpu.composite`)."""
     dt, dev = means2d.dtype, means2d.device
     tw, th = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
     rect = tile_rects(means2d, radii, width, height).to(dev)

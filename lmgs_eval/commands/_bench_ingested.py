@@ -100,8 +100,8 @@ def swapped_copy(truth_root: Path, ing_root: Path, out: Path, part: str) -> Path
     normal maps as well."""
     import shutil
 
-    from lmgs_eval.data import io
-    from lmgs_eval.data.ingest.geometry import DEPTH_SCALE
+    from lmgs_eval.data.geometry import DEPTH_SCALE
+    from lmgs_eval.data.images import read_depth, write_depth
 
     if part not in SWAPS:
         raise ValueError(f"part {part!r}: one of {tuple(SWAPS)}")
@@ -114,10 +114,10 @@ def swapped_copy(truth_root: Path, ing_root: Path, out: Path, part: str) -> Path
             shutil.copytree(truth_root / d, out / d)
         return out
     for path in sorted((out / "depth").glob("*.png")):
-        mine, theirs = io.read_depth(path, DEPTH_SCALE), io.read_depth(truth_root / "depth" / path.name, DEPTH_SCALE)
+        mine, theirs = read_depth(path, DEPTH_SCALE), read_depth(truth_root / "depth" / path.name, DEPTH_SCALE)
         if (mine > 0).any() and (theirs > 0).any():
             shift = np.median(theirs[theirs > 0]) - np.median(mine[mine > 0])
-            io.write_depth(path, np.where(mine > 0, np.maximum(mine + shift, 1.0 / DEPTH_SCALE), 0.0), DEPTH_SCALE)
+            write_depth(path, np.where(mine > 0, np.maximum(mine + shift, 1.0 / DEPTH_SCALE), 0.0), DEPTH_SCALE)
     return out
 
 
@@ -207,7 +207,7 @@ def run(args: argparse.Namespace) -> dict:
             "method": f"{args.method} (preset {args.preset}, config {config_hash}, seed {args.seed}"
                       + (f", --set {' '.join(args.overrides)}" if args.overrides else "") + ")",
             "frames": f"{len(gen['train'])} train / {len(gen['test'])} test, {gen['subject'].width} px",
-            "lpips": (rec["metrics"].get("lpips") or {}).get("backend"),
+            "lpips": getattr(rec.metrics.get("lpips"), "backend", None),
             "cores": os.cpu_count(),
             "load_avg_1min": round(os.getloadavg()[0], 2),
             "results": str(results) if args.results else "temporary (--results keeps the records)",

@@ -52,7 +52,7 @@ def folder_mb(root: Path) -> float:
 
 def bundled_spec(args: argparse.Namespace):
     """The bundled subject ``--subject`` at ``--size`` / ``--seconds`` (a UserError for any other name)."""
-    from lmgs_eval.data.registry import BundledSpec
+    from lmgs_eval.data.bundled_spec import BundledSpec
     from lmgs_eval.errors import UserError
 
     spec = BundledSpec.parse(args.subject)
@@ -73,15 +73,15 @@ def prepare(root: Path) -> dict:
             "prepare_s": time.perf_counter() - t0}
 
 
-def value(rec: dict, key: str):
-    v = (rec["metrics"].get(key) or {}).get("value")
+def value(rec, key: str):
+    v = rec.value(key)
     return float(v) if isinstance(v, (int, float)) and v == v else None
 
 
-def why_missing(a: dict, b: dict, key: str) -> str:
+def why_missing(a, b, key: str) -> str:
     """Why a figure is missing: the metric's first ``unavailable`` flag (LMD needs a face dlib finds, LSE 5-frame windows)."""
     for rec in (a, b):
-        for f in (rec["metrics"].get(key) or {}).get("flags") or []:
+        for f in getattr(rec.metrics.get(key), "flags", ()):
             if f.startswith("unavailable:"):
                 return f
     return "not scored"
@@ -96,14 +96,14 @@ def train_both(args: argparse.Namespace, runs: dict[str, dict], tmp: Path, resul
     the bundled one first); fills in each run's ``record``, ``method``, ``train_cpu_s`` and ``folder_mb``.
     Returns the run config and the one config hash."""
     from lmgs_eval.commands._common import check_seeds, parse_overrides
-    from lmgs_eval.metrics.metric_suite import MetricSuite
+    from lmgs_eval.commands._sync import suite
     from lmgs_eval.runner import RunConfig, build_method, fit_render_score, log
 
     check_seeds([args.seed])
     first = next(iter(runs.values()))
     cfg = RunConfig(subject=str(first["subject"].root), methods=(args.method,), preset=args.preset, seeds=(args.seed,),
                     results=results, device=args.device, progress=False, method_options=parse_overrides(args.overrides),
-                    suite=MetricSuite(sync=getattr(args, "sync", None) or "auto"))
+                    suite=suite(args))
     hashes = set()
     for label, r in runs.items():
         # one config for both: the bundled subject's (its Gaussian budget, where it has its own)
@@ -131,6 +131,6 @@ def rows(a: dict, b: dict, names: tuple[str, str]) -> list[dict]:
         why = "" if x is not None and y is not None else why_missing(a["record"], b["record"], key)
         out.append({"figure": label, la: x, lb: y, f"{lb} - {la}": diff(x, y), "note": why})
     for key, label in COSTS:
-        x, y = (r.get(key, r["record"]["cost"].get(key)) for r in (a, b))
+        x, y = (r.get(key, getattr(r["record"].cost, key, None)) for r in (a, b))
         out.append({"figure": label, la: x, lb: y, f"{lb} - {la}": diff(x, y), "note": ""})
     return out

@@ -43,8 +43,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seconds", type=float, default=10.0, help="length of the generated clip (default 10)")
     p.add_argument("--width", type=int, default=1080, help="width of the generated clip (default 1080)")
     p.add_argument("--height", type=int, default=1920, help="height of the generated clip (default 1920)")
-    p.add_argument("--sync", default="auto", choices=("auto", "landmark", "pixel", "syncnet-v2"),
-                   help="sync-check's scorer (default auto)")
+    from lmgs_eval.commands._sync import SYNC_CHOICES
+
+    p.add_argument("--sync", default="auto", choices=SYNC_CHOICES, help="sync-check's scorer (default auto)")
 
 
 def _tone(seconds: float, sr: int = 16000) -> np.ndarray:
@@ -55,36 +56,24 @@ def _tone(seconds: float, sr: int = 16000) -> np.ndarray:
 def portrait_clip(path: Path, seconds: float = 10.0, width: int = 1080, height: int = 1920) -> Path:
     """Write a ``width`` x ``height`` 25 fps H.264 clip with AAC audio: a face (scikit-image's astronaut, 400 px)
     drifting over a grey gradient, a 220 Hz tone swelling at 3 Hz as its sound."""
-    import av
     import cv2
     from skimage import data
+
+    from lmgs_eval.data.video import write_video
 
     n = int(round(seconds * 25))
     side = min(400, width // 2, height // 2)
     face = cv2.resize(data.astronaut()[0:300, 80:380], (side, side), interpolation=cv2.INTER_AREA)
     bg = np.broadcast_to(np.linspace(40, 200, width).astype(np.uint8)[None, :, None], (height, width, 3))
-    audio = np.clip(np.rint(_tone(seconds) * 32767), -32768, 32767).astype(np.int16)
-    with av.open(str(path), "w") as c:
-        vs = c.add_stream("libx264", rate=25)
-        vs.width, vs.height, vs.pix_fmt = width, height, "yuv420p"
-        vs.options = {"preset": "ultrafast", "crf": "23"}
-        a = c.add_stream("aac", rate=16000)
-        a.layout = "mono"
+
+    def frames():  # made and encoded one at a time: the clip is never held whole
         for i in range(n):
             img = np.array(bg)
             y, x = height // 3 + 3 * (i % 7), (width - side) // 2 + 2 * (i % 5)
             img[y:y + side, x:x + side] = face
-            for p in vs.encode(av.VideoFrame.from_ndarray(img, format="rgb24")):
-                c.mux(p)
-        for p in vs.encode():
-            c.mux(p)
-        for k in range(0, len(audio), 1024):
-            fr = av.AudioFrame.from_ndarray(audio[None, k:k + 1024], format="s16", layout="mono")
-            fr.sample_rate, fr.pts = 16000, k
-            for p in a.encode(fr):
-                c.mux(p)
-        for p in a.encode():
-            c.mux(p)
+            yield img
+
+    write_video(path, frames(), 25, _tone(seconds), 16000, crf="23", preset="ultrafast")
     return path
 
 

@@ -37,7 +37,7 @@ def run(args: argparse.Namespace) -> dict:
     import numpy as np
 
     from lmgs_eval.commands import _bench_pair as pair
-    from lmgs_eval.data.ingest.complete import derive, strip_to_plain
+    from lmgs_eval.data.complete import derive, strip_to_plain
     from lmgs_eval.data.registry import ensure_bundled
 
     spec = pair.bundled_spec(args)
@@ -66,9 +66,9 @@ def run(args: argparse.Namespace) -> dict:
             "method": f"{args.method} (preset {args.preset}, config {config_hash}, seed {args.seed}"
                       + (f", --set {' '.join(args.overrides)}" if args.overrides else "") + ")",
             "frames": f"{len(full['train'])} train / {len(full['test'])} test, {full['subject'].width} px",
-            "derived": next((n for n in rec["notes"] if "derived 3D landmarks" in n), "nothing derived"),
+            "derived": next((n for n in rec.notes if "derived 3D landmarks" in n), "nothing derived"),
             "derive_s": round(derive_s, 3),
-            "lpips": (rec["metrics"].get("lpips") or {}).get("backend"),
+            "lpips": getattr(rec.metrics.get("lpips"), "backend", None),
             "cores": os.cpu_count(),
             "load_avg_1min": round(os.getloadavg()[0], 2),
             "results": str(results) if args.results else "temporary (--results keeps the records)",

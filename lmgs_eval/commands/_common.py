@@ -31,7 +31,7 @@ def add_run_arguments(p: argparse.ArgumentParser, default_methods: tuple[str, ..
 def run_config(args: argparse.Namespace):
     from baselines.protocol import list_methods
     from lmgs.device import choose_device
-    from lmgs_eval.metrics.metric_suite import MetricSuite
+    from lmgs_eval.commands._sync import suite
     from lmgs_eval.runner import RunConfig
 
 
@@ -57,7 +57,7 @@ def run_config(args: argparse.Namespace):
         progress=not args.no_progress,
         renders=args.renders,
         force=args.force,
-        suite=MetricSuite(sync=getattr(args, "sync", None) or "auto"),
+        suite=suite(args),
     )
 
 
@@ -70,49 +70,48 @@ def check_seeds(seeds) -> None:
             raise UserError(f"--seed {s}: a seed is an integer from 0 to {2 ** 32 - 1}")
 
 
-def print_rows(records: list[dict]) -> None:
+def print_rows(records: list) -> None:
     """The records just made, as a small table on stdout (§: FPS timed on a busy host)."""
     from lmgs_eval.report.cells import BUSY_NOTE, busy_text, timed_busy, trained_busy
     from lmgs_eval.report.table_model import BUSY, BUSY_SHARE
 
     cols = [("psnr", "PSNR↑", "{:.2f}"), ("lpips", "LPIPS↓", "{:.4f}"), ("lmd", "LMD↓", "{:.2f}"),
             ("lse_d", "LSE-D↓", "{:.3f}"), ("lse_c", "LSE-C↑", "{:.3f}")]
-    if any("lpips_custom" in r["metrics"] for r in records):  # a trunk that is not torchvision's: its own column
+    if any("lpips_custom" in r.metrics for r in records):  # a trunk that is not torchvision's: its own column
         cols.insert(2, ("lpips_custom", "LPIPS*↓", "{:.4f}"))
     head = f"{'method':<26} {'clip':<6} {'seed':>4} " + " ".join(f"{h:>8}" for _, h, _ in cols) + f" {'FPS':>7} {'train s':>8} {'Gauss.':>7} {'MB':>6}"
     print(head)
     for r in records:
-        m = r["metrics"]
         vals = []
         for key, _, fmt in cols:
-            v = m.get(key, {}).get("value")
+            v = r.value(key)
             vals.append(f"{fmt.format(v):>8}" if isinstance(v, (int, float)) and v == v else f"{'n/a':>8}")
-        c = r.get("cost") or {}
+        c = r.cost
 
         def f(v, fmt):
             return fmt.format(v) if isinstance(v, (int, float)) else "-"
 
-        fps = f(c.get("fps"), "{:.1f}") + (BUSY if timed_busy(c) else "")
-        train = f(c.get("train_seconds"), "{:.0f}") + (BUSY if trained_busy(c) else "")
-        print(f"{r['method']['display_name'][:26]:<26} {r['protocol']['clip'][:6]:<6} {r['seed']:>4} " + " ".join(vals)
-              + f" {fps:>7} {train:>8} {f(c.get('n_gaussians'), '{:d}'):>7} {f(c.get('model_mb'), '{:.2f}'):>6}")
-    busy = [busy_text(r["cost"]) for r in records if timed_busy(r.get("cost") or {})]
+        fps = f(c.fps, "{:.1f}") + (BUSY if timed_busy(c) else "")
+        train = f(c.train_seconds, "{:.0f}") + (BUSY if trained_busy(c) else "")
+        print(f"{r.method.display_name[:26]:<26} {r.protocol.clip[:6]:<6} {r.seed:>4} " + " ".join(vals)
+              + f" {fps:>7} {train:>8} {f(c.n_gaussians, '{:d}'):>7} {f(c.model_mb, '{:.2f}'):>6}")
+    busy = [busy_text(r.cost) for r in records if timed_busy(r.cost)]
     if busy:
         print(f"  {BUSY_NOTE} ({'; '.join(dict.fromkeys(busy))}): a quiet host renders faster")
-    if any(trained_busy(r.get("cost") or {}) for r in records):
+    if any(trained_busy(r.cost) for r in records):
         print(f"  {BUSY} train s: trained while other processes took more than {BUSY_SHARE:.0%} of the host's CPU "
               "(cost.train_others_cpu_share): a quiet host trains faster")
     # a metric that could not be computed on a clip: n/a in the table, its reason here (lse_d/lse_c/av_offset once)
     for r in records:
         seen = set()
-        for k, v in r["metrics"].items():
-            why = next((f[len("unavailable: "):] for f in v.get("flags") or [] if f.startswith("unavailable: ")), None)
+        for k, v in r.metrics.items():
+            why = next((f[len("unavailable: "):] for f in v.flags if f.startswith("unavailable: ")), None)
             name = "lse" if k in ("lse_d", "lse_c", "av_offset") else k
             if why is not None and name not in seen:
                 seen.add(name)
-                print(f"  {r['method']['display_name']}/{r['protocol']['clip']} seed {r['seed']}: {name} unavailable: {why}")
-    backends = sorted({f"{k}: {v['backend']}" + (f" (stand-in: {v['standin']})" if v.get("standin") else "")
-                       for r in records for k, v in r["metrics"].items() if k in ("lpips", "lpips_custom", "lse_d", "lmd")})
+                print(f"  {r.method.display_name}/{r.protocol.clip} seed {r.seed}: {name} unavailable: {why}")
+    backends = sorted({f"{k}: {v.backend}" + (f" (stand-in: {v.standin})" if v.standin else "")
+                       for r in records for k, v in r.metrics.items() if k in ("lpips", "lpips_custom", "lse_d", "lmd")})
     for b in backends:
         print(f"  {b}")
 

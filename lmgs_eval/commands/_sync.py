@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-SYNC_CHOICES = ("auto", "landmark", "pixel", "syncnet-v2")  # sync_select.CHOICES, without importing the metrics
+SYNC_CHOICES = ("auto", "landmark", "pixel", "syncnet-v2")  # metrics.config.SYNC_CHOICES, without importing the metrics
 
 
 def add_sync_argument(p: argparse.ArgumentParser) -> None:
@@ -15,10 +15,13 @@ def add_sync_argument(p: argparse.ArgumentParser) -> None:
                         "bundled scorer that passes its self-check on the clip (default)")
 
 
-def apply(args: argparse.Namespace) -> None:
-    from lmgs_eval.metrics.sync_select import set_backend
+def suite(args: argparse.Namespace):
+    """The metric suite of a scoring command: ``--sync`` goes into its config, and the suite resolves the
+    scorer from there (:class:`~lmgs_eval.metrics.sync.select.SyncScorers`)."""
+    from lmgs_eval.metrics.config import SuiteConfig
+    from lmgs_eval.metrics.metric_suite import MetricSuite
 
-    set_backend(getattr(args, "sync", None))
+    return MetricSuite(SuiteConfig(sync=getattr(args, "sync", None) or "auto"))
 
 
 def untrusted(entries) -> list[str]:
@@ -28,14 +31,14 @@ def untrusted(entries) -> list[str]:
 
 def print_untrusted(labels: list[str], prog: str) -> None:
     if labels:
-        from lmgs_eval.metrics.sync_check import UNTRUSTED_HINT
+        from lmgs_eval.metrics.sync.check import UNTRUSTED_HINT
 
         shown = ", ".join(labels[:4]) + (f" and {len(labels) - 4} more" if len(labels) > 4 else "")
         print(f"{prog}: LSE not trusted on {shown}: {UNTRUSTED_HINT}", file=sys.stderr)
 
 
-def print_untrusted_records(records: list[dict], prog: str) -> None:
+def print_untrusted_records(records: list, prog: str) -> None:
     """The line for protocol records (``metrics.lse_d.values`` carries the self-check)."""
-    entries = [(f"{r['method']['display_name']}/{r['protocol']['clip']}",
-                ((r.get("metrics") or {}).get("lse_d") or {}).get("values")) for r in records]
+    entries = [(f"{r.method.display_name}/{r.protocol.clip}", getattr(r.metrics.get("lse_d"), "values", None))
+               for r in records]
     print_untrusted(untrusted(entries), prog)

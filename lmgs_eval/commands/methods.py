@@ -16,6 +16,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from baselines.protocol import create_method, list_methods
     from lmgs.errors import InputError
+    from lmgs_eval.hooks import adapter_hooks
+
+    hooks = adapter_hooks()  # as the protocols build them, so the config hashes are theirs
 
     rows = []
     for name in list_methods():
@@ -24,9 +27,9 @@ def run(args: argparse.Namespace) -> int:
                          "description": "scores a folder or video rendered by any other code (--renders PATH)"})
             continue
         try:
-            info = create_method(name, preset=args.preset).describe()
+            info = create_method(name, preset=args.preset, hooks=hooks).describe()
         except InputError:  # a method without this preset: listed, with no config under it
-            info = create_method(name).describe()
+            info = create_method(name, hooks=hooks).describe()
             rows.append({"name": name, "family": info.family, "config_hash": "-", "variant": info.variant or "",
                          "description": f"(no '{args.preset}' preset) {info.description}"})
             continue

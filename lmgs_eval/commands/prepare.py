@@ -21,7 +21,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from lmgs_eval.commands._common import check_seeds
     from lmgs_eval.data.layout import check_jpegs, read_subject
-    from lmgs_eval.data.registry import BundledSpec, ensure_bundled, resolve_subject_dir
+    from lmgs_eval.data.bundled_spec import BundledSpec
+    from lmgs_eval.data.registry import ensure_bundled, resolve_subject_dir
 
     check_seeds([args.seed])
     t0 = time.perf_counter()

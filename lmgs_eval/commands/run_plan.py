@@ -56,7 +56,8 @@ def run(args: argparse.Namespace) -> int:
 
 def _unbuilt(subject: str, data_root) -> str | None:
     """The folder of a bundled subject that is not built yet (None when it is, or when ``subject`` is not bundled)."""
-    from lmgs_eval.data.registry import BundledSpec, resolve_subject_dir
+    from lmgs_eval.data.bundled_spec import BundledSpec
+    from lmgs_eval.data.registry import resolve_subject_dir
 
     if BundledSpec.parse(subject) is None:
         return None

@@ -36,14 +36,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import sys
 
-    from lmgs_eval.commands._sync import apply, print_untrusted, untrusted
+    from lmgs_eval.commands._sync import print_untrusted, untrusted
     from lmgs_eval.metrics.lpips import custom_trunk_line
     from lmgs_eval.metrics.suite import format_record, require_scored, score
 
-    apply(args)
     rec = score(args.pred, args.gt, args.audio, truncate=args.truncate, alexnet=args.alexnet, lpips=args.lpips,
                 landmarks=args.landmarks, metrics=args.metrics.split(",") if args.metrics else None,
-                reference=args.reference)
+                reference=args.reference, sync=args.sync)
     require_scored(rec["results"], str(args.pred))
     custom = rec["results"].get("lpips-alex-custom")
     if custom:

@@ -36,17 +36,16 @@ def run(args: argparse.Namespace) -> int:
     if records:
         print(f"{'method':<26} {'condition':<13} {'frames':>6} {'LSE-C':>7} {'LMD':>6} {'jitter':>7} {'open@sil':>8} {'FPS':>6}  status")
         for r in records:
-            m = r["metrics"]
 
             def v(k, fmt):
-                x = m.get(k, {}).get("value")
+                x = r.value(k)
                 return fmt.format(x) if isinstance(x, (int, float)) else "-"
 
-            st = r.get("status", {}).get("reason") or "ok"
-            print(f"{r['method']['display_name'][:26]:<26} {r['protocol']['clip']:<13} {r['protocol']['n_frames']:>6} "
+            st = (r.status.reason if r.status else None) or "ok"
+            print(f"{r.method.display_name[:26]:<26} {r.protocol.clip:<13} {r.protocol.n_frames:>6} "
                   f"{v('lse_c', '{:.3f}'):>7} {v('lmd', '{:.2f}'):>6} {v('jitter', '{:.3f}'):>7} {v('silence_open', '{:.2f}'):>8} "
-                  f"{(r.get('cost') or {}).get('fps') or 0:>6.1f}  {st}")
-        n_fail = sum(1 for r in records if r.get("status", {}).get("state") == "failed")
+                  f"{r.cost.fps or 0:>6.1f}  {st}")
+        n_fail = sum(1 for r in records if r.failed)
         print_untrusted_records(records, "lmgs-eval stress")
         print(f"{len(records)} condition runs, {n_fail} failed, {wall / 60:.1f} min wall (jobs {args.jobs}); "
               "`lmgs-eval table` writes the stability tables and heat-maps")

@@ -25,15 +25,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from lmgs_eval.commands._sync import apply
-    from lmgs_eval.data.io import load_audio
+    from lmgs_eval.commands._sync import suite
+    from lmgs_eval.data.audio import load_audio
     from lmgs_eval.errors import UserError
     from lmgs_eval.data.frames import FrameFile
     from lmgs_eval.metrics.suite import clip_audio
-    from lmgs_eval.metrics.sync import FaceClip
-    from lmgs_eval.metrics.sync_probe import check_other, probe
+    from lmgs_eval.metrics.sync.crops import FaceClip
+    from lmgs_eval.metrics.sync.probe import check_other, probe
 
-    apply(args)
+    lse = suite(args).metric("lse")  # the --sync scorer, resolved once
     src = FrameFile(args.video)  # frames are read as the scorer needs them, never held whole
     if src.fps is not None and abs(src.fps - 25.0) > 0.01:
         raise UserError(f"{args.video}: {src.fps:g} fps; the sync scorers read 25 fps")
@@ -46,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
     if args.other_audio:
         other = load_audio(Path(args.other_audio))[0]
         check_other(other, len(a16), f"--other-audio {args.other_audio}")
-    out = probe(FaceClip(src), a16, other)
+    out = probe(FaceClip(src), a16, lse.score, other)
     if not out["available"]:
         raise UserError(f"{args.video}: LSE unavailable: {out['reason']}")
     if args.json:

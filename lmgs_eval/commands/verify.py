@@ -45,8 +45,8 @@ def run(args: argparse.Namespace) -> int:
         n_art += checked
         if problems:
             bad += 1
-            print(f"{path}: inputs changed ({rec['method']['name']} / {rec['subject']['name']} / "
-                  f"{rec['protocol']['name']}:{rec['protocol']['clip']} / seed {rec['seed']})")
+            print(f"{path}: inputs changed ({rec.method.name} / {rec.subject.name} / "
+                  f"{rec.protocol.name}:{rec.protocol.clip} / seed {rec.seed})")
             for p in problems:
                 print(f"  {p}")
     if n_imported:

@@ -19,21 +19,20 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     if args.action == "import-syncnet":
-        from lmgs_eval.metrics.sync import import_syncnet
+        from lmgs_eval.metrics.sync.nets import import_syncnet
 
         print(json.dumps(import_syncnet(Path(args.path)), indent=2))
         return 0
     from lmgs_eval.metrics.ort import onnx_cache_dir
-    from lmgs_eval.metrics.sync import BUNDLED_DIR, syncnet_manifest_path
-    from lmgs_eval.metrics.sync_landmark import JSON_NAME, ONNX_NAME, WEIGHTS
-    from lmgs_eval.metrics.sync_select import status
+    from lmgs_eval.metrics.sync.landmark import JSON_NAME, ONNX_NAME
+    from lmgs_eval.metrics.sync.scorers import PIXEL_JSON, PIXEL_ONNX, WEIGHTS, syncnet_manifest_path
+    from lmgs_eval.metrics.sync.select import status
 
     mp = syncnet_manifest_path()
     print(f"weights cache: {mp.parent}  (imported weights' manifests; ONNX graphs in {onnx_cache_dir()})")
     print(f"  syncnet-v2: {'imported, ' + str(mp) if mp.is_file() else 'not imported (lmgs-eval weights import-syncnet syncnet_v2.model)'}")
-    print(f"bundled weights: {BUNDLED_DIR}")
+    print(f"bundled weights: {WEIGHTS}")
     print(f"  landmark-sync: {WEIGHTS / ONNX_NAME} {'(present)' if (WEIGHTS / JSON_NAME).is_file() else '(missing)'}")
-    print(f"  bundled-sync (pixel): {BUNDLED_DIR / 'bundled_sync.onnx'} "
-          f"{'(present)' if (BUNDLED_DIR / 'bundled_sync.json').is_file() else '(missing)'}")
+    print(f"  bundled-sync (pixel): {WEIGHTS / PIXEL_ONNX} {'(present)' if (WEIGHTS / PIXEL_JSON).is_file() else '(missing)'}")
     print(f"sync scorer here: {status()[1]}")
     return 0

@@ -1,21 +1,26 @@
-"""A clip to score, read from its file a frame at a time: a video or a folder of images.
+"""A clip read from its file a frame at a time: a video or a folder of images.
 
 Scoring never holds a whole clip at full size: a 60 s 1080x1920 video is 9 GB as uint8
 frames (37 GB as float). :class:`FrameFile` decodes on demand, as uint8 RGB frames in order,
 and every pass over the clip (paired metrics, face tracking, face crops) reads it again from
 the file. What a pass keeps is per-frame and small: metric values, 68 landmarks, face boxes,
-224x224 crops.
+224x224 crops. A folder's images are in :func:`list_frames` order (by the number in each name,
+without a gap).
 """
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
+from lmgs_eval.data.audio import read_audio_track
+from lmgs_eval.data.images import read_rgb_u8
 from lmgs_eval.errors import UserError
 
+IMAGE_EXT = frozenset({".jpg", ".jpeg", ".png", ".bmp", ".webp"})
 CHUNK = 16  # frames per chunk of a paired pass (a multiple of LPIPS's batch of 4)
 CHUNK_BYTES = 64 * 2**20  # at most this much of one clip as float32 in a chunk
 
@@ -27,8 +32,45 @@ def chunk_for(height: int, width: int) -> int:
     return n - n % 4 if n >= 4 else n
 
 
+def list_frames(folder: Path) -> list[Path]:
+    """The images of a frame folder in frame order: by the last number in each name (``7.jpg``, ``frame_0007.png``).
+
+    The numbers must run without a gap from the first: a missing frame would shift every later
+    frame against its ground truth. Names without a number are allowed only when no name has one
+    (then the order is by name).
+
+    Raises:
+        UserError: no images, names mixing numbered and unnumbered files, a number used twice
+            (``7.png`` and ``007.png``), or a gap (naming the first missing number).
+    """
+    folder = Path(folder)
+    files = [p for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXT and not p.name.startswith(".")]
+    if not files:
+        raise UserError(f"{folder}: folder has no images ({', '.join(sorted(IMAGE_EXT))})")
+    nums = {p: re.findall(r"\d+", p.stem) for p in files}
+    bare = sorted(p.name for p, n in nums.items() if not n)
+    if len(bare) == len(files):
+        return sorted(files, key=lambda p: p.name)
+    if bare:
+        raise UserError(f"{folder}: {len(bare)} image names carry no frame number (first: {bare[0]}) beside numbered "
+                        "ones; the frame order is unknown")
+    by_num: dict[int, Path] = {}
+    for p, n in nums.items():
+        k = int(n[-1])
+        if k in by_num:
+            raise UserError(f"{folder}: frame {k} twice ({by_num[k].name} and {p.name})")
+        by_num[k] = p
+    order = sorted(by_num)
+    for a, b in zip(order, order[1:]):
+        if b != a + 1:
+            miss = f"{a + 1}" if b == a + 2 else f"{a + 1}-{b - 1}"
+            raise UserError(f"{folder}: frame numbers jump from {a} to {b} (frame {miss} missing); every later frame "
+                            "would be compared with the wrong one")
+    return [by_num[k] for k in order]
+
+
 class FrameFile:
-    """The frames of a video file or a frame folder (:func:`lmgs_eval.data.io.list_frames` order), read on demand.
+    """The frames of a video file or a frame folder (:func:`list_frames` order), read on demand.
 
     Opening checks the file and reads what is small: frame rate, the audio track, the first
     frame's size. Iterating decodes the frames again each time, as uint8 ``[H, W, 3]`` RGB.
@@ -42,8 +84,6 @@ class FrameFile:
     """
 
     def __init__(self, path: str | Path):
-        from lmgs_eval.data.io import list_frames
-
         self.path = Path(path)
         self.fps: float | None = None
         self.audio, self.sr = None, None
@@ -66,8 +106,6 @@ class FrameFile:
     def _probe_video(self) -> None:
         import av
 
-        from lmgs_eval.data.io import _read_audio_av
-
         if not self.path.exists():
             raise UserError(f"{self.path}: video not found")
         try:
@@ -79,7 +117,7 @@ class FrameFile:
         except av.error.FFmpegError as exc:
             raise UserError(f"{self.path}: not a readable video ({exc.__class__.__name__})") from None
         try:
-            self.audio, self.sr = _read_audio_av(self.path)
+            self.audio, self.sr, _ = read_audio_track(self.path)
         except UserError:
             pass
 
@@ -102,8 +140,6 @@ class FrameFile:
 
     def _frames(self) -> Iterator[np.ndarray]:
         if self._files is not None:
-            from lmgs_eval.data.io import read_rgb_u8
-
             size = None
             for f in self._files:
                 img = read_rgb_u8(f)

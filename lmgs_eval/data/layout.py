@@ -27,9 +27,11 @@ from pathlib import Path
 
 import numpy as np
 
-from lmgs_eval.data import io
-from lmgs_eval.data.subject import FPS, SAMPLE_RATE, Subject
 from lmgs.errors import InputError
+from lmgs_eval.data.audio import SAMPLE_RATE, load_audio
+from lmgs_eval.data.complete import derive as derive_priors
+from lmgs_eval.data.images import image_size
+from lmgs_eval.data.subject import FPS, Subject
 from lmgs_eval.errors import UserError
 
 SAMPLES_PER_FRAME = SAMPLE_RATE // FPS  # 640
@@ -185,7 +187,7 @@ def check_jpegs(root: str | Path) -> int:
 
     A JPEG starts with the SOI marker and a marker segment (``FF D8 FF``) and ends with EOI
     (``FF D9``, possibly followed by padding zeros). A PNG renamed ``.jpg`` or a file cut short in a
-    copy fails here, where :func:`read_subject` (which decodes only the first frame) would pass it.
+    copy fails here, where :func:`read_subject` (which reads only the first frame's header) would pass it.
 
     Returns:
         The number of files checked.
@@ -214,10 +216,10 @@ def read_subject(root: str | Path, name: str | None = None, *, check_images: boo
         root: the subject folder (``data/<ID>``).
         name: subject name; the folder name by default.
         check_images: check that every ``gt_imgs/<i>.jpg`` exists (a directory listing,
-            no decoding) and that the first decodes.
+            no decoding). The first frame's header gives the subject's size in any case.
         derive: where the folder has no ``lms3d.npy`` or no depth/normal maps, derive 3D
             landmarks and a head prior from its landmarks and cameras
-            (:mod:`lmgs_eval.data.ingest.complete`; cached outside the folder, named in the notes).
+            (:mod:`lmgs_eval.data.complete`; cached outside the folder, named in the notes).
 
     Raises:
         UserError: naming the file and what is wrong.
@@ -249,7 +251,7 @@ def read_subject(root: str | Path, name: str | None = None, *, check_images: boo
                         f"too few frames (a subject needs one to train on and one to test on: {MIN_SPLIT_FRAMES} or more "
                         "under the first-10/11 split)")
 
-    # Images: all present, one decodes, its size is the subject's size.
+    # Images: all present; the first one's size (from its header) is the subject's size.
     gt_dir = root / "gt_imgs"
     if not gt_dir.is_dir():
         raise UserError(f"{gt_dir}: folder not found")
@@ -261,8 +263,7 @@ def read_subject(root: str | Path, name: str | None = None, *, check_images: boo
         extra = sum(1 for h in have if h.endswith(".jpg") and h[:-4].isdigit() and int(h[:-4]) >= n)
         if extra:
             notes.append(f"{gt_dir}: {extra} images beyond the {n} frames of transforms are ignored")
-    first = io.read_rgb(gt_dir / "0.jpg")
-    height, width = first.shape[:2]
+    width, height = image_size(gt_dir / "0.jpg")
     focal = float(top["focal_len"])
     cx = float(top.get("cx", width / 2))
     cy = float(top.get("cy", height / 2))
@@ -275,7 +276,7 @@ def read_subject(root: str | Path, name: str | None = None, *, check_images: boo
     wav = root / "aud.wav"
     if not wav.exists():
         raise UserError(f"{wav}: audio file not found")
-    audio, anotes = io.load_audio(wav)
+    audio, anotes = load_audio(wav)
     notes += anotes
     need = n * SAMPLES_PER_FRAME
     if len(audio) < need:
@@ -312,10 +313,8 @@ def read_subject(root: str | Path, name: str | None = None, *, check_images: boo
     head_prior = prior = None
     has_maps = (root / "depth").is_dir() and (root / "normal").is_dir()
     if derive and (lms3d is None or not has_maps):
-        from lmgs_eval.data.ingest.complete import derive as _derive
-
         try:
-            got3d, prior, cache = _derive(root, lms, c2w, focal, cx, cy)
+            got3d, prior, cache = derive_priors(root, lms, c2w, focal, cx, cy)
         except (InputError, ValueError, np.linalg.LinAlgError) as exc:
             got3d = prior = None
             notes.append(f"{root}: no lms3d.npy or depth/normal maps, and none could be derived ({exc})")

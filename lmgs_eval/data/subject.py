@@ -13,10 +13,11 @@ from pathlib import Path
 import numpy as np
 
 from lmgs.types import Camera
-from lmgs_eval.data.io import read_depth, read_normal, read_rgb, read_rgb_u8, read_rgba
+from lmgs_eval.data.audio import SAMPLE_RATE
+from lmgs_eval.data.bundled_spec import knee_density
+from lmgs_eval.data.images import read_depth, read_normal, read_rgb, read_rgb_u8, read_rgba
 
 FPS = 25
-SAMPLE_RATE = 16000
 
 
 @dataclass(frozen=True)
@@ -43,7 +44,7 @@ class Subject:
         notes: repairs applied while reading (resampling, mixing to mono...), one per line.
         meta: free-form metadata (``meta.json`` of bundled subjects).
         head_prior: where the folder has no depth/normal maps, a head ellipsoid derived from its
-            landmarks and cameras (:mod:`lmgs_eval.data.ingest.complete`); :meth:`depth` and
+            landmarks and cameras (:mod:`lmgs_eval.data.complete`); :meth:`depth` and
             :meth:`normal` then ray-cast it inside the head parsing mask. ``notes`` say so.
     """
 
@@ -68,7 +69,7 @@ class Subject:
     meta: dict = field(default_factory=dict)
     fps: int = FPS
     sample_rate: int = SAMPLE_RATE
-    head_prior: object | None = None  # lmgs_eval.data.ingest.complete.HeadPrior
+    head_prior: object | None = None  # lmgs_eval.data.complete.HeadPrior
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -76,11 +77,9 @@ class Subject:
         """Gaussians per face pixel at this subject's capacity knee, when it is not the preset's.
 
         Set for the bundled subjects whose measured knee is not at the quick preset's density
-        (:data:`lmgs_eval.data.registry.KNEE_DENSITY`); None otherwise. Methods that size their
+        (:data:`lmgs_eval.data.bundled_spec.KNEE_DENSITY`); None otherwise. Methods that size their
         Gaussians by face area take it (:func:`baselines.protocol.create_method`).
         """
-        from lmgs_eval.data.registry import knee_density  # the registry reads subjects: imported here, not above
-
         return knee_density(self.meta) if self.bundled else None
 
     @property
@@ -105,16 +104,16 @@ class Subject:
         return self.root / folder / f"{int(i)}.{ext}"
 
     def frame(self, i: int) -> np.ndarray:
-        """Ground-truth frame ``i`` (``gt_imgs``) as float32 ``[H, W, 3]`` RGB in [0, 1]."""
-        return read_rgb(self._img("gt_imgs", i, "jpg"))
+        """Ground-truth frame ``i`` (``gt_imgs``) as uint8 ``[H, W, 3]`` RGB."""
+        return read_rgb_u8(self._img("gt_imgs", i, "jpg"))
 
     def frames(self, ids) -> np.ndarray:
-        """Frames ``ids`` stacked: float32 ``[T, H, W, 3]`` in [0, 1]."""
-        return np.stack([self.frame(i) for i in ids]) if len(ids) else np.zeros((0, self.height, self.width, 3), np.float32)
+        """Frames ``ids`` stacked: uint8 ``[T, H, W, 3]`` RGB."""
+        return np.stack([self.frame(i) for i in ids]) if len(ids) else np.zeros((0, self.height, self.width, 3), np.uint8)
 
     def original_frame(self, i: int) -> np.ndarray:
-        """Frame ``i`` as recorded (``ori_imgs``), float32 ``[H, W, 3]`` in [0, 1]."""
-        return read_rgb(self._img("ori_imgs", i, "jpg"))
+        """Frame ``i`` as recorded (``ori_imgs``), uint8 ``[H, W, 3]`` RGB."""
+        return read_rgb_u8(self._img("ori_imgs", i, "jpg"))
 
     def background(self) -> np.ndarray:
         """``bc.jpg`` as float32 ``[H, W, 3]`` in [0, 1]."""

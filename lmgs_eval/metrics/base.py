@@ -23,6 +23,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from lmgs_eval.data.frames import CHUNK
 from lmgs_eval.errors import UserError
 
 
@@ -183,6 +184,35 @@ def merge_stats(parts: Iterable[dict[str, np.ndarray]]) -> dict[str, np.ndarray]
         return {}
     keys = parts[0].keys()
     return {k: np.concatenate([np.asarray(p[k]) for p in parts], axis=0) for k in keys}
+
+
+def unit(x: np.ndarray) -> np.ndarray:
+    """uint8 frames as float32 in [0, 1]: the one conversion, made where a computation needs floats."""
+    if x.dtype != np.uint8:
+        raise UserError(f"frames must be uint8 [T, H, W, 3] here, got dtype {x.dtype}")
+    return x.astype(np.float32) / 255.0
+
+
+class FloatFrames:
+    """Base of the paired metrics that compute on float frames in [0, 1] (PSNR, SSIM).
+
+    :meth:`stream` is how the metric suite feeds every paired metric: uint8 chunks of both clips, in
+    step. These convert :data:`~lmgs_eval.data.frames.CHUNK` frames at a time, so no float copy of
+    a clip is held.
+    """
+
+    def update(self, pred: np.ndarray, gt: np.ndarray) -> dict[str, np.ndarray]:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def stream(self, gt_key: str | None = None, same: bool = False):
+        """A function of successive uint8 chunks ``(pred, gt)`` of two clips returning each chunk's statistics
+        (``gt_key`` and ``same``, the ground truth's digest and whether ``pred`` is it, matter to metrics that
+        cache the ground truth's side)."""
+
+        def feed(pred: np.ndarray, gt: np.ndarray) -> dict[str, np.ndarray]:
+            return merge_stats(self.update(unit(pred[s:s + CHUNK]), unit(gt[s:s + CHUNK])) for s in range(0, len(pred), CHUNK))
+
+        return feed
 
 
 class Accumulator:

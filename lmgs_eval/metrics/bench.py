@@ -22,7 +22,8 @@ from lmgs_eval.metrics.landmarks import DlibBackend
 from lmgs_eval.metrics.lpips import LPIPS, LPIPS_ALEX_SPEC, backend_of, build_stlpips_torch
 from lmgs_eval.metrics.lpips_nets import AlexTrunk, LPIPSNet
 from lmgs_eval.metrics.ort import n_threads
-from lmgs_eval.metrics.sync import find_scorer, lse
+from lmgs_eval.metrics.sync.scorers import find_scorer
+from lmgs_eval.metrics.sync.scoring import lse
 
 HELP = "frames/s per metric (256, 512) and LPIPS ONNX Runtime vs eager torch, same run"
 
@@ -169,8 +170,9 @@ def run_suite(args: argparse.Namespace) -> dict:
     For each network: the ground truth is scored first (the protocols' "Ground Truth" row; it
     fills the ground-truth caches), then the method's clip is scored and timed metric by metric.
     """
+    from lmgs_eval.metrics.config import SuiteConfig
     from lmgs_eval.metrics.metric_suite import MetricSuite
-    from lmgs_eval.metrics.sync_select import candidates
+    from lmgs_eval.metrics.sync.select import candidates
 
     n = int(args.frames or 500)
     size = int(str(args.sizes or "512").split(",")[0])
@@ -179,7 +181,7 @@ def run_suite(args: argparse.Namespace) -> dict:
     rows, totals = [], {}
     for label, make in (("lpips-alex (official shape, random weights)", alex_timing_lpips),
                         ("stlpips-alex", lambda: LPIPS("stlpips-alex"))):
-        suite = MetricSuite(sync=sync)
+        suite = MetricSuite(SuiteConfig(sync=sync))
         suite.use_lpips(make())
         t = time.perf_counter()
         suite.score(gt, gt, audio, in_sync=True)

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from lmgs_eval.errors import UserError
-from lmgs_eval.metrics.base import MetricResult, MetricSpec, check_pair, mean_result
+from lmgs_eval.metrics.base import FloatFrames, MetricResult, MetricSpec, check_pair, mean_result
 
 PSNR_CAP_DB = 100.0
 """PSNR of identical frames (MSE 0, mathematically +inf) is reported as this cap, flagged."""
@@ -65,7 +65,7 @@ def psnr_per_frame(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
         return -10.0 * np.log10(mse)
 
 
-class PSNR:
+class PSNR(FloatFrames):
     """PSNR metric: ``update`` -> per-frame dB, ``compute`` -> mean with the cap flag."""
 
     spec = PSNR_SPEC
@@ -182,7 +182,7 @@ def ssim_per_frame(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
     return out
 
 
-class SSIM:
+class SSIM(FloatFrames):
     """SSIM metric (see :data:`SSIM_SPEC`)."""
 
     spec = SSIM_SPEC

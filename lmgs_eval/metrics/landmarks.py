@@ -25,10 +25,11 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from lmgs.device import choose_device
-from lmgs_eval.data.io import to_u8
+from lmgs.fileio import atomic_write_bytes
+from lmgs_eval.data.images import to_u8
 from lmgs_eval.errors import UserError
 from lmgs_eval.metrics.base import MetricResult, MetricSpec, check_frames
-from lmgs_eval.paths import atomic_write_bytes, cache_root
+from lmgs_eval.paths import cache_root
 
 MOUTH = slice(48, 68)
 EYE_OUTER = (36, 45)
@@ -374,6 +375,20 @@ class LMD:
         if same and self.gt_backend is self.backend:
             return {"pred_lms": gt_lms, "gt_lms": gt_lms}
         return {"pred_lms": self.backend.landmarks(pred), "gt_lms": gt_lms}
+
+    def stream(self, gt_key: str | None = None, same: bool = False):
+        """The metric suite's feed (:meth:`~lmgs_eval.metrics.base.FloatFrames.stream`): uint8 chunks read as they
+        are. With ``gt_key`` (one call on whole clips, :meth:`update`) the ground truth's landmarks come from the
+        cache; else each clip is tracked across the chunks."""
+        if gt_key is not None:
+            return lambda pred, gt: self.update(pred, gt, same=same, gt_key=gt_key)
+        feed_pred, feed_gt = landmark_stream(self.backend), landmark_stream(self.gt_backend)
+        return lambda pred, gt: {"pred_lms": feed_pred(pred), "gt_lms": feed_gt(gt)}
+
+    def sync_landmarks(self, stats: dict[str, np.ndarray]) -> np.ndarray | None:
+        """The prediction's landmarks when the landmark sync scorer would find the same ones (dlib's tracker),
+        so LSE need not detect them again; else None."""
+        return stats["pred_lms"] if self.backend.name == "dlib" else None
 
     def compute(self, stats: dict[str, np.ndarray]) -> MetricResult:
         return lmd_result(stats["pred_lms"], stats["gt_lms"], self.spec)

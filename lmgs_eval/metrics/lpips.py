@@ -40,7 +40,8 @@ import torch
 
 from lmgs_eval.metrics.base import MetricResult, MetricSpec, check_pair, mean_result
 from lmgs_eval.metrics.lpips_nets import AlexTrunk, FeatureGraph, LPIPSNet, STAlexTrunk
-from lmgs_eval.metrics.ort import export_onnx, load_session, load_torch_state, onnx_cache_dir, sha256_file
+from lmgs.fileio import sha256_file
+from lmgs_eval.metrics.ort import export_onnx, load_session, load_torch_state, onnx_cache_dir
 
 EXPORT_VERSION = "2"  # 2: the graph is the feature half; distances are computed outside it
 ALEXNET_CKPT = "alexnet-owt-7be5be79.pth"
@@ -402,6 +403,8 @@ class LPIPS:
             raise UserError(f"{self.spec.name}: frames must be at least {MIN_SIDE}x{MIN_SIDE}, got {h}x{w}")
         cached = self._gt_feats if (gt_key is not None and gt_key == self._gt_key) else []
         building = gt_key is not None and gt_key != self._gt_key
+        if gt_key is None:
+            self.cache_note = ""
         keep: list = []
         held = 0
         out = np.empty(t, np.float64)
@@ -432,9 +435,16 @@ class LPIPS:
     def update(self, pred: np.ndarray, gt: np.ndarray, gt_key: str | None = None, same: bool = False) -> dict[str, np.ndarray]:
         return {"per_item": self.distances(pred, gt, gt_key, same)}
 
+    def stream(self, gt_key: str | None = None, same: bool = False):
+        """The metric suite's feed (:meth:`~lmgs_eval.metrics.base.FloatFrames.stream`): uint8 chunks, converted a
+        batch at a time here; with ``gt_key`` (one call on whole clips) the ground truth's features are kept."""
+        return lambda pred, gt: self.update(pred, gt, gt_key, same)
+
     def compute(self, stats: dict[str, np.ndarray]) -> MetricResult:
         r = mean_result(self.spec, stats["per_item"], [])
         if self.spec.standin:
             r.notes.append("standin: " + self.spec.standin)
         r.notes.append("frames scored as float32 [0,1] (not re-encoded)")
+        if self.cache_note:  # the last call's ground truth did not fit the cache budget
+            r.notes.append(self.cache_note)
         return r

@@ -11,9 +11,9 @@ from pathlib import Path
 
 import torch
 
-from lmgs.fileio import sha256_file  # noqa: F401  (imported from here by the scorers)
+from lmgs.fileio import atomic_write_bytes
 from lmgs_eval.errors import UserError
-from lmgs_eval.paths import atomic_write_bytes, cache_root
+from lmgs_eval.paths import cache_root
 
 
 def onnx_cache_dir() -> Path:

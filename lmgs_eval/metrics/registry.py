@@ -1,4 +1,10 @@
-"""The table of metrics: ``create_metric(name)``, ``list_metrics()`` and backend availability."""
+"""The table of metrics: ``create_metric(name)``, ``list_metrics()`` and backend availability.
+
+Every factory takes the run's choices by the names of :class:`~lmgs_eval.metrics.config.SuiteConfig`'s
+fields (``alexnet``, ``lpips``, ``landmarks``, ``sync``) and ignores the others, so the metric suite
+builds any metric the same way. ``lpips`` is the network those choices give (``lpips-alex`` when a
+trunk is found, else ``stlpips-alex``: :func:`~lmgs_eval.metrics.lpips.resolve_lpips`).
+"""
 
 from __future__ import annotations
 
@@ -19,7 +25,8 @@ from lmgs_eval.metrics.lpips import (
     find_alexnet,
     stlpips_weights_path,
 )
-from lmgs_eval.metrics.sync import LSE_SPEC, find_scorer_status
+from lmgs_eval.metrics.sync.scoring import LSE, LSE_SPEC
+from lmgs_eval.metrics.sync.select import SyncScorers, status
 
 METRICS = Registry("metric")
 
@@ -34,17 +41,25 @@ def _ssim(**kw):
 
 def _lpips_alex(alexnet=None, **kw):
     """LPIPS alex; named ``lpips-alex`` or ``lpips-alex-custom`` by the trunk's sha256, not by the name asked for."""
-    return LPIPS("lpips-alex", alexnet=alexnet, **kw)
+    return LPIPS("lpips-alex", alexnet=alexnet)
 
 
 def _stlpips_alex(**kw):
-    kw.pop("alexnet", None)
-
-    return LPIPS("stlpips-alex", **kw)
+    return LPIPS("stlpips-alex")
 
 
-def _lmd(backend="dlib", **kw):
-    return LMD(create_backend(backend))
+def _lpips(lpips=None, alexnet=None, **kw):
+    """The LPIPS network of the run's choices: ``lpips`` when forced, else by the trunk found."""
+    return LPIPS(lpips, alexnet=alexnet)
+
+
+def _lmd(landmarks="dlib", **kw):
+    return LMD(create_backend(landmarks))
+
+
+def _lse(sync="auto", scorers=None, **kw):
+    """LSE with ``scorers`` (a :class:`SyncScorers` the suite resolved once), else those of the choice ``sync``."""
+    return LSE(scorers if scorers is not None else SyncScorers(sync))
 
 
 METRICS.register("psnr", _psnr)
@@ -52,13 +67,16 @@ METRICS.register("ssim", _ssim)
 METRICS.register("lpips-alex", _lpips_alex)
 METRICS.register("lpips-alex-custom", _lpips_alex)
 METRICS.register("stlpips-alex", _stlpips_alex)
+METRICS.register("lpips", _lpips)
 METRICS.register("lmd", _lmd)
+METRICS.register("lse", _lse)
 
 
 def create_metric(name: str, **kw):
-    """Build a paired frame metric by name (``update`` / ``compute``; see :class:`Accumulator`).
+    """Build a metric by name with the run's choices as keywords (see the module doc).
 
-    LSE is not a paired metric: use :func:`lmgs_eval.metrics.sync.lse`.
+    The paired metrics ``update`` / ``compute`` (see :class:`Accumulator`) and ``stream`` uint8 chunks;
+    ``lse`` (no reference) scores one clip and its audio with :meth:`~lmgs_eval.metrics.sync.scoring.LSE.score`.
     """
     return METRICS.get(name)(**kw)
 
@@ -97,7 +115,7 @@ def list_metrics(alexnet=None) -> list[dict]:
         "stlpips-alex": (stlpips_weights_path() is not None and ok_ort,
                          str(stlpips_weights_path()) if stlpips_weights_path() else "stlpips-pytorch not installed"),
         "lmd": (lm["dlib"] or lm["fan"], "landmark backends: " + ", ".join(k for k, v in lm.items() if v)),
-        "lse": find_scorer_status(),
+        "lse": status(),
     }
     out = []
     for name, spec in specs().items():

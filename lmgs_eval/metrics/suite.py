@@ -1,38 +1,26 @@
-"""Score a rendered clip against ground truth with every available metric: one result record."""
+"""Score a rendered clip against ground truth with every available metric: one result record.
+
+:func:`score` reads the two files (:class:`~lmgs_eval.data.frames.FrameFile`) and hands them to the
+metric suite (:class:`~lmgs_eval.metrics.metric_suite.MetricSuite`), the one scorer of the toolkit.
+"""
 
 from __future__ import annotations
 
 import datetime
-import subprocess
 from pathlib import Path
 
 import numpy as np
 
-from lmgs_eval.data.io import load_audio, to_mono_16k
+from lmgs_eval.data.audio import load_audio, to_mono_16k
+from lmgs_eval.data.frames import FrameFile
 from lmgs_eval.errors import UserError
-from lmgs_eval.metrics.base import align_lengths, merge_stats
-from lmgs_eval.data.frames import FrameFile, chunk_for
-from lmgs_eval.metrics.landmarks import landmark_stream
-from lmgs_eval.metrics.lpips import ALEX_NAMES, find_alexnet
-from lmgs_eval.metrics.registry import create_metric
-from lmgs_eval.metrics.sync import MIN_SAMPLES, FaceClip, lse, too_short
+from lmgs_eval.metrics.base import align_lengths
+from lmgs_eval.metrics.config import SuiteConfig
+from lmgs_eval.metrics.metric_suite import METRIC_NAMES, REFERENCE_METRICS, MetricSuite
+from lmgs_eval.metrics.sync.maths import MIN_SAMPLES, too_short
+from lmgs_eval.paths import git_state
 
 RECORD_SCHEMA = "lmgs-eval/score/1"
-
-METRIC_NAMES = ("psnr", "ssim", "lpips", "lmd", "lse")
-REFERENCE_METRICS = ("psnr", "ssim", "lpips", "lmd")
-"""The names ``score --metrics`` takes; the first four compare with the ground truth."""
-
-
-def load_frames(path: str | Path) -> tuple[np.ndarray, float | None, np.ndarray | None, int | None, list[str]]:
-    """Frames of a video file or a folder of images (in frame order, no gap: :func:`lmgs_eval.data.io.list_frames`).
-
-    Returns frames ``[T, H, W, 3]`` uint8, fps (None for a folder), audio, sample rate, notes. The
-    whole clip is held: :func:`score` reads its clips through :class:`~lmgs_eval.data.frames.FrameFile`
-    instead, a frame at a time.
-    """
-    src = FrameFile(path)
-    return src.read(), src.fps, src.audio, src.sr, list(src.notes)
 
 
 def clip_audio(audio: str | Path | None, src: FrameFile, what: str = "--audio") -> tuple[np.ndarray | None, str, list[str]]:
@@ -66,19 +54,14 @@ def require_scored(results: dict, what: str) -> None:
         raise UserError(f"{what}: nothing could be scored: {why}")
 
 
-def git_hash() -> str | None:
-    try:
-        r = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5,
-                           cwd=Path(__file__).resolve().parent)
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return r.stdout.strip() or None
-
-
 def score(pred: str | Path, gt: str | Path | None = None, audio: str | Path | None = None, truncate: bool = False,
           alexnet: str | None = None, lpips: str | None = None, landmarks: str = "dlib",
-          metrics: list[str] | None = None, reference: bool = False) -> dict:
+          metrics: list[str] | None = None, reference: bool = False, sync: str = "auto") -> dict:
     """Score ``pred`` (against ``gt`` when given) with every available metric; the result record.
+
+    The clips are read through :class:`~lmgs_eval.data.frames.FrameFile` (a video or a frame folder, a few
+    frames at a time) and scored by a :class:`~lmgs_eval.metrics.metric_suite.MetricSuite` built from
+    the choices below.
 
     Args:
         pred: rendered video or frame folder.
@@ -92,6 +75,7 @@ def score(pred: str | Path, gt: str | Path | None = None, audio: str | Path | No
         landmarks: LMD backend name.
         metrics: subset of names to run (default all).
         reference: ``pred`` is footage known to be in sync: LSE's self-check also requires offset 0 +- 1.
+        sync: the LSE scorer (``--sync``).
     """
     want = set(metrics or METRIC_NAMES)
     unknown = sorted(want - set(METRIC_NAMES))
@@ -100,66 +84,30 @@ def score(pred: str | Path, gt: str | Path | None = None, audio: str | Path | No
     needs_gt = sorted(want & set(REFERENCE_METRICS), key=METRIC_NAMES.index)
     if gt is None and metrics and needs_gt:
         raise UserError(f"--metrics {','.join(needs_gt)}: compares with a reference; pass --gt VIDEO_OR_FOLDER")
+    suite = MetricSuite(SuiteConfig(sync=sync, lpips=lpips, alexnet=alexnet, landmarks=landmarks))
     src = FrameFile(pred)
     notes = list(src.notes)
     fps = src.fps
     flags: list[str] = []
-    results = {}
     if fps is None:
         fps = 25.0
         notes.append("pred is a frame folder: 25 fps assumed")
-    pred_lms = None
+    gsrc = None
     if gt is not None:
         gsrc = FrameFile(gt)
         notes += gsrc.notes
         if (src.height, src.width) != (gsrc.height, gsrc.width):
             raise UserError(f"{pred} and {gt}: frame sizes differ {(src.height, src.width)} vs {(gsrc.height, gsrc.width)}")
-        n, tflags = align_lengths(src.count(), gsrc.count(), truncate)
-        flags += tflags
-        names = [m for m in ("psnr", "ssim") if m in want]
-        if "lpips" in want:
-            names.append(lpips or ("lpips-alex" if find_alexnet(alexnet) else "stlpips-alex"))
-        if "lmd" in want:
-            names.append("lmd")
-        made = {}
-        for name in names:
-            kw = {"alexnet": alexnet} if name in ALEX_NAMES else ({"backend": landmarks} if name == "lmd" else {})
-            made[name] = create_metric(name, **kw)
-        # both clips read in step, a chunk of frames at a time; each metric's per-frame statistics are kept
-        parts: dict[str, list] = {name: [] for name in made}
-        lmd = made.get("lmd")
-        feeds = (landmark_stream(lmd.backend), landmark_stream(lmd.gt_backend)) if lmd is not None else None
-        got = 0
-        size = chunk_for(src.height, src.width)
-        for cp, cg in zip(src.chunks(size, stop=n), gsrc.chunks(size, stop=n)):
-            if len(cp) != len(cg):
-                break
-            pf, gf = cp.astype(np.float32) / 255.0, cg.astype(np.float32) / 255.0
-            for name, m in made.items():
-                if name == "lmd":
-                    parts[name].append({"pred_lms": feeds[0](cp), "gt_lms": feeds[1](cg)})
-                else:
-                    parts[name].append(m.update(pf, gf))
-            got += len(cp)
-        if got != n:
-            raise UserError(f"{pred} and {gt}: {got} frame pairs decoded where {n} were counted; the shorter file is "
-                            "corrupt or truncated")
-        for name, m in made.items():
-            stats = merge_stats(parts[name])
-            r = m.compute(stats)
-            r.flags = sorted(set(r.flags + tflags))
-            results[r.spec.name] = r  # lpips-alex-custom when the trunk is not torchvision's
-            if name == "lmd" and landmarks == "dlib":
-                pred_lms = stats["pred_lms"]  # the landmark sync scorer's own tracker: LSE reads them
+        n, flags = align_lengths(src.count(), gsrc.count(), truncate)
     else:
         n = src.count()
         notes.append("no --gt: only no-reference metrics")
+    a16, reason = None, ""
     if "lse" in want:
         a16, reason, anotes = clip_audio(audio, src)
         notes += anotes
-        video = FaceClip(src.head(n), lms=pred_lms)
-        results["lse"] = lse(video, a16, fps=fps, audio_reason=reason, reference=reference)
-        n = len(video)
+    results = suite.score(src, gsrc, a16, metrics=[m for m in METRIC_NAMES if m in want], n=n, fps=fps,
+                          audio_reason=reason, in_sync=reference, flags=tuple(flags))
     return {
         "schema": RECORD_SCHEMA,
         "pred": str(pred),
@@ -170,7 +118,7 @@ def score(pred: str | Path, gt: str | Path | None = None, audio: str | Path | No
         "flags": flags,
         "notes": notes,
         "results": {k: v.to_dict() for k, v in results.items()},
-        "git": git_hash(),
+        "git": git_state(dirty=False)[0],
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
     }
 

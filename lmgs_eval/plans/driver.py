@@ -15,8 +15,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from lmgs.fileio import atomic_write_bytes
 from lmgs_eval import results as store
-from lmgs_eval.paths import atomic_write_bytes
 from lmgs_eval.plans.execute import Outcome
 from lmgs_eval.plans.identity import Identities
 from lmgs_eval.plans.runs import Run, expand
@@ -36,7 +36,7 @@ class Summary:
     done: list[str] = field(default_factory=list)  # run ids
     failed: list[str] = field(default_factory=list)  # "label: message"
     messages: list[str] = field(default_factory=list)  # per-clip problems of runs that finished
-    records: list[dict] = field(default_factory=list)  # the records written, in arrival order
+    records: list[store.Record] = field(default_factory=list)  # the records written, in arrival order
     nodes: dict[str, str] = field(default_factory=dict)  # run id -> node it ran on
     seconds: float = 0.0
 
@@ -100,12 +100,12 @@ def run_plan(plan: Plan, executor, results: str | Path, *, progress=log) -> Summ
     return s
 
 
-def _write(results: Path, outcome: Outcome) -> list[dict]:
+def _write(results: Path, outcome: Outcome) -> list[store.Record]:
     """A finished run's files into the store: everything else first, then the records (validated, atomic)."""
     records = []
     for rel, data in sorted(outcome.files.items(), key=lambda kv: kv[0].endswith(".json")):
         if rel.endswith(".json"):
-            rec = json.loads(data.decode("utf-8"))
+            rec = store.to_record(json.loads(data.decode("utf-8")))
             store.write_record(results, rec)
             records.append(rec)
         else:

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lmgs.fileio import sha256_file
 from lmgs_eval import results as store
 from lmgs_eval.plans.execute import run_config
 from lmgs_eval.plans.runs import Run
@@ -105,9 +106,7 @@ class Identities:
 
     def known_records(self, run: Run) -> dict[str, str]:
         """The store's records of the run's subject but failed ones (relative path -> JSON text): what the worker resumes from."""
-        probe = {"method": {"name": "m"}, "subject": {"name": self.subject(run.subject).name},
-                 "protocol": {"name": "p", "clip": "c"}, "seed": 0, "config_hash": "h"}
-        folder = store.record_path(self.results, probe).parent.parent
+        folder = store.run_path(self.results, self.subject(run.subject).name, "p", "m", "c", 0, "h").parent.parent
         if not folder.is_dir():
             return {}
         out = {}
@@ -116,20 +115,19 @@ class Identities:
                 continue
             text = p.read_text(encoding="utf-8")
             try:
-                failed = store.is_failed(json.loads(text))
+                rec = store.check(store.migrate(json.loads(text)))[0]
             except ValueError:
                 continue
-            if not failed:  # a failed run is redone: the protocol must not find it (some take any record as done)
+            if rec is None or not rec.failed:  # a failed run is redone: the protocol must not find it (some take any record as done)
                 out[p.relative_to(self.results).as_posix()] = text
         return out
 
-    def write_failed(self, run: Run, key: Key, reason: str) -> dict:
+    def write_failed(self, run: Run, key: Key, reason: str) -> store.Record:
         """Record ``key`` as failed with ``reason`` (never over a finished record: callers check first)."""
         subject = self.subject(run.subject)
         rec = build_record(info=key.info, subject=subject, protocol=key.protocol, clip=key.clip, split=key.split,
-                           n_frames=0, seed=key.seed, metrics={}, cost={}, artefacts={}, notes=list(subject.notes))
-        rec["config_hash"] = key.config_hash
-        rec["status"] = {"state": "failed", "reason": reason[:500] or "failed"}
+                           n_frames=0, seed=key.seed, metrics={}, cost={}, artefacts={}, notes=list(subject.notes),
+                           status={"state": "failed", "reason": reason[:500] or "failed"}, config_hash=key.config_hash)
         store.write_record(self.results, rec)
         return rec
 
@@ -143,6 +141,6 @@ def _user_clip_names(paths) -> list[tuple[str, str]]:
         path = Path(c).resolve()
         if not path.is_file():
             continue
-        sha = store.sha256_file(path)
+        sha = sha256_file(path)
         out.setdefault(sha, (f"{path.stem}-{sha[:12]}", str(path)))
     return list(out.values())

@@ -12,7 +12,7 @@ import numpy as np
 from baselines.protocol import MethodInfo
 from lmgs_eval import results as store
 from lmgs_eval.errors import UserError
-from lmgs_eval.metrics.sync import crop_faces, face_boxes
+from lmgs_eval.metrics.sync.crops import crop_faces, face_boxes
 from lmgs_eval.results.records import build_record, metrics_block, stored
 from lmgs_eval.runner import RunConfig, cycle, log
 
@@ -53,7 +53,7 @@ def control_clips(gt: np.ndarray, audio: np.ndarray, other_audio: np.ndarray) ->
     return out
 
 
-def run_controls(cfg: RunConfig, subject, gt: np.ndarray, audio: np.ndarray, other_audio: np.ndarray) -> list[dict]:
+def run_controls(cfg: RunConfig, subject, gt: np.ndarray, audio: np.ndarray, other_audio: np.ndarray) -> list[store.Record]:
     """Score the calibration controls (recorded under protocol ``calibration``); skips those in the store."""
     todo = [c for c in control_clips(gt, audio, other_audio)
             if cfg.force or stored(cfg.results, subject, c[0], "calibration", "test", 0, f"controls-v{CONTROLS_VERSION}") is None]

@@ -23,15 +23,15 @@ from lmgs_eval.runner import RunConfig, build_method, fit_method, fit_render_sco
 DEFAULT_BUDGETS = (500, 1000, 2000, 5000, 10000, 20000)
 
 
-def _failed_record(cfg: RunConfig, info, subject, clip: str, seed: int, reason: str) -> dict:
+def _failed_record(cfg: RunConfig, info, subject, clip: str, seed: int, reason: str) -> store.Record:
     rec = build_record(info=info, subject=subject, protocol="capacity", clip=clip, split="test", n_frames=0, seed=seed,
-                       metrics={}, cost={}, artefacts={}, notes=list(subject.notes))
-    rec["status"] = {"state": "failed", "reason": reason[:500]}
+                       metrics={}, cost={}, artefacts={}, notes=list(subject.notes),
+                       status={"state": "failed", "reason": reason[:500]})
     store.write_record(cfg.results, rec)
     return rec
 
 
-def run_capacity(cfg: RunConfig, budgets: Sequence[int] = DEFAULT_BUDGETS) -> list[dict]:
+def run_capacity(cfg: RunConfig, budgets: Sequence[int] = DEFAULT_BUDGETS) -> list[store.Record]:
     """Train ``lmgs`` at each budget on the subject, score it, record it (resumable)."""
     subject = find_subject(cfg.subject, cfg.data_root, progress=cfg.progress)
     train = subject_to_clip(subject, subject.train_ids, progress=cfg.progress)
@@ -131,10 +131,9 @@ def retime_side_by_side(cfg: RunConfig, subject, train, driving, trained: Sequen
     for b, s, _, rec in loaded:
         fps = n / best[(b, s)]
         out[(b, s)] = fps
-        rec["cost"]["fps_side_by_side"] = fps
-        rec["cost"]["fps_side_by_side_run"] = run
         note = (f"fps_side_by_side: all {len(loaded)} capacity models of this subject timed in one run, round-robin, "
                 f"best of {rounds} rounds of {n} frames")
-        rec["notes"] = [x for x in rec.get("notes", []) if not x.startswith("fps_side_by_side:")] + [note]
+        rec = store.replace(rec, cost=store.replace(rec.cost, fps_side_by_side=fps, fps_side_by_side_run=run),
+                            notes=(*(x for x in rec.notes if not x.startswith("fps_side_by_side:")), note))
         store.write_record(cfg.results, rec)
     return out

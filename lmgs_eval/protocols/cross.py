@@ -22,7 +22,8 @@ import numpy as np
 from lmgs.types import Camera, DrivingAudio
 from lmgs_eval import results as store
 from lmgs_eval.convert import subject_to_clip
-from lmgs_eval.data.io import load_audio, read_rgb_u8
+from lmgs_eval.data.audio import load_audio
+from lmgs_eval.data.images import read_rgb_u8
 from lmgs_eval.data.registry import find_subject
 from lmgs_eval.errors import UserError
 from lmgs_eval.results.records import build_record, metrics_block, stored
@@ -89,7 +90,7 @@ def user_cross_clips(paths: list[str]) -> tuple[list[CrossClip], list[str]]:
     return clips, errors
 
 
-def run_cross(cfg: RunConfig, audio_paths: list[str] | None = None) -> tuple[list[dict], list[str]]:
+def run_cross(cfg: RunConfig, audio_paths: list[str] | None = None) -> tuple[list[store.Record], list[str]]:
     """Drive trained models with other audio; LSE per clip, and LMD where the clip has GT.
 
     Returns the records written and the per-file errors (the other clips still run).
@@ -155,7 +156,8 @@ def _done(cfg: RunConfig, subject, info, clip: str, seed: int, renders_dir: str)
     rec = stored(cfg.results, subject, info.name, "cross", clip, seed, info.config_hash)
     if rec is None:
         return False
-    rel = ((rec.get("artefacts") or {}).get("render") or {}).get("path") or _render_rel(renders_dir, info, seed, clip)
+    render = rec.artefacts.get("render")
+    rel = render.path if render is not None else _render_rel(renders_dir, info, seed, clip)
     if not (Path(cfg.results) / rel).is_file():
         log(f"{info.name} seed {seed}: the render of clip {clip} is missing ({Path(cfg.results) / rel}); made again")
         return False

@@ -36,7 +36,7 @@ def plate_reference_psnr(subject) -> float | None:
     return None if frames is None else float(psnr(frames / 255.0, test.frames / 255.0).value)
 
 
-def run_plate_reference(cfg: RunConfig, subject, test) -> list[dict]:
+def run_plate_reference(cfg: RunConfig, subject, test) -> list[store.Record]:
     """Table I's reference row "GT head on plate" (skipped without head masks or when in the store)."""
     info = MethodInfo("plate-reference", "GT head on plate", "reference", PLATE_DESCRIPTION,
                       config={"version": PLATE_VERSION}, config_hash=f"plate-v{PLATE_VERSION}")

@@ -19,7 +19,7 @@ from lmgs_eval.results.records import build_record, metrics_block, stored
 from lmgs_eval.runner import RunConfig, build_method, fit_render_score, log, render_stem, write_render
 
 
-def run_self(cfg: RunConfig) -> list[dict]:
+def run_self(cfg: RunConfig) -> list[store.Record]:
     """The self-driven protocol for every method and seed; returns the records written."""
     subject = find_subject(cfg.subject, cfg.data_root, progress=cfg.progress)
     log(f"subject {subject.name}: {subject.n_frames} frames {subject.width}x{subject.height}, "

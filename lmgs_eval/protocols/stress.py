@@ -2,7 +2,7 @@
 
 For each method and each condition of :mod:`lmgs_eval.protocols.perturb` (made from the subject's
 clean test audio and, for "another voice", the bundled cross-driven clip A), the driving
-audio goes through the same loading path as a user's file (:func:`~lmgs_eval.data.io.to_mono_16k`:
+audio goes through the same loading path as a user's file (:func:`~lmgs_eval.data.audio.to_mono_16k`:
 stereo mixed down, other rates resampled), is rendered, and is recorded under protocol
 ``stress`` with clip = the condition name:
 
@@ -36,7 +36,7 @@ from baselines import protocol as methods
 from lmgs.types import DrivingAudio
 from lmgs_eval import results as store
 from lmgs_eval.convert import driving_from_subject, subject_to_clip
-from lmgs_eval.data.io import to_mono_16k
+from lmgs_eval.data.audio import to_mono_16k
 from lmgs_eval.data.registry import find_subject
 from lmgs_eval.errors import UserError
 from lmgs_eval.metrics.base import MetricResult, MetricSpec
@@ -196,7 +196,7 @@ class _Lazy:
 
 
 def run_stress(cfg: RunConfig, conditions: tuple[str, ...] | None = None, max_minutes: float = 15.0,
-               long_seconds: float = 300.0, jobs: int = 1) -> tuple[list[dict], list[str]]:
+               long_seconds: float = 300.0, jobs: int = 1) -> tuple[list[store.Record], list[str]]:
     """The stability suite for every method and seed; returns (records written, messages).
 
     ``max_minutes``: a condition whose predicted rendering time (frames / clean FPS) is
@@ -229,7 +229,7 @@ def run_stress(cfg: RunConfig, conditions: tuple[str, ...] | None = None, max_mi
 
 
 def _run_parallel(cfg: RunConfig, pairs, conditions, max_minutes: float, long_seconds: float,
-                  jobs: int) -> tuple[list[dict], list[str]]:
+                  jobs: int) -> tuple[list[store.Record], list[str]]:
     """Each (method, seed) suite in a worker process (spawned: no forked torch threads)."""
     shipped = _ship(cfg.methods)
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
@@ -295,7 +295,7 @@ def _worker_init(threads: int) -> None:
 
 
 def _worker(cfg: RunConfig, conditions, max_minutes: float, long_seconds: float, note: str,
-            shipped: dict) -> tuple[list[dict], list[str]]:
+            shipped: dict) -> tuple[list[store.Record], list[str]]:
     _adopt(shipped)
     ctx = _context(cfg, long_seconds)
     conds = _selected(ctx["conds"], conditions)
@@ -304,7 +304,7 @@ def _worker(cfg: RunConfig, conditions, max_minutes: float, long_seconds: float,
 
 
 def _stress_one(cfg: RunConfig, ctx: dict, conds, name: str, seed: int, max_minutes: float,
-                note: str | None = None) -> tuple[list[dict], list[str]]:
+                note: str | None = None) -> tuple[list[store.Record], list[str]]:
     """Every condition of ``conds`` for one method and seed (resumable: finished ones are skipped)."""
     subject, test, other, backend = ctx["subject"], ctx["test"], ctx["other"], ctx["backend"]
     gt_lms, gt_found = ctx["gt_lms"], ctx["gt_found"]
@@ -383,10 +383,8 @@ def _stress_one(cfg: RunConfig, ctx: dict, conds, name: str, seed: int, max_minu
         cost["wall_seconds"] = time.perf_counter() - t0
         rec = build_record(info=info, subject=subject, protocol="stress", clip=cond.name, split=cond.description,
                            n_frames=n, seed=seed, metrics=metrics, cost=cost, artefacts=art,
-                           notes=list(notes) + [f"perturbation set v{PERTURB_VERSION}: {cond.description}"])
-        rec["config_hash"] = ch
-        if status is not None:
-            rec["status"] = status
+                           notes=list(notes) + [f"perturbation set v{PERTURB_VERSION}: {cond.description}"],
+                           status=status, config_hash=ch)
         store.write_record(cfg.results, rec)
         records.append(rec)
         state = "FAILED: " + status["reason"] if status else "ok"

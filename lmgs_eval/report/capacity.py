@@ -10,7 +10,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from lmgs_eval.results import is_failed
+from lmgs_eval.results.types import Record
 
 # (metric, higher is better, kind, amount): within `amount` of the best, absolute or relative.
 TOLERANCE = (("psnr", True, "abs", 0.3), ("lpips", False, "rel", 0.05), ("lmd", False, "rel", 0.05))
@@ -69,12 +69,12 @@ def budget_means(points: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     return out
 
 
-def _budget(rec: dict) -> int:
+def _budget(rec: Record) -> int:
     """The Gaussian budget of a capacity record (its clip is ``budget-<N>``)."""
-    return int(rec["protocol"]["clip"].split("-", 1)[1])
+    return int(rec.protocol.clip.split("-", 1)[1])
 
 
-def points_from_records(records: Sequence[dict]) -> dict[str, list[dict[str, Any]]]:
+def points_from_records(records: Sequence[Record]) -> dict[str, list[dict[str, Any]]]:
     """Per subject, one point per capacity record: budget, count, quality and cost.
 
     ``fps`` is the side-by-side figure only when every point of the subject was timed in one
@@ -83,15 +83,12 @@ def points_from_records(records: Sequence[dict]) -> dict[str, list[dict[str, Any
     """
     raw: dict[str, list[tuple[dict[str, Any], Any, Any, Any]]] = {}
     for r in records:
-        if r["protocol"]["name"] != "capacity" or is_failed(r):
+        if r.protocol.name != "capacity" or r.failed:
             continue
-        m, c = r["metrics"], r.get("cost") or {}
-        point = {"budget": _budget(r), "n_gaussians": c.get("n_gaussians"),
-                 "psnr": m.get("psnr", {}).get("value"), "lpips": m.get("lpips", {}).get("value"),
-                 "lmd": m.get("lmd", {}).get("value"), "model_mb": c.get("model_mb"),
-                 "train_seconds": c.get("train_seconds"), "seed": r["seed"]}
-        raw.setdefault(r["subject"]["name"], []).append(
-            (point, c.get("fps"), c.get("fps_side_by_side"), c.get("fps_side_by_side_run")))
+        c = r.cost
+        point = {"budget": _budget(r), "n_gaussians": c.n_gaussians, "psnr": r.value("psnr"), "lpips": r.value("lpips"),
+                 "lmd": r.value("lmd"), "model_mb": c.model_mb, "train_seconds": c.train_seconds, "seed": r.seed}
+        raw.setdefault(r.subject.name, []).append((point, c.fps, c.fps_side_by_side, c.fps_side_by_side_run))
     out: dict[str, list[dict[str, Any]]] = {}
     for subject, rows in raw.items():
         side = all(sbs is not None for _, _, sbs, _ in rows) and len({run for *_, run in rows}) == 1
@@ -99,10 +96,10 @@ def points_from_records(records: Sequence[dict]) -> dict[str, list[dict[str, Any
     return out
 
 
-def failed_points(records: Sequence[dict]) -> dict[str, list[dict[str, Any]]]:
+def failed_points(records: Sequence[Record]) -> dict[str, list[dict[str, Any]]]:
     """Per subject, the capacity runs that failed: ``{"budget", "seed", "reason"}``."""
     out: dict[str, list[dict[str, Any]]] = {}
     for r in records:
-        if r["protocol"]["name"] == "capacity" and is_failed(r):
-            out.setdefault(r["subject"]["name"], []).append({"budget": _budget(r), "seed": r["seed"], "reason": r["status"].get("reason", "")})
+        if r.protocol.name == "capacity" and r.failed:
+            out.setdefault(r.subject.name, []).append({"budget": _budget(r), "seed": r.seed, "reason": r.status.reason or ""})
     return out

@@ -15,23 +15,24 @@ import numpy as np
 from lmgs_eval.report.stats import ALPHA, PairedTest, bootstrap_ci_seeds, mean_over_seeds, paired_test, seed_test
 from lmgs_eval.report.table_model import (BUSY, BUSY_SHARE, CUSTOM_KEYS, FAMILY_ORDER, METRICS, MIXED, OURS, SLOW_HOST, TIE, UNTRUSTED,
                                           Cell, Column, Record, Row, Section, column_backends)
-from lmgs_eval.results import budget_note
+from lmgs_eval.results.notes import budget_note
+from lmgs_eval.results.types import Cost
 
 
 # ----------------------------------------------------------------------------- aggregation
 def is_ok(rec: Record) -> bool:
     """A record whose run did not fail."""
-    return (rec.get("status") or {}).get("state", "ok") == "ok"
+    return not rec.failed
 
 
 def is_variant(rec: Record) -> bool:
     """An ablation / sweep variant (goes to Tables III / IV, not Table I)."""
-    return bool(rec["method"].get("variant"))
+    return bool(rec.method.variant)
 
 
 def components_of(rec: Record) -> dict[str, Any] | None:
     """The switchable parts a record's method declared (``method.components``), or None."""
-    return rec["method"].get("components")
+    return rec.method.components
 
 
 SYNC_KEYS = ("lse_d", "lse_c", "av_offset")  # the figures of one LSE, whose self-check is in lse_d's values
@@ -41,15 +42,15 @@ def metric_cell(records: Sequence[Record], key: str) -> Cell:
     """Aggregate metric ``key`` over the seeds of one row (see :class:`Cell`)."""
     vals, items, backends = [], [], set()
     untrusted = key in SYNC_KEYS and any(
-        ((r["metrics"].get("lse_d") or {}).get("values") or {}).get("trusted") is False for r in records)
+        (getattr(r.metrics.get("lse_d"), "values", None) or {}).get("trusted") is False for r in records)
     for r in records:
-        m = r["metrics"].get(key)
-        if m is None or m["value"] is None:
+        m = r.metrics.get(key)
+        if m is None or m.value is None:
             continue
-        vals.append(float(m["value"]))
-        backends.add(f"{m['backend']} v{m['backend_version']}")
-        if m.get("per_item"):
-            items.append(m["per_item"])
+        vals.append(float(m.value))
+        backends.add(f"{m.backend} v{m.backend_version}")
+        if m.per_item:
+            items.append(m.per_item)
     if not vals:
         return Cell(backends=backends)
     per_item_ok = len(items) == len(vals)
@@ -68,7 +69,7 @@ def metric_cell(records: Sequence[Record], key: str) -> Cell:
 
 def cost_cell(records: Sequence[Record], key: str) -> Cell:
     """Aggregate a cost field over seeds (no CI: one number per run)."""
-    vals = [float(r["cost"][key]) for r in records if r["cost"].get(key) is not None]
+    vals = [float(getattr(r.cost, key)) for r in records if getattr(r.cost, key) is not None]
     if not vals:
         return Cell()
     return Cell(mean=float(np.mean(vals)), std=float(np.std(vals, ddof=1)) if len(vals) > 1 else None,
@@ -77,24 +78,24 @@ def cost_cell(records: Sequence[Record], key: str) -> Cell:
 
 def fill_row(row: Row, columns: Sequence[Column]) -> None:
     for c in columns:
-        recs = [r for r in row.records if c.clip is None or r["protocol"]["clip"] == c.clip]
+        recs = [r for r in row.records if c.clip is None or r.protocol.clip == c.clip]
         if c.kind == "metric":
             row.cells[c.id] = metric_cell(recs, c.key)
         elif c.kind == "cost":
             row.cells[c.id] = cost_cell(recs, c.key)
 
 
-def timed_busy(cost: dict) -> bool:
+def timed_busy(cost: Cost) -> bool:
     """True when a run's FPS was timed while other processes took more than :data:`BUSY_SHARE` of the host's
     CPU, or while the host ran the fixed probe more than :data:`SLOW_HOST` times slower than its best."""
-    share, slow = cost.get("others_cpu_share"), cost.get("host_slowdown")
+    share, slow = cost.others_cpu_share, cost.host_slowdown
     return (share is not None and share > BUSY_SHARE) or (slow is not None and slow > SLOW_HOST)
 
 
-def busy_text(cost: dict) -> str:
+def busy_text(cost: Cost) -> str:
     """What made a timing busy, e.g. ``others 23%`` or ``probe 2.1x slower``."""
     parts = []
-    share, slow = cost.get("others_cpu_share"), cost.get("host_slowdown")
+    share, slow = cost.others_cpu_share, cost.host_slowdown
     if share is not None and share > BUSY_SHARE:
         parts.append(f"others {share:.0%}")
     if slow is not None and slow > SLOW_HOST:
@@ -107,8 +108,8 @@ BUSY_NOTE = (f"{BUSY} FPS timed on a busy or slowed host: other processes took m
              "that machine (cost.host_slowdown)")
 
 
-def _flag_column(sec: Section, columns: Sequence[Column], key: str, hit: Callable[[dict], bool],
-                 describe: Callable[[list[dict], int], str]) -> list[str]:
+def _flag_column(sec: Section, columns: Sequence[Column], key: str, hit: Callable[[Cost], bool],
+                 describe: Callable[[list[Cost], int], str]) -> list[str]:
     """Mark with :data:`BUSY` the ``key`` cost cell of every row with a run where ``hit(cost)``.
 
     Returns one ``"<row> <describe(hits, n_runs)>"`` per marked row, for the section's note.
@@ -119,7 +120,7 @@ def _flag_column(sec: Section, columns: Sequence[Column], key: str, hit: Callabl
     busy = []
     for row in sec.rows:
         cell = row.cells.get(col.id)
-        costs = [r.get("cost") or {} for r in row.records]
+        costs = [r.cost for r in row.records]
         hits = [c for c in costs if hit(c)]
         if cell is not None and cell.mean is not None and hits:
             cell.flag = BUSY
@@ -129,8 +130,8 @@ def _flag_column(sec: Section, columns: Sequence[Column], key: str, hit: Callabl
 
 def flag_busy_timings(sec: Section, columns: Sequence[Column]) -> None:
     """Mark FPS timed while other processes took more than :data:`BUSY_SHARE` of the host's CPU."""
-    def worst(hits: list[dict], n: int) -> str:
-        w = max(hits, key=lambda c: (c.get("host_slowdown") or 1.0) * (1 + (c.get("others_cpu_share") or 0.0)))
+    def worst(hits: list[Cost], n: int) -> str:
+        w = max(hits, key=lambda c: (c.host_slowdown or 1.0) * (1 + (c.others_cpu_share or 0.0)))
         return f"{len(hits)}/{n} runs, worst {busy_text(w)}"
 
     busy = _flag_column(sec, columns, "fps", timed_busy, worst)
@@ -139,16 +140,16 @@ def flag_busy_timings(sec: Section, columns: Sequence[Column]) -> None:
     flag_busy_training(sec, columns)
 
 
-def trained_busy(cost: dict) -> bool:
+def trained_busy(cost: Cost) -> bool:
     """True when other processes took more than :data:`BUSY_SHARE` of the host's CPU while the model trained."""
-    share = cost.get("train_others_cpu_share")
+    share = cost.train_others_cpu_share
     return share is not None and share > BUSY_SHARE
 
 
 def flag_busy_training(sec: Section, columns: Sequence[Column]) -> None:
     """Mark training times measured while other processes took more than :data:`BUSY_SHARE` of the host's CPU."""
-    def worst(hits: list[dict], n: int) -> str:
-        return f"{len(hits)}/{n} runs, worst others {max(c['train_others_cpu_share'] for c in hits):.0%}"
+    def worst(hits: list[Cost], n: int) -> str:
+        return f"{len(hits)}/{n} runs, worst others {max(c.train_others_cpu_share for c in hits):.0%}"
 
     busy = _flag_column(sec, columns, "train_seconds", trained_busy, worst)
     if busy:
@@ -231,32 +232,32 @@ def compare(a: Cell, b: Cell) -> PairedTest | None:
 
 
 def subject_title(recs: Iterable[Record]) -> str:
-    s = next(iter(recs))["subject"]
-    return s["name"] + (" (bundled)" if s["bundled"] else "")
+    s = next(iter(recs)).subject
+    return s.name + (" (bundled)" if s.bundled else "")
 
 
 def by_subject(records: Iterable[Record]) -> dict[str, list[Record]]:
     out: dict[str, list[Record]] = defaultdict(list)
     for r in records:
-        out[r["subject"]["name"]].append(r)
+        out[r.subject.name].append(r)
     return dict(sorted(out.items()))
 
 
 def make_rows(records: Iterable[Record], label: Callable[[Record], str] | None = None) -> list[Row]:
     groups: dict[tuple[str, str], list[Record]] = defaultdict(list)
     for r in records:
-        groups[(r["method"]["name"], r["config_hash"])].append(r)
+        groups[(r.method.name, r.config_hash)].append(r)
     names = defaultdict(int)
     for name, _ in groups:
         names[name] += 1
     rows = []
     for (name, h), recs in groups.items():
-        recs.sort(key=lambda r: (r["seed"], r["protocol"]["clip"]))
-        m = recs[0]["method"]
-        text = label(recs[0]) if label else m["display_name"] or name
+        recs.sort(key=lambda r: (r.seed, r.protocol.clip))
+        m = recs[0].method
+        text = label(recs[0]) if label else m.display_name or name
         if names[name] > 1:
             text += f" [{h[:8]}]"  # same method, different configs: never merged silently
-        rows.append(Row(text, name, m["family"], recs))
+        rows.append(Row(text, name, m.family, recs))
     return rows
 
 
@@ -272,11 +273,11 @@ def common_notes(records: Sequence[Record], columns: Sequence[Column], methods: 
             continue
         made, standins = set(), set()
         for r in records:
-            m = r["metrics"].get(c.key)
-            if m is not None and m["value"] is not None:
-                made.add(f"{m['backend']} v{m['backend_version']}")
-                if m.get("standin"):
-                    standins.add(m["standin"])
+            m = r.metrics.get(c.key)
+            if m is not None and m.value is not None:
+                made.add(f"{m.backend} v{m.backend_version}")
+                if m.standin:
+                    standins.add(m.standin)
         if not made:
             continue
         name = f"{c.group + ' ' if c.group else ''}{c.label}"
@@ -287,36 +288,36 @@ def common_notes(records: Sequence[Record], columns: Sequence[Column], methods: 
     # a subject's own Gaussian budget (record.run.budget), and the rows that used it
     sized: dict[tuple[str, str], set[str]] = defaultdict(set)
     for r in records:
-        b = (r.get("run") or {}).get("budget")
+        b = r.run.budget if r.run is not None else None
         if b:
-            sized[(r["subject"]["name"], budget_note(b["density"], b["preset_density"]))].add(
-                r["method"]["display_name"] or r["method"]["name"])
+            sized[(r.subject.name, budget_note(b.density, b.preset_density))].add(
+                r.method.display_name or r.method.name)
     seen = set()
     for r in records:
-        s = r["subject"]
-        if s["name"] in seen:
+        s = r.subject
+        if s.name in seen:
             continue
-        seen.add(s["name"])
-        if s["bundled"] or s["standin"]:
-            notes.append(f"Subject {s['name']}: {'bundled, synthetic' if s['bundled'] else 'stand-in'}"
-                         f"{': ' + s['standin'] if s['standin'] else ''} (not a real recording).")
+        seen.add(s.name)
+        if s.bundled or s.standin:
+            notes.append(f"Subject {s.name}: {'bundled, synthetic' if s.bundled else 'stand-in'}"
+                         f"{': ' + s.standin if s.standin else ''} (not a real recording).")
         for (name, n), labels in sized.items():
-            if name == s["name"]:
+            if name == s.name:
                 notes.append(f"Subject {name}: {n} ({', '.join(sorted(labels))}).")
     if methods:
         done = set()
-        for r in sorted(records, key=lambda r: r["method"]["name"]):
-            m = r["method"]
-            if m["name"] in done or m["family"] == "ground-truth":
+        for r in sorted(records, key=lambda r: r.method.name):
+            m = r.method
+            if m.name in done or m.family == "ground-truth":
                 continue
-            done.add(m["name"])
-            text = f"{m['display_name'] or m['name']} ({m['family']}): {m['description']}"
-            if m["standins"]:
-                text += f" Stand-ins: {'; '.join(m['standins'])}."
+            done.add(m.name)
+            text = f"{m.display_name or m.name} ({m.family}): {m.description}"
+            if m.standins:
+                text += f" Stand-ins: {'; '.join(m.standins)}."
             notes.append(text)
-    machines = {f"{r['machine']['cpu']}, {r['machine']['threads']} threads, "
-                + (f"{r['machine']['cpu_kernels']} kernels, " if r["machine"].get("cpu_kernels") else "")
-                + f"{r['machine']['cuda_device'] or 'no GPU'}" for r in records}
+    machines = {f"{r.machine.cpu}, {r.machine.threads} threads, "
+                + (f"{r.machine.cpu_kernels} kernels, " if r.machine.cpu_kernels else "")
+                + f"{r.machine.cuda_device or 'no GPU'}" for r in records}
     if any(c.kind == "cost" for c in columns) and machines:
         if len(machines) > 1:
             notes.append(f"{MIXED} cost measured on different machines: {' | '.join(sorted(machines))}.")
@@ -328,7 +329,7 @@ def common_notes(records: Sequence[Record], columns: Sequence[Column], methods: 
 def with_custom_keys(keys: Iterable[str], records: Sequence[Record]) -> list[str]:
     """``keys`` with each custom-weights key (:data:`CUSTOM_KEYS`) after its metric's when a record has a value for it."""
     keys = list(keys)
-    present = {k for r in records for k, m in r["metrics"].items() if m and m.get("value") is not None}
+    present = {k for r in records for k, m in r.metrics.items() if m.value is not None}
     out = []
     for k in keys:
         out.append(k)

@@ -19,11 +19,12 @@ from typing import Any
 
 import numpy as np
 
-from lmgs_eval.data.io import read_video
+from lmgs_eval.data.frames import FrameFile
 from lmgs_eval.report.capacity import budget_means, failed_points, knee, points_from_records, tolerance_text
 from lmgs_eval.report.cells import by_subject, cost_cell, is_ok, is_variant, make_rows, metric_cell
 from lmgs_eval.report.table_model import METRICS
 from lmgs_eval.report.tables import table_stability
+from lmgs_eval.results.types import Record
 
 FAMILY_COLOURS = {"2D": "#8c564b", "NeRF": "#1f77b4", "3DGS": "#2ca02c", "external": "#9467bd",
                   "ground-truth": "#7f7f7f", "control": "#d62728"}
@@ -62,9 +63,9 @@ def pareto_front(xs: Sequence[float], ys: Sequence[float], x_higher: bool = True
     return sorted(keep, key=lambda i: (float(xs[i]), float(ys[i])))
 
 
-def _points(records: Sequence[dict[str, Any]], cost_key: str, metric: str) -> list[dict[str, Any]]:
-    use = [r for r in records if r["protocol"]["name"] == "self" and is_ok(r) and not is_variant(r)
-           and r["method"]["family"] not in ("control", "ground-truth", "reference")]
+def _points(records: Sequence[Record], cost_key: str, metric: str) -> list[dict[str, Any]]:
+    use = [r for r in records if r.protocol.name == "self" and is_ok(r) and not is_variant(r)
+           and r.method.family not in ("control", "ground-truth", "reference")]
     pts = []
     for subject, recs in by_subject(use).items():
         for row in make_rows(recs):
@@ -73,7 +74,7 @@ def _points(records: Sequence[dict[str, Any]], cost_key: str, metric: str) -> li
             if c.mean is None or m.mean is None or c.mean <= 0:
                 continue
             x = c.mean / 60 if cost_key == "train_seconds" else c.mean
-            label = row.label if len({r["subject"]["name"] for r in records}) == 1 else f"{row.label} / {subject}"
+            label = row.label if len({r.subject.name for r in records}) == 1 else f"{row.label} / {subject}"
             pts.append({"x": x, "y": m.mean, "family": row.family, "label": label,
                         "backends": {b.split(" v")[0] for b in m.backends}})
     return pts
@@ -116,7 +117,7 @@ def _declutter(fig, ax, labels) -> None:
         placed.append(a.get_window_extent(renderer))
 
 
-def speed_charts(records: Sequence[dict[str, Any]], out_dir: str | Path) -> list[Path]:
+def speed_charts(records: Sequence[Record], out_dir: str | Path) -> list[Path]:
     """Write the four speed / training-time versus accuracy charts (PNG and SVG); returns the files.
 
     A chart with no point (no record has both numbers) is not written.
@@ -177,7 +178,7 @@ def speed_charts(records: Sequence[dict[str, Any]], out_dir: str | Path) -> list
     return written
 
 
-def stability_heatmap(records: Sequence[dict[str, Any]], out_dir: str | Path, metric: str = "lse_c") -> list[Path]:
+def stability_heatmap(records: Sequence[Record], out_dir: str | Path, metric: str = "lse_c") -> list[Path]:
     """Write ``stability_<metric>.png``: methods x stress conditions, colour = change from clean.
 
     Cells with failed runs are hatched and marked with the failure count. Nothing is written
@@ -227,7 +228,7 @@ def stability_heatmap(records: Sequence[dict[str, Any]], out_dir: str | Path, me
     return [png]
 
 
-def capacity_charts(records: Sequence[dict[str, Any]], out_dir: str | Path) -> list[Path]:
+def capacity_charts(records: Sequence[Record], out_dir: str | Path) -> list[Path]:
     """``capacity_<subject>.png/svg``: quality and cost against the Gaussian count, the knee marked.
 
     One column per quantity (PSNR, LPIPS, LMD, FPS, MB, training minutes), x = the final number
@@ -252,8 +253,8 @@ def capacity_charts(records: Sequence[dict[str, Any]], out_dir: str | Path) -> l
     for subject, pts in sorted(per_subject.items()):
         mean = budget_means(pts)
         k_pt = knee(mean)
-        default = [r["cost"].get("n_gaussians") for r in records if r["protocol"]["name"] == "self"
-                   and r["method"]["name"] == "lmgs" and r["subject"]["name"] == subject and (r.get("cost") or {}).get("n_gaussians")]
+        default = [r.cost.n_gaussians for r in records if r.protocol.name == "self"
+                   and r.method.name == "lmgs" and r.subject.name == subject and r.cost.n_gaussians]
         with matplotlib.rc_context(_RC):
             fig, axes = plt.subplots(1, len(panels), figsize=(2.6 * len(panels), 2.8))
             sbs = all(q.get("fps_side_by_side") for q in pts)
@@ -284,10 +285,10 @@ def capacity_charts(records: Sequence[dict[str, Any]], out_dir: str | Path) -> l
     return files
 
 
-def all_charts(records: Sequence[dict[str, Any]], out_dir: str | Path) -> list[Path]:
+def all_charts(records: Sequence[Record], out_dir: str | Path) -> list[Path]:
     """Every chart the records allow: speed charts, one heat-map per stressed metric, capacity."""
     files = speed_charts(records, out_dir) + capacity_charts(records, out_dir)
-    stressed = sorted({k for r in records if r["protocol"]["name"] == "stress" for k in r["metrics"] if k in METRICS})
+    stressed = sorted({k for r in records if r.protocol.name == "stress" for k in r.metrics if k in METRICS})
     for m in stressed:
         files += stability_heatmap(records, out_dir, m)
     return files
@@ -297,7 +298,7 @@ SHEET_FRAMES = 5
 """Test frames per method on a render contact sheet (evenly spaced over the clip)."""
 
 
-def render_sheets(records: Sequence[dict[str, Any]], root: str | Path, out_dir: str | Path,
+def render_sheets(records: Sequence[Record], root: str | Path, out_dir: str | Path,
                   frames: int = SHEET_FRAMES) -> list[Path]:
     """``renders_<subject>.png``: per subject, ground truth then each method's self-driven render
     (its lowest seed), ``frames`` test frames each, labelled with the method and its PSNR.
@@ -313,32 +314,32 @@ def render_sheets(records: Sequence[dict[str, Any]], root: str | Path, out_dir: 
 
 
     root, out_dir = Path(root), Path(out_dir)
-    by_subject: dict[str, dict[str, dict]] = {}
+    by_subject: dict[str, dict[str, Record]] = {}
     for r in records:
-        if r["protocol"]["name"] != "self" or not is_ok(r) or is_variant(r) or r["method"]["family"] == "reference":
+        if r.protocol.name != "self" or not is_ok(r) or is_variant(r) or r.method.family == "reference":
             continue
-        row = by_subject.setdefault(r["subject"]["name"], {})
-        name = r["method"]["name"]
-        if name not in row or r["seed"] < row[name]["seed"]:
+        row = by_subject.setdefault(r.subject.name, {})
+        name = r.method.name
+        if name not in row or r.seed < row[name].seed:
             row[name] = r
     files = []
     for subject in sorted(by_subject):
         rows, missing = [], 0
-        order = sorted(by_subject[subject].values(), key=lambda r: (r["method"]["family"] != "ground-truth",
-                                                                   r["method"]["family"], r["method"]["display_name"]))
+        order = sorted(by_subject[subject].values(), key=lambda r: (r.method.family != "ground-truth",
+                                                                   r.method.family, r.method.display_name))
         for r in order:
-            art = (r.get("artefacts") or {}).get("render")
-            path = root / art["path"] if art else None
+            art = r.artefacts.get("render")
+            path = root / art.path if art else None
             if path is None or not path.is_file():
                 missing += 1
                 continue
-            video = read_video(path)[0]
+            video = FrameFile(path).read()
             pick = np.unique(np.linspace(0, len(video) - 1, frames).round().astype(int))
-            psnr = (r["metrics"].get("psnr") or {}).get("value")
-            label = r["method"]["display_name"] + (f"\nseed {r['seed']}" if r["method"]["family"] != "ground-truth" else "")
-            if isinstance(psnr, (int, float)) and r["method"]["family"] != "ground-truth":
+            psnr = r.value("psnr")
+            label = r.method.display_name + (f"\nseed {r.seed}" if r.method.family != "ground-truth" else "")
+            if isinstance(psnr, (int, float)) and r.method.family != "ground-truth":
                 label += f", {psnr:.2f} dB"
-            rows.append((label, np.concatenate([video[i] for i in pick], 1)))
+            rows.append((label, np.concatenate([video[i].astype(np.float32) / 255.0 for i in pick], 1)))
         if not rows:
             continue
         h, w = rows[0][1].shape[:2]

@@ -32,8 +32,8 @@ def table_calibration(records: Sequence[Record],
     all metrics when absent), the ground truth is better and their bootstrap CIs do not
     overlap. A metric that does not is marked ✗ in the last row and on the control's cell.
     """
-    use = [r for r in records if r["protocol"]["name"] in ("self", "calibration") and is_ok(r)
-           and r["method"]["family"] in ("ground-truth", "control")]
+    use = [r for r in records if r.protocol.name in ("self", "calibration") and is_ok(r)
+           and r.method.family in ("ground-truth", "control")]
     cols = metric_columns(with_custom_keys(metrics, use))
     sections = []
     for subject, recs in by_subject(use).items():
@@ -54,9 +54,10 @@ def table_calibration(records: Sequence[Record],
             for row in rows:
                 if row.family != "control":
                     continue
-                targets = row.records[0]["method"].get("control", {}).get("targets")
+                control = row.records[0].method.control
                 base = next((k for k, v in CUSTOM_KEYS.items() if v == c.key), c.key)  # lpips_custom: as lpips
-                if targets is not None and c.key not in targets and base not in targets:
+                targets = control.targets if control is not None else ()  # none named: every metric
+                if targets and c.key not in targets and base not in targets:
                     continue
                 if gt.mean is None or row.cells[c.id].mean is None:
                     continue
@@ -85,8 +86,8 @@ def table_stability(records: Sequence[Record], metric: str = "lse_c", clean: str
     last column is the suite's cost: the wall time of the row's stress runs (render, scoring and
     writing; training excluded: the suite reuses the trained model).
     """
-    use = [r for r in records if r["protocol"]["name"] == "stress"]
-    conds = sorted({r["protocol"]["clip"] for r in use} - {clean})
+    use = [r for r in records if r.protocol.name == "stress"]
+    conds = sorted({r.protocol.clip for r in use} - {clean})
     label, hib, digits = METRICS[metric]
     cols = [Column(f"{c}.{metric}", c, metric, "metric", None, digits, rank=False) for c in conds]
     cols.append(Column("failures", "failed runs", "failures", "text"))
@@ -96,11 +97,11 @@ def table_stability(records: Sequence[Record], metric: str = "lse_c", clean: str
         rows = sorted(make_rows(recs), key=row_order)
         for row in rows:
             row.ranked = False
-            clean_ok = [r for r in row.records if r["protocol"]["clip"] == clean and is_ok(r)]
+            clean_ok = [r for r in row.records if r.protocol.clip == clean and is_ok(r)]
             base = metric_cell(clean_ok, metric)
             n_fail = 0
             for c in conds:
-                here = [r for r in row.records if r["protocol"]["clip"] == c]
+                here = [r for r in row.records if r.protocol.clip == c]
                 fails = [r for r in here if not is_ok(r)]
                 n_fail += len(fails)
                 cell = metric_cell([r for r in here if is_ok(r)], metric)
@@ -114,12 +115,12 @@ def table_stability(records: Sequence[Record], metric: str = "lse_c", clean: str
                     cell.mean = None
                     cell.text = "no clean run"
                 if fails:
-                    cell.text = f"{len(fails)} failed: {fails[0]['status'].get('reason')}"
+                    cell.text = f"{len(fails)} failed: {fails[0].status.reason}"
                 if cell.mean is None and cell.text is None:
                     cell.text = "–"
                 row.cells[f"{c}.{metric}"] = cell
             row.cells["failures"] = Cell(text=str(n_fail))
-            walls = [r.get("cost", {}).get("wall_seconds") for r in row.records]
+            walls = [r.cost.wall_seconds for r in row.records]
             row.cells["suite_min"] = Cell(text=f"{sum(walls) / 60:.1f}" if all(w is not None for w in walls) else "–")
         sections.append(Section(subject_title(recs), rows))
     arrow = "↑" if hib else "↓"
@@ -156,11 +157,11 @@ def paper_order_agreement(records: Sequence[Record], method: str, subject: str) 
         return None
     means: dict[str, dict[str, float]] = {}
     for r in records:
-        name = r["method"]["name"]
-        if (name in PAPER_TABLE_I and r["subject"]["name"] == subject and r["protocol"]["name"] == "self"
-                and not r["method"].get("variant") and is_ok(r)):
+        name = r.method.name
+        if (name in PAPER_TABLE_I and r.subject.name == subject and r.protocol.name == "self"
+                and not r.method.variant and is_ok(r)):
             for k in PAPER_KEYS:
-                v = r["metrics"].get(k, {}).get("value")
+                v = r.value(k)
                 if v is not None:
                     means.setdefault(name, {}).setdefault(k, []).append(v)
     if method not in means:
@@ -185,8 +186,8 @@ def paper_order_agreement(records: Sequence[Record], method: str, subject: str) 
 def table_status(records: Sequence[Record]) -> Table:
     """Status per method x subject (nerfbaselines' badges): ``ok (n runs)`` or ``failed: reason``,
     and how many of its pairwise orderings agree with the paper's Table I."""
-    use = [r for r in records if r["method"]["family"] != "control"]
-    subjects = sorted({r["subject"]["name"] for r in use})
+    use = [r for r in records if r.method.family != "control"]
+    subjects = sorted({r.subject.name for r in use})
     cols = [Column(f"s.{s}", s, s, "text") for s in subjects]
     rows = sorted(make_rows(use), key=row_order)
     merged: dict[str, Row] = {}
@@ -195,7 +196,7 @@ def table_status(records: Sequence[Record]) -> Table:
     out = []
     for row in merged.values():
         for s in subjects:
-            recs = [r for r in row.records if r["subject"]["name"] == s]
+            recs = [r for r in row.records if r.subject.name == s]
             ok = [r for r in recs if is_ok(r)]
             bad = [r for r in recs if not is_ok(r)]
             if not recs:
@@ -204,8 +205,8 @@ def table_status(records: Sequence[Record]) -> Table:
                 text = f"ok ({len(ok)})"
             else:
                 first = bad[0]
-                text = (f"{len(ok)} ok, {len(bad)} failed: {first['status'].get('reason')} "
-                        f"({first['protocol']['name']}:{first['protocol']['clip']})")
+                text = (f"{len(ok)} ok, {len(bad)} failed: {first.status.reason} "
+                        f"({first.protocol.name}:{first.protocol.clip})")
             po = paper_order_agreement(use, row.method, s) if recs else None
             if po is not None:
                 text += f"; paper's order {po[0]}/{po[1]}"

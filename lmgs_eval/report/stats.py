@@ -89,20 +89,23 @@ class PairedTest:
         p: two-sided p-value.
         n: frames (``unit="frames"``) or seeds of the smaller side (``unit="seeds"``).
         unit: ``"frames"`` (circular block bootstrap) or ``"seeds"`` (Welch's t on seed means).
-        ci: bootstrap interval of the mean difference (frame-level tests only).
-        block: block length of the frame-level bootstrap.
         n_a: seeds of ``a`` (seed-level tests).
         n_b: seeds of ``b``.
+        ci: bootstrap interval of the mean difference, with its block length (frame-level tests only).
     """
 
     mean_diff: float
     p: float
     n: int
     unit: str = "frames"
-    ci: CI | None = None
-    block: int = 1
     n_a: int = 0
     n_b: int = 0
+    ci: CI | None = None
+
+    @property
+    def block(self) -> int:
+        """Block length of the frame-level bootstrap (1 for a seed-level test)."""
+        return self.ci.block if self.ci is not None else 1
 
     def significant(self, alpha: float = ALPHA) -> bool:
         """True when the test rejects equality at level ``alpha``."""
@@ -267,11 +270,11 @@ def paired_test(a: Sequence[float | None], b: Sequence[float | None], n_resample
     mean = float(d.mean())
     bl = block_length(d) if block is None else int(block)
     if np.all(d == 0):
-        return PairedTest(0.0, 1.0, int(d.size), "frames", CI(0.0, 0.0, 0.0, int(d.size), 0.95, bl), bl)
+        return PairedTest(0.0, 1.0, int(d.size), "frames", ci=CI(0.0, 0.0, 0.0, int(d.size), 0.95, bl))
     means = bootstrap_means(d, n_resamples, seed, bl)
     lo, hi = np.percentile(means, [2.5, 97.5])
     p = float((1 + np.count_nonzero(np.abs(means - mean) >= abs(mean))) / (n_resamples + 1))
-    return PairedTest(mean, p, int(d.size), "frames", CI(mean, float(lo), float(hi), int(d.size), 0.95, bl), bl)
+    return PairedTest(mean, p, int(d.size), "frames", ci=CI(mean, float(lo), float(hi), int(d.size), 0.95, bl))
 
 
 def seed_test(a: Sequence[float | None], b: Sequence[float | None]) -> PairedTest | None:

@@ -4,12 +4,11 @@ from __future__ import annotations
 
 import csv
 import io
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
 
 from lmgs_eval.report.stats import CI
-
-Record = dict[str, Any]
+from lmgs_eval.results.types import Record
 
 # metric key -> (label, higher_is_better, digits)
 METRICS: dict[str, tuple[str, bool, int]] = {
@@ -252,22 +251,38 @@ def _md_head(c: Column, mixed: bool) -> str:
     return _md_escape(f"{c.group} {c.label}".strip()) + _arrow(c, True) + (f" {MIXED}" if mixed else "")
 
 
-def _md_cell(cell: Cell | None, c: Column, show_ci: bool) -> str:
+@dataclass(frozen=True)
+class _Markup:
+    """How a cell is written in one output format."""
+
+    missing: str  # a column the row has no cell in
+    escape: Callable[[str], str]  # a text-only cell
+    pm: str  # between mean and std
+    marks: dict[str, str]  # best / second / tie around the number ("{}")
+    note: Callable[[str], str]  # the text after a number, in parentheses
+    flag: Callable[[str], str]  # a flag after the cell
+
+
+def _cell_text(cell: Cell | None, c: Column, show_ci: bool, fmt: _Markup) -> str:
     if cell is None:
-        return "–"
+        return fmt.missing
     if cell.text is not None and cell.mean is None:
-        return _md_escape(cell.text)
+        return fmt.escape(cell.text)
     if cell.mean is None:
         return "N/A"
     s = _fmt(cell.mean, c)
     if cell.std is not None:
-        s += f" ± {_fmt(cell.std, c)}"
+        s += f"{fmt.pm}{_fmt(cell.std, c)}"
     if show_ci and cell.ci is not None:
         s += f" [{_fmt(cell.ci.lo, c)}, {_fmt(cell.ci.hi, c)}]"
-    s = {"best": f"**{s}**", "second": f"<u>{s}</u>", "tie": f"{s}{TIE}"}.get(cell.mark, s)
+    s = fmt.marks.get(cell.mark, "{}").format(s)
     if cell.text:
-        s += f" ({cell.text})"
-    return s + (f" {cell.flag}" if cell.flag else "")
+        s += f" ({fmt.note(cell.text)})"
+    return s + (fmt.flag(cell.flag) if cell.flag else "")
+
+
+def _md_cell(cell: Cell | None, c: Column, show_ci: bool) -> str:
+    return _cell_text(cell, c, show_ci, _MD)
 
 
 _TEX = {"\\": "\\textbackslash{}", "&": "\\&", "%": "\\%", "$": "\\$", "#": "\\#", "_": "\\_", "{": "\\{",
@@ -285,21 +300,13 @@ def _tex_head(c: Column, mixed: bool) -> str:
 
 
 def _tex_cell(cell: Cell | None, c: Column, show_ci: bool) -> str:
-    if cell is None:
-        return "--"
-    if cell.text is not None and cell.mean is None:
-        return _tex_escape(cell.text)
-    if cell.mean is None:
-        return "N/A"
-    s = _fmt(cell.mean, c)
-    if cell.std is not None:
-        s += f"$\\pm${_fmt(cell.std, c)}"
-    if show_ci and cell.ci is not None:
-        s += f" [{_fmt(cell.ci.lo, c)}, {_fmt(cell.ci.hi, c)}]"
-    s = {"best": f"\\textbf{{{s}}}", "second": f"\\underline{{{s}}}", "tie": f"{s}$^\\dagger$"}.get(cell.mark, s)
-    if cell.text:
-        s += f" ({_tex_escape(cell.text)})"
-    return s + (_tex_escape(cell.flag) if cell.flag else "")
+    return _cell_text(cell, c, show_ci, _TEX_CELL)
+
+
+_MD = _Markup("–", _md_escape, " ± ", {"best": "**{}**", "second": "<u>{}</u>", "tie": "{}" + TIE}, str,
+              lambda f: f" {f}")
+_TEX_CELL = _Markup("--", _tex_escape, "$\\pm$", {"best": "\\textbf{{{}}}", "second": "\\underline{{{}}}",
+                                                   "tie": "{}$^\\dagger$"}, _tex_escape, _tex_escape)
 
 
 def column_backends(sec: Section, col: Column) -> set[str]:

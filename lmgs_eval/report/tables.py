@@ -39,7 +39,7 @@ from lmgs_eval.report.cells import (COST_COLUMNS, by_subject, common_notes, comp
                                     make_rows, metric_columns, rank_section, row_order, subject_title, with_custom_keys)
 from lmgs_eval.report.diagnostics import paper_order_agreement, table_calibration, table_stability, table_status
 from lmgs_eval.report.table_model import METRICS, OURS, UNRANKED, Cell, Column, Record, Section, Table
-from lmgs_eval.results import se_fraction
+from lmgs_eval.results.store import se_fraction
 
 __all__ = ["all_tables", "paper_order_agreement", "table_ablation", "table_calibration", "table_cross", "table_self",
            "table_stability", "table_status", "table_theta"]
@@ -55,8 +55,8 @@ def table_self(records: Sequence[Record], metrics: Sequence[str] = ("psnr", "lpi
         metrics: metric keys, in column order.
         cost: include FPS, training time, Gaussians and MB.
     """
-    use = [r for r in records if r["protocol"]["name"] == "self" and is_ok(r) and not is_variant(r)
-           and r["method"]["family"] != "control"]
+    use = [r for r in records if r.protocol.name == "self" and is_ok(r) and not is_variant(r)
+           and r.method.family != "control"]
     cols = metric_columns(with_custom_keys(metrics, use)) + (COST_COLUMNS if cost else [])
     sections = []
     for subject, recs in by_subject(use).items():
@@ -77,8 +77,8 @@ def table_self(records: Sequence[Record], metrics: Sequence[str] = ("psnr", "lpi
 
 def table_cross(records: Sequence[Record], metrics: Sequence[str] = ("lse_d", "lse_c")) -> Table:
     """Table II: cross-driven, one column group per driving clip (Audio A, Audio B, ...)."""
-    use = [r for r in records if r["protocol"]["name"] == "cross" and is_ok(r) and not is_variant(r)]
-    clips = sorted({r["protocol"]["clip"] for r in use})
+    use = [r for r in records if r.protocol.name == "cross" and is_ok(r) and not is_variant(r)]
+    clips = sorted({r.protocol.clip for r in use})
     cols = [c for clip in clips
             for c in metric_columns(with_custom_keys(metrics, use), clip, f"Audio {clip}" if len(clip) == 1 else clip)]
     sections = []
@@ -100,13 +100,13 @@ def _is_lmgs(rec: Record) -> bool:
     keys, but they are other methods: they never stand in for an ablation row of Tables III-IV
     (``lmgs-base`` is the TalkingGaussian-like configuration of the ablation).
     """
-    name = rec["method"]["name"]
+    name = rec.method.name
     return name == "lmgs" or name.startswith("lmgs-")
 
 
 def _lmgs_self(records: Sequence[Record]) -> list[Record]:
     return [r for r in records
-            if r["protocol"]["name"] == "self" and is_ok(r) and _is_lmgs(r) and components_of(r) is not None]
+            if r.protocol.name == "self" and is_ok(r) and _is_lmgs(r) and components_of(r) is not None]
 
 
 def table_theta(records: Sequence[Record], metrics: Sequence[str] = ("lpips", "lmd", "lse_d", "lse_c")) -> Table:
@@ -114,7 +114,7 @@ def table_theta(records: Sequence[Record], metrics: Sequence[str] = ("lpips", "l
     use = []
     for r in _lmgs_self(records):
         c = components_of(r)
-        variant = r["method"].get("variant") or ""
+        variant = r.method.variant or ""
         if c["se"] and c["lc"] and c["gr"] and (not variant or variant.startswith("theta")):
             use.append(r)
     cols = [Column("se_points", "Points enhanced", "se_points", "text"), *metric_columns(with_custom_keys(metrics, use))]
@@ -178,7 +178,7 @@ def _ablation_label(r: Record, full_frontend: str | None = None, full_gr: tuple 
                      else "GR, normal term per pixel ({0}, λ_N = {1:g})".format(*form))
     if parts:
         return ", ".join(parts)
-    return "Full model" if not is_variant(r) else (r["method"]["display_name"] or r["method"]["name"])
+    return "Full model" if not is_variant(r) else (r.method.display_name or r.method.name)
 
 
 def table_ablation(records: Sequence[Record], metrics: Sequence[str] = ("lmd", "lpips", "lse_d", "lse_c")) -> Table:
@@ -216,8 +216,7 @@ def all_tables(records: Sequence[Record]) -> list[Table]:
     """Every table that has rows in ``records`` (Table I first)."""
     tables = [table_self(records), table_cross(records), table_theta(records), table_ablation(records),
               table_calibration(records)]
-    stress_metrics = sorted({k for r in records if r["protocol"]["name"] == "stress" for k in r["metrics"]
-                             if k in METRICS})
+    stress_metrics = sorted({k for r in records if r.protocol.name == "stress" for k in r.metrics if k in METRICS})
     tables += [table_stability(records, m) for m in stress_metrics]
     tables.append(table_status(records))
     return [t for t in tables if not t.is_empty()]

@@ -7,8 +7,10 @@ functions of these files; ``lmgs-eval verify`` re-hashes the artefacts they refe
 
 Schema version ``2`` (``SCHEMA_VERSION``; version 1 records are migrated on read,
 :mod:`~lmgs_eval.results.migrate`). The typed form is :class:`~lmgs_eval.results.types.Record`,
-which :func:`validate` checks every record against on write and on read. ``?`` marks an optional
-field; ``|null`` a field that may be null.
+which :func:`validate` checks every record against on write and on read; the store hands out
+typed records (:func:`load_records`, :func:`iter_store`, :func:`find_record`), the runner writes
+them, and tables and report read their attributes. :func:`frame` gives a store as a pandas
+DataFrame. ``?`` marks an optional field; ``|null`` a field that may be null.
 
 =================  ======================================================================
 Field              Meaning
@@ -63,20 +65,23 @@ notes              [str]
 =================  ======================================================================
 """
 
+from lmgs.fileio import sha256_file  # the one file hash, part of this package's API
+from lmgs_eval.results.dataframe import frame
 from lmgs_eval.results.migrate import migrate
 from lmgs_eval.results.notes import BUDGET_NOTE, SE_NOTE, budget_note, se_note
 from lmgs_eval.results.provenance import (EMPTY_COST, compact, config_hash, git_info, machine_info, make_record,
-                                          metric_entries, now_iso, sha256_file)
-from lmgs_eval.results.schema import FAMILIES, PROTOCOLS, READ_VERSIONS, SCHEMA_VERSION, validate
+                                          metric_entries, now_iso)
+from lmgs_eval.results.schema import FAMILIES, PROTOCOLS, READ_VERSIONS, SCHEMA_VERSION, check, validate
 from lmgs_eval.results.store import (IMPORTED_FILE, MADE_ELSEWHERE, check_artefacts, copy_records, find_finished, find_record,
                                      imported_records, is_failed, iter_store, load_records, package_file, record_path,
-                                     resolve_artefact, se_fraction, snapshot_records, write_record)
-from lmgs_eval.results.types import Record
+                                     resolve_artefact, run_path, se_fraction, snapshot_records, to_record, write_record)
+from lmgs_eval.results.types import Record, replace
 
 __all__ = [
     "BUDGET_NOTE", "EMPTY_COST", "FAMILIES", "IMPORTED_FILE", "MADE_ELSEWHERE", "PROTOCOLS", "READ_VERSIONS", "Record",
-    "SCHEMA_VERSION", "SE_NOTE", "budget_note", "check_artefacts", "compact", "config_hash", "copy_records", "find_finished",
-    "find_record", "git_info", "imported_records", "is_failed", "iter_store", "load_records", "machine_info", "make_record",
-    "metric_entries", "migrate", "now_iso", "package_file", "record_path", "resolve_artefact", "se_fraction", "se_note",
-    "sha256_file", "snapshot_records", "validate", "write_record",
+    "SCHEMA_VERSION", "SE_NOTE", "budget_note", "check", "check_artefacts", "compact", "config_hash", "copy_records",
+    "find_finished", "find_record", "frame", "git_info", "imported_records", "is_failed", "iter_store", "load_records",
+    "machine_info", "make_record", "metric_entries", "migrate", "now_iso", "package_file", "record_path", "replace",
+    "resolve_artefact", "run_path", "se_fraction", "se_note", "sha256_file", "snapshot_records", "to_record", "validate",
+    "write_record",
 ]

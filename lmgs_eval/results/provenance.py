@@ -6,16 +6,14 @@ import datetime
 import math
 import os
 import platform
-import subprocess
 import sys
 from collections.abc import Iterable, Mapping
 from importlib import metadata
-from pathlib import Path
 from typing import Any
 
 from lmgs.config import config_hash
-from lmgs.fileio import sha256_file
 from lmgs_eval import __version__
+from lmgs_eval.paths import git_state
 from lmgs_eval.results.schema import SCHEMA_VERSION
 
 
@@ -32,18 +30,7 @@ def compact(values: Iterable[float | None] | None, digits: int = 6) -> list[floa
 
 def git_info() -> dict[str, Any]:
     """``{version, git_commit, dirty}`` of the code that made a record (commit None outside git)."""
-    here = Path(__file__).resolve().parent
-    commit: str | None = None
-    dirty: bool | None = None
-    try:
-        r = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=10)
-        if r.returncode == 0:
-            commit = r.stdout.strip() or None
-            s = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here,
-                               capture_output=True, text=True, timeout=10)
-            dirty = bool(s.stdout.strip()) if s.returncode == 0 else None
-    except (OSError, subprocess.SubprocessError):
-        pass
+    commit, dirty = git_state()
     return {"version": __version__, "git_commit": commit, "dirty": dirty}
 
 

@@ -8,16 +8,17 @@ that makes a run resumable.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from lmgs.presets import TrainConfig
+from lmgs.fileio import sha256_file
 from lmgs_eval.metrics import lpips as L
-from lmgs_eval.metrics import sync as S
+from lmgs_eval.metrics.sync.scorers import weights_file as sync_weights_file
 from lmgs_eval.metrics.landmarks import dlib_model_path
-from lmgs_eval.results.provenance import make_record, metric_entries, sha256_file
+from lmgs_eval.results.provenance import make_record, metric_entries
 from lmgs_eval.results.notes import budget_note
-from lmgs_eval.results.store import find_finished, find_record
+from lmgs_eval.results.store import find_finished, find_record, to_record
+from lmgs_eval.results.types import Record
 
 PROTOCOL_VERSIONS = {"self": "1", "cross": "1", "stress": "1", "calibration": "1", "capacity": "1"}
 
@@ -64,7 +65,7 @@ def subject_block(subject) -> dict:
 
 
 def stored(root, subject, method: str, protocol: str, clip: str, seed: int, config_hash: str, *,
-           finished: bool = False) -> dict | None:
+           finished: bool = False) -> Record | None:
     """The store's record of this run on this subject's data, or None.
 
     ``finished``: a failed run counts as not done (it is retried). A record made on other data
@@ -111,16 +112,8 @@ def input_artefacts(metrics: dict, subject) -> dict:
         elif entry.get("backend") == "lpips-alex":
             files["weights:lpips_heads"] = L.lpips_heads_path()
             files["weights:alexnet"] = L.find_alexnet()
-    sb = (metrics.get("lse_d") or {}).get("backend") or ""
-    if (metrics.get("lse_d") or {}).get("value") is not None:
-        if sb.endswith("bundled-sync"):
-            files["weights:sync"] = S.BUNDLED_DIR / "bundled_sync.onnx"
-        elif sb.endswith("landmark-sync"):
-            from lmgs_eval.metrics import sync_landmark
-
-            files["weights:sync"] = sync_landmark.WEIGHTS / sync_landmark.ONNX_NAME
-        elif sb.endswith("syncnet-v2") and S.syncnet_manifest_path().is_file():
-            files["weights:sync"] = Path(json.loads(S.syncnet_manifest_path().read_text())["onnx"])
+    if (metrics.get("lse_d") or {}).get("value") is not None:  # the scorer the record's backend names
+        files["weights:sync"] = sync_weights_file((metrics.get("lse_d") or {}).get("backend") or "")
     if (metrics.get("lmd") or {}).get("value") is not None:
         files["weights:dlib"] = dlib_model_path()
     return {k: {"path": str(p.resolve()), "sha256": _sha_cached(p)} for k, p in files.items() if p is not None and p.is_file()}
@@ -128,8 +121,13 @@ def input_artefacts(metrics: dict, subject) -> dict:
 
 def build_record(*, info, subject, protocol: str, clip: str, split: str, n_frames: int, seed: int, metrics: dict,
                  cost: dict, artefacts: dict, notes: list[str], control: dict | None = None,
-                 run: dict | None = None) -> dict:
-    """One results-file record (schema in :mod:`lmgs_eval.results`); ``run``: its structured facts."""
+                 run: dict | None = None, status: dict | None = None, config_hash: str | None = None) -> Record:
+    """One run's typed record (schema in :mod:`lmgs_eval.results`); ``run``: its structured facts.
+
+    ``status``: ``{state, reason}`` of a failed run; ``config_hash``: in place of the method's (a
+    protocol that adds to the identity of a run, e.g. the stress suite's perturbation set). A record
+    that does not validate is a :class:`~lmgs_eval.errors.UserError` naming the fields.
+    """
     method = {"name": info.name, "display_name": info.display_name, "family": info.family,
               "description": info.description, "standins": list(info.standins)}
     if control is not None:
@@ -143,10 +141,10 @@ def build_record(*, info, subject, protocol: str, clip: str, split: str, n_frame
     if budget is not None:
         run["budget"] = budget
         notes = [*notes, budget_note(budget["density"], budget["preset_density"])]
-    return make_record(run=run or None,
+    return to_record(make_record(run=run or None,
         method=method,
         subject=subject_block(subject),
         protocol={"name": protocol, "version": PROTOCOL_VERSIONS[protocol], "clip": clip, "split": split, "n_frames": int(n_frames)},
-        metrics=metrics, seed=seed, config=info.config, config_hash_=info.config_hash, cost=cost,
-        artefacts={**input_artefacts(metrics, subject), **artefacts}, notes=notes,
-    )
+        metrics=metrics, seed=seed, config=info.config, config_hash_=config_hash or info.config_hash, cost=cost,
+        artefacts={**input_artefacts(metrics, subject), **artefacts}, notes=notes, status=status,
+    ))

@@ -1,4 +1,8 @@
-"""The results store on disk: one JSON file per run, written atomically, read back validated."""
+"""The results store on disk: one JSON file per run, written atomically, read back validated.
+
+What goes in and what comes out is the typed :class:`~lmgs_eval.results.types.Record`; its JSON
+form (:meth:`~lmgs_eval.results.types.Record.to_dict`) is what the files hold.
+"""
 
 from __future__ import annotations
 
@@ -10,11 +14,12 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
+from lmgs.fileio import sha256_file
 from lmgs_eval.errors import UserError
 from lmgs_eval.paths import atomic_dir, atomic_write_text
-from lmgs_eval.results.provenance import sha256_file
 from lmgs_eval.results.migrate import migrate
-from lmgs_eval.results.schema import READ_VERSIONS, validate
+from lmgs_eval.results.schema import READ_VERSIONS, check
+from lmgs_eval.results.types import Record
 
 
 def _slug(s: str) -> str:
@@ -24,33 +29,46 @@ def _slug(s: str) -> str:
     return slug
 
 
-def record_path(root: str | os.PathLike, record: Mapping[str, Any]) -> Path:
-    """Stable file of a record: ``root/<subject>/<protocol>/<method>--<clip>--seed<N>--<config_hash>.json``."""
-    name = (f"{_slug(record['method']['name'])}--{_slug(record['protocol']['clip'])}--seed{int(record['seed'])}"
-            f"--{_slug(record['config_hash'])}.json")
-    return Path(root) / _slug(record["subject"]["name"]) / _slug(record["protocol"]["name"]) / name
+def run_path(root: str | os.PathLike, subject: str, protocol: str, method: str, clip: str, seed: int,
+             config_hash: str) -> Path:
+    """Stable file of a run: ``root/<subject>/<protocol>/<method>--<clip>--seed<N>--<config_hash>.json``."""
+    name = f"{_slug(method)}--{_slug(clip)}--seed{int(seed)}--{_slug(config_hash)}.json"
+    return Path(root) / _slug(subject) / _slug(protocol) / name
 
 
-def write_record(root: str | os.PathLike, record: Mapping[str, Any]) -> Path:
-    """Validate and write a record atomically (temp file + rename); returns its path.
+def record_path(root: str | os.PathLike, record: Record) -> Path:
+    """The file of ``record`` in store ``root`` (:func:`run_path`)."""
+    return run_path(root, record.subject.name, record.protocol.name, record.method.name, record.protocol.clip,
+                    record.seed, record.config_hash)
+
+
+def to_record(data: Mapping[str, Any]) -> Record:
+    """A record's JSON form as the typed record; :class:`UserError` naming each field that does not fit."""
+    rec, problems = check(data)
+    if problems:
+        who = (f"{data.get('method', {}).get('name', '?')}/{data.get('subject', {}).get('name', '?')}"
+               if isinstance(data, Mapping) else "?")
+        raise UserError(f"result record {who} is invalid: {'; '.join(problems[:5])}"
+                        + (f" (+{len(problems) - 5} more)" if len(problems) > 5 else ""))
+    return rec
+
+
+def write_record(root: str | os.PathLike, record: Record | Mapping[str, Any]) -> Path:
+    """Validate and write a record (typed, or its JSON form) atomically (temp file + rename); returns its path.
 
     A record that does not validate writes nothing and raises :class:`UserError`. Two
     writers at once never leave a partial file: each writes its own temporary file and
     the rename is atomic (the last one wins for the same record).
     """
-    problems = validate(record)
-    if problems:
-        who = (f"{record.get('method', {}).get('name', '?')}/{record.get('subject', {}).get('name', '?')}"
-               if isinstance(record, Mapping) else "?")
-        raise UserError(f"result record {who} is invalid: {'; '.join(problems[:5])}"
-                        + (f" (+{len(problems) - 5} more)" if len(problems) > 5 else ""))
-    text = json.dumps(record, indent=1, sort_keys=True, allow_nan=False, ensure_ascii=False) + "\n"
-    path = record_path(root, record)
+    data = record.to_dict() if isinstance(record, Record) else record
+    rec = to_record(data)
+    text = json.dumps(data, indent=1, sort_keys=True, allow_nan=False, ensure_ascii=False) + "\n"
+    path = record_path(root, rec)
     atomic_write_text(path, text)
     return path
 
 
-def iter_store(root: str | os.PathLike) -> tuple[list[tuple[Path, dict[str, Any]]], list[str]]:
+def iter_store(root: str | os.PathLike) -> tuple[list[tuple[Path, Record]], list[str]]:
     """Every valid record of a store with its file, and a warning per skipped file.
 
     Files are read in sorted order; hidden files and folders (temporary files of writers in
@@ -62,7 +80,7 @@ def iter_store(root: str | os.PathLike) -> tuple[list[tuple[Path, dict[str, Any]
         return [], []
     if not root.is_dir():
         raise UserError(f"{root}: results store is not a folder")
-    out: list[tuple[Path, dict[str, Any]]] = []
+    out: list[tuple[Path, Record]] = []
     warnings: list[str] = []
     for path in sorted(root.rglob("*.json")):
         if any(part.startswith(".") for part in path.relative_to(root).parts):
@@ -79,16 +97,15 @@ def iter_store(root: str | os.PathLike) -> tuple[list[tuple[Path, dict[str, Any]
             warnings.append(f"{path}: skipped, schema_version {rec['schema_version']!r} (this code reads "
                             f"{', '.join(map(repr, READ_VERSIONS))})")
             continue
-        rec = migrate(rec)
-        problems = validate(rec)
+        typed, problems = check(migrate(rec))
         if problems:
             warnings.append(f"{path}: skipped, invalid record: {'; '.join(problems[:3])}")
             continue
-        out.append((path, rec))
+        out.append((path, typed))
     return out, warnings
 
 
-def load_records(root: str | os.PathLike) -> tuple[list[dict[str, Any]], list[str]]:
+def load_records(root: str | os.PathLike) -> tuple[list[Record], list[str]]:
     """All valid records under ``root`` and a warning (naming the file) per skipped file."""
     items, warnings = iter_store(root)
     return [r for _, r in items], warnings
@@ -131,7 +148,7 @@ def imported_records(root: str | os.PathLike) -> set[str]:
         return set()
 
 
-def snapshot_records(records: Iterable[Mapping[str, Any]], dst: str | os.PathLike) -> Path:
+def snapshot_records(records: Iterable[Record], dst: str | os.PathLike) -> Path:
     """Write exactly ``records`` as a store at ``dst``, replacing what was there, atomically.
 
     This is how the committed ``tables/records/`` is made: the records a set of tables was
@@ -144,25 +161,25 @@ def snapshot_records(records: Iterable[Mapping[str, Any]], dst: str | os.PathLik
     return Path(dst)
 
 
-def se_fraction(rec: Mapping[str, Any]) -> float | None:
+def se_fraction(rec: Record) -> float | None:
     """The share of face points Spatial Enhancement selected in this run (0..1); None if not recorded."""
-    return (rec.get("run") or {}).get("se_fraction")
+    return rec.run.se_fraction if rec.run is not None else None
 
 
-def is_failed(rec: Mapping[str, Any]) -> bool:
+def is_failed(rec: Record) -> bool:
     """True for a run recorded as failed (``status.state == "failed"``; no status means ok)."""
-    return (rec.get("status") or {}).get("state") == "failed"
+    return rec.failed
 
 
 def find_finished(root: str | os.PathLike, method: str, subject: str, protocol: str, clip: str, seed: int,
-                  config_hash: str, subject_sha: str | None = None) -> dict[str, Any] | None:
+                  config_hash: str, subject_sha: str | None = None) -> Record | None:
     """:func:`find_record`, but a failed run counts as not done: it is retried (the failure may have been fixed)."""
     rec = find_record(root, method, subject, protocol, clip, seed, config_hash, subject_sha)
-    return None if rec is None or is_failed(rec) else rec
+    return None if rec is None or rec.failed else rec
 
 
 def find_record(root: str | os.PathLike, method: str, subject: str, protocol: str, clip: str, seed: int,
-                config_hash: str, subject_sha: str | None = None) -> dict[str, Any] | None:
+                config_hash: str, subject_sha: str | None = None) -> Record | None:
     """The stored record for this run, or None (so an interrupted run can resume).
 
     Only a valid record whose fields match is returned; a failed run (``status.state ==
@@ -171,23 +188,20 @@ def find_record(root: str | os.PathLike, method: str, subject: str, protocol: st
     the same name (re-generated, re-processed) is a :class:`UserError`: it is neither reused
     as if it were of this data nor overwritten.
     """
-    key = {"method": {"name": method}, "subject": {"name": subject}, "protocol": {"name": protocol, "clip": clip},
-           "seed": seed, "config_hash": config_hash}
-    path = record_path(root, key)
+    path = run_path(root, subject, protocol, method, clip, seed, config_hash)
     if not path.is_file():
         return None
     try:
-        rec = json.loads(path.read_text(encoding="utf-8"))
+        rec = check(migrate(json.loads(path.read_text(encoding="utf-8"))))[0]
     except (OSError, UnicodeDecodeError, json.JSONDecodeError):
         return None
-    rec = migrate(rec)
-    if validate(rec):
+    if rec is None:
         return None
-    same = (rec["method"]["name"] == method and rec["subject"]["name"] == subject and rec["protocol"]["name"] == protocol
-            and rec["protocol"]["clip"] == clip and rec["seed"] == seed and rec["config_hash"] == config_hash)
+    same = (rec.method.name == method and rec.subject.name == subject and rec.protocol.name == protocol
+            and rec.protocol.clip == clip and rec.seed == seed and rec.config_hash == config_hash)
     if not same:
         return None
-    made_on = rec["subject"].get("sha256")
+    made_on = rec.subject.sha256
     if subject_sha and made_on and made_on != subject_sha:
         raise UserError(f"{path}: made on other data of subject '{subject}' (manifest sha256 {made_on[:12]}, now "
                         f"{subject_sha[:12]}); move the old records out of the store, or use another --results")
@@ -200,7 +214,7 @@ def resolve_artefact(root: str | os.PathLike, path: str) -> Path:
     return p if p.is_absolute() else Path(root) / p
 
 
-def check_artefacts(root: str | os.PathLike, record: Mapping[str, Any], imported: bool = False) -> tuple[list[str], int]:
+def check_artefacts(root: str | os.PathLike, record: Record, imported: bool = False) -> tuple[list[str], int]:
     """Re-hash a record's artefacts: one line per artefact that changed or went missing, and how many were checked.
 
     ``imported``: the record was copied from another machine (:func:`copy_records`), so its
@@ -210,8 +224,8 @@ def check_artefacts(root: str | os.PathLike, record: Mapping[str, Any], imported
     """
     out = []
     checked = 0
-    for role, a in sorted(record.get("artefacts", {}).items()):
-        p = resolve_artefact(root, a["path"])
+    for role, a in sorted(record.artefacts.items()):
+        p = resolve_artefact(root, a.path)
         if imported and role in MADE_ELSEWHERE and not p.is_file():
             continue
         checked += 1
@@ -221,8 +235,8 @@ def check_artefacts(root: str | os.PathLike, record: Mapping[str, Any], imported
             out.append(f"{role} {p}: missing")
             continue
         now = sha256_file(p)
-        if now != a["sha256"]:
-            out.append(f"{role} {p}: changed (recorded sha256 {a['sha256'][:12]}, now {now[:12]})")
+        if now != a.sha256:
+            out.append(f"{role} {p}: changed (recorded sha256 {a.sha256[:12]}, now {now[:12]})")
     return out, checked
 
 

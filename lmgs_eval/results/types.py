@@ -13,6 +13,10 @@ method's declared ``components``), :class:`SubjectBlock`, :class:`ProtocolBlock`
 :class:`Artefact` per role, :class:`Status`, and :class:`RunFacts`: what a run measured or was
 given that the tables read (the share of points Spatial Enhancement selected, the Gaussian
 budget a subject imposed), as fields rather than prose.
+
+A record read from JSON writes back the same JSON: an optional field the JSON held as ``null`` is
+written as ``null`` again, one it left out stays out (:func:`replace` keeps that for the fields it
+does not change).
 """
 
 from __future__ import annotations
@@ -204,6 +208,25 @@ class Record:
         """The JSON form (absent optional sections left out)."""
         return _encode(self)
 
+    @property
+    def failed(self) -> bool:
+        """A run recorded as failed (``status.state == "failed"``; no status means ok)."""
+        return self.status is not None and self.status.state == "failed"
+
+    def value(self, key: str) -> float | None:
+        """The value of metric ``key`` (None when the record has no such metric or it has no value)."""
+        m = self.metrics.get(key)
+        return None if m is None else m.value
+
+
+def replace(obj: Any, **changes: Any) -> Any:
+    """:func:`dataclasses.replace` that keeps which untouched optional fields the JSON held as ``null``."""
+    new = dataclasses.replace(obj, **changes)
+    nulls = getattr(obj, _NULLS, frozenset()) - changes.keys()
+    if nulls:
+        object.__setattr__(new, _NULLS, nulls)
+    return new
+
 
 # ----------------------------------------------------------------------------- decoding
 def _type_label(tp: Any) -> str:
@@ -277,9 +300,8 @@ def decode(tp: Any, value: Any, where: str, out: list[str]) -> Any:
         hints = get_type_hints(tp)
         kwargs = {}
         for f in dataclasses.fields(tp):
-            required = f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
             if f.name not in value:
-                if required:
+                if not _optional(f):
                     out.append(f"{where}.{f.name}: missing")
                 continue
             v = decode(hints[f.name], value[f.name], f"{where}.{f.name}", out)
@@ -287,21 +309,33 @@ def decode(tp: Any, value: Any, where: str, out: list[str]) -> Any:
                 _check_metadata(value[f.name], f.metadata, f"{where}.{f.name}", out)
             kwargs[f.name] = v
         try:
-            return tp(**kwargs)
+            obj = tp(**kwargs)
         except TypeError:  # a required field was missing (already reported)
             return None
+        nulls = frozenset(f.name for f in dataclasses.fields(tp) if _optional(f) and value.get(f.name, 0) is None)
+        if nulls:
+            object.__setattr__(obj, _NULLS, nulls)  # written back as null (not a field: equality ignores it)
+        return obj
     if tp is float and isinstance(value, int):
         return value  # an integer-valued number stays as it was written
     return value
 
 
+_NULLS = "_json_nulls"
+"""The attribute that lists the optional fields a decoded object's JSON held as ``null``."""
+
+
+def _optional(f: dataclasses.Field) -> bool:
+    return f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING
+
+
 def _encode(obj: Any) -> Any:
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
         out = {}
+        nulls = getattr(obj, _NULLS, frozenset())
         for f in dataclasses.fields(obj):
             v = getattr(obj, f.name)
-            optional = f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING
-            if optional and v is None:
+            if v is None and _optional(f) and f.name not in nulls:
                 continue
             out[f.name] = _encode(v)
         return out

@@ -94,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _write(out: str, entries: dict, source: str) -> int:
-    from lmgs_eval.paths import atomic_write_bytes
+    from lmgs.fileio import atomic_write_bytes
 
     atomic_write_bytes(Path(out), sp.encode_frozen(entries, source))
     print(f"{out}: {len(entries)} sentences ({source})", file=sys.stderr)

@@ -3,9 +3,6 @@
 from __future__ import annotations
 
 import functools
-import hashlib
-import io as _io
-import json
 import shutil
 import zlib
 from dataclasses import dataclass
@@ -13,12 +10,16 @@ from pathlib import Path
 
 import numpy as np
 
-from lmgs_eval.data import io
+from lmgs_eval.data.audio import write_wav
 from lmgs_eval.data.bundled import articulation as art_mod
 from lmgs_eval.data.bundled import speech as sp_mod
 from lmgs_eval.data.bundled.head import HeadModel
 from lmgs_eval.data.bundled.motion import Motion
 from lmgs_eval.data.bundled.photo import PHOTOS, check_hair
+from lmgs_eval.data.images import encode_png, to_u8, write_depth, write_normal, write_png, write_rgb
+from lmgs_eval.data.layout_writer import (file_hashes, transforms, write_au_csv, write_json, write_lms, write_track_params,
+                                          write_transforms)
+from lmgs_eval.data.video import write_video
 from lmgs_eval.errors import UserError
 
 GENERATOR_VERSION = "2"  # 2: the head composited over the written plate, not the photo
@@ -42,7 +43,11 @@ AU_COLUMNS = ("AU01_r", "AU02_r", "AU04_r", "AU05_r", "AU06_r", "AU07_r", "AU09_
 @functools.lru_cache(maxsize=1)
 def load_corpus() -> dict[str, list[str]]:
     """The committed text corpus by section (``train``, ``cross-a``, ``cross-b``)."""
-    path = Path(__file__).with_name("corpus.txt")
+    return read_sections(Path(__file__).with_name("corpus.txt"))
+
+
+def read_sections(path: Path) -> dict[str, list[str]]:
+    """A text corpus file by ``[section]``: one sentence a line; blank lines and ``#`` comments skipped."""
     out: dict[str, list[str]] = {}
     sec = None
     for line in path.read_text(encoding="utf-8").splitlines():
@@ -142,7 +147,7 @@ def _render_clip(name: str, size: int, speech: sp_mod.Speech, rng: np.random.Gen
     c2w = np.zeros((n, 4, 4))
     for i in range(n):
         fr = head.render(art[i], geometry=False, focal=None if focals is None else focals[i])
-        frames[i] = io.to_u8(fr.rgb)
+        frames[i] = to_u8(fr.rgb)
         lms2d[i], lms3d[i], c2w[i] = fr.lms2d, fr.lms3d, head.c2w(art[i])
         if progress is not None:
             progress.update(1)
@@ -157,51 +162,11 @@ def list_voices() -> list[str]:
 
 
 # ----------------------------------------------------------------------------- files
-def _transforms(c2w: np.ndarray, ids, focal: float, size: int) -> dict:
-    return {
-        "focal_len": float(focal),
-        "cx": float(size / 2),
-        "cy": float(size / 2),
-        "frames": [{"img_id": int(i), "aud_id": int(i), "transform_matrix": c2w[i].tolist()} for i in ids],
-    }
-
-
-def _write_json(path: Path, obj) -> None:
-    path.write_text(json.dumps(obj, indent=1, sort_keys=True) + "\n", encoding="utf-8")
-
-
-def _png_bytes(img: np.ndarray) -> bytes:
-    import cv2
-
-    ok, buf = cv2.imencode(".png", img)
-    if not ok:
-        raise UserError("could not encode a PNG")
-    return buf.tobytes()
-
-
-def _write_lms(path: Path, lms: np.ndarray) -> None:
-    path.write_text("".join(f"{x:.4f} {y:.4f}\n" for x, y in lms), encoding="ascii")
-
-
-def _au_csv(path: Path, aus: dict[str, np.ndarray], n: int) -> None:
-    cols = ["frame", "face_id", "timestamp", "confidence", "success", *AU_COLUMNS]
-    lines = [", ".join(cols)]
-    for i in range(n):
-        vals = [str(i + 1), "0", f"{i / FPS:.3f}", "0.98", "1"] + [f"{aus[c][i]:.2f}" for c in AU_COLUMNS]
-        lines.append(", ".join(vals))
-    path.write_text("\n".join(lines) + "\n", encoding="ascii")
-
-
 def _track_params(path: Path, art: np.ndarray, head: HeadModel, focal: float | None = None) -> None:
-    import torch
-
     cols = art_mod.COLUMNS
     euler = np.deg2rad(art[:, [cols.index("pitch"), cols.index("yaw"), cols.index("roll")]]).astype(np.float32)
     trans = np.stack([head.head_pose(a)[:3, 3] - [0.0, 0.0, head.D] for a in art]).astype(np.float32)
-    buf = _io.BytesIO()
-    torch.save({"euler": torch.from_numpy(euler), "trans": torch.from_numpy(trans),
-                "focal": torch.tensor([head.focal if focal is None else focal], dtype=torch.float32)}, buf)
-    path.write_bytes(buf.getvalue())
+    write_track_params(path, euler, trans, head.focal if focal is None else focal)
 
 
 # x264 as the subjects' mp4 is encoded on every host. Left to itself it runs as many slice threads
@@ -214,11 +179,11 @@ X264_ASM = "MMX2,SSE,SSE2,SSE3,SSSE3,SSE4.1,SSE4.2"
 
 
 def _write_video(path: Path, frames: np.ndarray, audio: np.ndarray) -> None:
-    """The subject's raw video: :func:`lmgs_eval.data.io.write_video`'s H.264 (CRF 18, veryfast,
+    """The subject's raw video: :func:`lmgs_eval.data.video.write_video`'s H.264 (CRF 18, veryfast,
     4:2:0) and AAC, with the encoder's threads and kernels fixed (above), so the bytes do not
     depend on the host (a change is a new :data:`GENERATOR_VERSION`)."""
-    io.write_video(path, frames, FPS, audio if len(audio) else None, sp_mod.SAMPLE_RATE,
-                   threads=X264_THREADS, x264_params=f"asm={X264_ASM}")
+    write_video(path, frames, FPS, audio if len(audio) else None, sp_mod.SAMPLE_RATE,
+                threads=X264_THREADS, x264_params=f"asm={X264_ASM}")
 
 
 def _cross_seconds(seconds: float) -> float:
@@ -275,9 +240,9 @@ def build(name: str, out_dir: Path, *, size: int = 256, seconds: float = 60.0, s
     layers = head.static_layers()
     for d in ("ori_imgs", "gt_imgs", "torso_imgs", "parsing", "teeth_mask", "depth", "normal"):
         (out / d).mkdir()
-    io.write_rgb(out / "bc.jpg", layers["bc"])
+    write_rgb(out / "bc.jpg", layers["bc"])
     torso_rgba = np.concatenate([layers["torso"], layers["torso_alpha"][:, :, None]], 2)
-    torso_png = _png_bytes(io.to_u8(torso_rgba)[:, :, [2, 1, 0, 3]])
+    torso_png = encode_png(to_u8(torso_rgba))
     torso_mask = layers["torso_alpha"] >= 0.5
     bar = None
     if progress:
@@ -296,40 +261,38 @@ def build(name: str, out_dir: Path, *, size: int = 256, seconds: float = 60.0, s
             fr = head.render(art[i], focal=focals[i])
             layers = head.static_layers(focals[i] / head.focal)
             torso_rgba = np.concatenate([layers["torso"], layers["torso_alpha"][:, :, None]], 2)
-            torso_png = _png_bytes(io.to_u8(torso_rgba)[:, :, [2, 1, 0, 3]])
+            torso_png = encode_png(to_u8(torso_rgba))
             torso_mask = layers["torso_alpha"] >= 0.5
-        frames[i] = io.to_u8(fr.rgb)
+        frames[i] = to_u8(fr.rgb)
         lms2d[i], lms3d[i], c2w[i], gaps[i] = fr.lms2d, fr.lms3d, head.c2w(art[i]), fr.lip_gap
-        io.write_rgb(out / "ori_imgs" / f"{i}.jpg", frames[i])
+        write_rgb(out / "ori_imgs" / f"{i}.jpg", frames[i])
         shutil.copyfile(out / "ori_imgs" / f"{i}.jpg", out / "gt_imgs" / f"{i}.jpg")
-        _write_lms(out / "ori_imgs" / f"{i}.lms", lms2d[i])
+        write_lms(out / "ori_imgs" / f"{i}.lms", lms2d[i])
         (out / "torso_imgs" / f"{i}.png").write_bytes(torso_png)
         headm = fr.head_alpha >= 0.5
         parsing = np.full((size, size, 3), 255, np.uint8)
         parsing[torso_mask & ~headm] = PARSING_COLOURS["torso"]
         parsing[layers["neck"] & ~headm] = PARSING_COLOURS["neck"]
         parsing[headm] = PARSING_COLOURS["head"]
-        (out / "parsing" / f"{i}.png").write_bytes(_png_bytes(parsing[:, :, ::-1]))
+        write_png(out / "parsing" / f"{i}.png", parsing)
         np.save(out / "teeth_mask" / f"{i}.npy", fr.mouth)
-        io.write_depth(out / "depth" / f"{i}.png", fr.depth, DEPTH_SCALE)
-        io.write_normal(out / "normal" / f"{i}.png", fr.normal)
+        write_depth(out / "depth" / f"{i}.png", fr.depth, DEPTH_SCALE)
+        write_normal(out / "normal" / f"{i}.png", fr.normal)
         if bar is not None:
             bar.update(1)
 
-    io.write_wav(out / "aud.wav", speech.audio)
+    write_wav(out / "aud.wav", speech.audio)
     _write_video(out / f"{name}.mp4", frames, speech.audio)
-    cut = int(n * 10 / 11)
     focal = head.focal if focals is None else float(focals.mean())
-    _write_json(out / "transforms_train.json", _transforms(c2w, range(cut), focal, size))
-    _write_json(out / "transforms_val.json", _transforms(c2w, range(cut, n), focal, size))
+    write_transforms(out, c2w, focal, size, size)
     if focals is not None:
         np.save(out / "focal_per_frame.npy", focals)
     np.save(out / "lms3d.npy", lms3d)
     np.save(out / "articulation.npy", art)
     gap_norm = np.clip(gaps / 0.012, 0, 1)
-    _au_csv(out / "au.csv", art_mod.action_units(art, gap_norm), n)
+    write_au_csv(out / "au.csv", art_mod.action_units(art, gap_norm), np.ones(n, bool), AU_COLUMNS)
     _track_params(out / "track_params.pt", art, head, None if focals is None else focal)
-    _write_json(out / "phonemes.json", [p.to_json() for p in speech.phones])
+    write_json(out / "phonemes.json", [p.to_json() for p in speech.phones])
     (out / "text.txt").write_text("\n".join(used) + "\n", encoding="utf-8")
 
     cross_meta = {}
@@ -339,13 +302,13 @@ def build(name: str, out_dir: Path, *, size: int = 256, seconds: float = 60.0, s
         (d / "ori_imgs").mkdir()
         clip = _render_clip(name, size, cs, _rng(seed, name, f"cross-{key}"), " ".join(cu), bar, hair=hair)
         for i in range(len(clip.frames)):
-            io.write_rgb(d / "gt_imgs" / f"{i}.jpg", clip.frames[i])
-            _write_lms(d / "ori_imgs" / f"{i}.lms", clip.lms2d[i])
-        io.write_wav(d / "aud.wav", clip.audio)
+            write_rgb(d / "gt_imgs" / f"{i}.jpg", clip.frames[i])
+            write_lms(d / "ori_imgs" / f"{i}.lms", clip.lms2d[i])
+        write_wav(d / "aud.wav", clip.audio)
         np.save(d / "lms3d.npy", clip.lms3d.astype(np.float32))
         np.save(d / "articulation.npy", clip.articulation)
-        _write_json(d / "transforms.json", _transforms(clip.c2w, range(len(clip.frames)), head.focal, size))
-        _write_json(d / "phonemes.json", clip.phonemes)
+        write_json(d / "transforms.json", transforms(clip.c2w, range(len(clip.frames)), head.focal, size, size))
+        write_json(d / "phonemes.json", clip.phonemes)
         (d / "text.txt").write_text("\n".join(cu) + "\n", encoding="utf-8")
         cross_meta[key] = {"voice": cs.voice, "frames": len(clip.frames), "seconds": len(clip.frames) / FPS, "texts": cu}
     if bar is not None:
@@ -387,19 +350,9 @@ def build(name: str, out_dir: Path, *, size: int = 256, seconds: float = 60.0, s
         if focals is not None:
             meta["focal_per_frame"] = ("focal_per_frame.npy: the focal length of every frame in pixels; transforms_*.json carry its "
                                        "mean, bc.jpg the background at that mean; the frames' torso and background zoom with it")
-    _write_json(out / "meta.json", meta)
-    _write_json(out / "manifest.json", manifest(out))
+    write_json(out / "meta.json", meta)
+    write_json(out / "manifest.json", file_hashes(out))
     return meta
-
-
-def manifest(folder: Path) -> dict[str, str]:
-    """sha256 of every file under ``folder`` except ``manifest.json``, by relative path."""
-    folder = Path(folder)
-    out = {}
-    for p in sorted(folder.rglob("*")):
-        if p.is_file() and p.name != "manifest.json":
-            out[p.relative_to(folder).as_posix()] = hashlib.sha256(p.read_bytes()).hexdigest()
-    return out
 
 
 def speech_is_shipped(folder: Path) -> bool:

@@ -102,6 +102,7 @@ class HeadModel:
     # ------------------------------------------------------------------ construction
     def _build_mesh(self) -> None:
         import cv2
+        import matplotlib.path as mpath
         from scipy.spatial import Delaunay
 
         p = self.p
@@ -121,8 +122,6 @@ class HeadModel:
         # finer points inside the face for a smooth jaw deformation
         fgy, fgx = np.mgrid[step // 4 : TEX : step // 2, step // 4 : TEX : step // 2]
         fine = np.stack([fgx.ravel(), fgy.ravel()], 1).astype(np.float64) + 0.5
-        import matplotlib.path as mpath
-
         in_face = mpath.Path(face_poly).contains_points(fine)
         fine = fine[in_face]
         fine = fine[np.linalg.norm(fine[:, None] - lms[None], axis=2).min(1) > 6.0]

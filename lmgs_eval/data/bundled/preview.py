@@ -7,7 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
-from lmgs_eval.data import io
+from lmgs_eval.data.audio import load_audio
+from lmgs_eval.data.images import read_rgb_u8, write_rgb
+from lmgs_eval.data.video import write_video
 from lmgs_eval.errors import UserError
 
 
@@ -21,9 +23,9 @@ def make_preview(subject_dir: Path, out_mp4: Path, max_seconds: float = 10.0) ->
     k = min(n, int(round(max_seconds * 25)))
     if k == 0:
         raise UserError(f"{gt}: no frames")
-    frames = np.stack([io.read_rgb_u8(gt / f"{i}.jpg") for i in range(k)])
-    audio, _ = io.load_audio(root / "aud.wav")
-    io.write_video(Path(out_mp4), frames, 25, audio[: k * 640])
+    frames = np.stack([read_rgb_u8(gt / f"{i}.jpg") for i in range(k)])
+    audio, _ = load_audio(root / "aud.wav")
+    write_video(Path(out_mp4), frames, 25, audio[: k * 640])
     return Path(out_mp4)
 
 
@@ -63,7 +65,7 @@ def contact_sheet(subject_dir: Path, out_png: Path, *, with_landmarks: bool = Tr
     picks = _pick(root, n)
     tiles = []
     for i, label in picks:
-        img = io.read_rgb_u8(root / "gt_imgs" / f"{i}.jpg")[:, :, ::-1].copy()
+        img = read_rgb_u8(root / "gt_imgs" / f"{i}.jpg")  # drawn on in RGB: the colours below are grey or green
         s = img.shape[0]
         if s < 256:
             img = cv2.resize(img, (256, 256), interpolation=cv2.INTER_NEAREST)
@@ -79,6 +81,5 @@ def contact_sheet(subject_dir: Path, out_png: Path, *, with_landmarks: bool = Tr
     rows = [np.concatenate(tiles[r * 4 : r * 4 + 4], 1) for r in range(4)]
     out = Path(out_png)
     out.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(out), np.concatenate(rows, 0)):
-        raise UserError(f"{out}: could not write the contact sheet")
+    write_rgb(out, np.concatenate(rows, 0))
     return out

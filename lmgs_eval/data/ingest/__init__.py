@@ -9,6 +9,7 @@ manifest. See ``design.md``.
 
 from __future__ import annotations
 
-from lmgs_eval.data.ingest.pipeline import INGEST_VERSION, IngestConfig, ingest
+from lmgs_eval.data.ingest.checks import INGEST_VERSION
+from lmgs_eval.data.ingest.pipeline import IngestConfig, ingest
 
 __all__ = ["INGEST_VERSION", "IngestConfig", "ingest"]

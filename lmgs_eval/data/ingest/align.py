@@ -69,9 +69,9 @@ def upper_head_mask(lms: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 def _grey(path: Path) -> np.ndarray:
     import cv2
 
-    from lmgs_eval.data import io
+    from lmgs_eval.data.images import read_rgb_u8
 
-    return cv2.cvtColor(io.read_rgb_u8(path), cv2.COLOR_RGB2GRAY)
+    return cv2.cvtColor(read_rgb_u8(path), cv2.COLOR_RGB2GRAY)
 
 
 def refine(frame_paths: list[Path], lms: np.ndarray, rv: np.ndarray, tv: np.ndarray, focal: float, w: int, h: int,
@@ -82,7 +82,7 @@ def refine(frame_paths: list[Path], lms: np.ndarray, rv: np.ndarray, tv: np.ndar
     import cv2
     from scipy.spatial.transform import Rotation
 
-    from lmgs_eval.data.ingest.geometry import head_ellipsoid, render_prior
+    from lmgs_eval.data.geometry import head_ellipsoid, render_prior
 
     n = len(frame_paths)
     rots = Rotation.from_rotvec(rv)

@@ -46,7 +46,7 @@ def _cpu() -> float:
 def run(args: argparse.Namespace) -> dict:
     from lmgs_eval.data.ingest import IngestConfig, ingest
     from lmgs_eval.data.ingest.compare import bundled_truth, compare, lossless_video
-    from lmgs_eval.data.registry import BundledSpec
+    from lmgs_eval.data.bundled_spec import BundledSpec
     from lmgs_eval.errors import UserError
 
     if args.video and (args.hair != "layer" or args.lossless):

@@ -83,7 +83,7 @@ def masks_and_frames(true_dir: Path, est_dir: Path, n: int) -> dict[str, float]:
     """``head_iou`` and ``person_iou`` (intersection over union of the parsing's head, and of all
     it does not call background), mean over frames; ``gt_psnr``: PSNR (dB) of the ``gt_imgs``
     against the truth's, mean over frames."""
-    from lmgs_eval.data.io import read_rgb, read_rgb_u8
+    from lmgs_eval.data.images import read_rgb, read_rgb_u8
 
     def iou(a, b):
         u = (a | b).sum()
@@ -101,7 +101,7 @@ def masks_and_frames(true_dir: Path, est_dir: Path, n: int) -> dict[str, float]:
 
 def head_masks(folder: Path, ids) -> np.ndarray:
     """The head of each frame's parsing map (ER-NeRF's red), bool ``[len(ids), H, W]``."""
-    from lmgs_eval.data.io import read_rgb_u8
+    from lmgs_eval.data.images import read_rgb_u8
 
     return np.stack([np.all(read_rgb_u8(Path(folder) / "parsing" / f"{int(i)}.png") == (255, 0, 0), axis=-1) for i in ids])
 
@@ -121,7 +121,7 @@ def edge_band(masks: np.ndarray, radius: int) -> np.ndarray:
 def plate_psnr(true_dir: Path, est_dir: Path, n: int) -> tuple[float, float]:
     """PSNR (dB) of the plate where the truth's background is visible in every frame, and the
     share of the frame that is."""
-    from lmgs_eval.data.io import read_rgb, read_rgb_u8
+    from lmgs_eval.data.images import read_rgb, read_rgb_u8
 
     vis = None
     for i in range(n):
@@ -191,12 +191,14 @@ def compare(true_dir: str | Path, est_dir: str | Path) -> dict[str, float]:
 def lossless_video(truth_root: Path, out: Path) -> Path:
     """A bundled subject's frames (``ori_imgs``, every RGB value kept) and ``aud.wav`` as a lossless
     mp4 (x264's RGB encoder at quantiser 0): an ingest of it starts from exactly the truth's frames."""
-    from lmgs_eval.data import io
+    from lmgs_eval.data.audio import read_wav
+    from lmgs_eval.data.images import read_rgb_u8
+    from lmgs_eval.data.video import write_video
 
     n = len(list((truth_root / "ori_imgs").glob("*.jpg")))
-    frames = np.stack([io.read_rgb_u8(truth_root / "ori_imgs" / f"{i}.jpg") for i in range(n)])
-    audio, sr = io.read_wav(truth_root / "aud.wav")
-    io.write_video(out, frames, 25, audio[:, 0], sr, lossless=True)  # the generator writes mono
+    frames = np.stack([read_rgb_u8(truth_root / "ori_imgs" / f"{i}.jpg") for i in range(n)])
+    audio, sr = read_wav(truth_root / "aud.wav")
+    write_video(out, frames, 25, audio[:, 0], sr, lossless=True)  # the generator writes mono
     return out
 
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lmgs_eval.data.io import to_mono_16k
+from lmgs_eval.data.audio import read_audio_track, read_wav, to_mono_16k
 from lmgs_eval.errors import UserError
 
 FPS = 25
@@ -188,15 +188,16 @@ def read_audio(video: Path, audio: Path | None, info: VideoInfo) -> tuple[np.nda
     From ``audio`` when given, else from the video's own track (shifted by the difference of
     the two streams' start times).
     """
-    from lmgs_eval.data import io
-
     if audio is not None:
-        x, sr = io.read_wav(Path(audio))
+        x, sr = read_wav(Path(audio))
         y, notes = to_mono_16k(x, sr, str(audio))
         return y, notes, str(audio)
     if not info.has_audio:
         raise UserError(f"{video}: has no audio track; give the speech as --audio WAV")
-    x, sr, start = _read_av_audio(video)
+    try:
+        x, sr, start = read_audio_track(video)
+    except UserError as exc:
+        raise UserError(f"{exc}; give the speech as --audio WAV") from None
     y, notes = to_mono_16k(x, sr, str(video))
     shift = int(round((start - info.t0) * 16000))
     if shift > 0:
@@ -206,32 +207,6 @@ def read_audio(video: Path, audio: Path | None, info: VideoInfo) -> tuple[np.nda
         y = y[-shift:]
         notes.append(f"{video}: audio starts {-shift / 16000:.3f} s before the first frame; that part is dropped")
     return y, notes, f"{video} (its own audio track)"
-
-
-def _read_av_audio(path: Path) -> tuple[np.ndarray, int, float]:
-    import av
-
-    chunks, start, sr = [], None, None
-    try:
-        with av.open(str(path)) as c:
-            st = c.streams.audio[0]
-            sr = st.codec_context.sample_rate
-            for fr in c.decode(st):
-                if start is None:
-                    start = float(fr.pts * st.time_base) if fr.pts is not None and st.time_base else 0.0
-                a = fr.to_ndarray()
-                if a.dtype == np.int16:
-                    a = a.astype(np.float32) / 32768.0
-                elif a.dtype == np.int32:
-                    a = a.astype(np.float32) / 2147483648.0
-                a = a.astype(np.float32)
-                a = a.T if fr.format.is_planar else a.reshape(-1, len(fr.layout.channels))
-                chunks.append(a)
-    except av.error.FFmpegError as exc:
-        raise UserError(f"{path}: the audio track cannot be decoded ({exc.__class__.__name__})") from None
-    if not chunks or not sr:
-        raise UserError(f"{path}: the audio track is empty; give the speech as --audio WAV")
-    return np.concatenate(chunks, axis=0), int(sr), float(start or 0.0)
 
 
 def scene_cuts(small: np.ndarray, *, floor: float = 0.12, factor: float = 8.0) -> list[int]:

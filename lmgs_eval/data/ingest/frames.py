@@ -13,20 +13,15 @@ from pathlib import Path
 
 import numpy as np
 
-from lmgs_eval.data import io
+from lmgs_eval.data.geometry import DEPTH_SCALE, render_prior
+from lmgs_eval.data.images import read_rgb_u8, write_depth, write_normal, write_png, write_rgb
 from lmgs_eval.data.ingest.parsing import KEYFRAME, Parts, mouth_mask, person_mask, refine_person, split_parts, torso_layer
 from lmgs_eval.errors import UserError
 
 CHUNK = 2 * KEYFRAME
 
 
-def png(path, img: np.ndarray) -> None:
-    """A grey, RGB or RGBA uint8 PNG at zlib level 1 (lossless like any level; 3-4x faster to write)."""
-    import cv2
-
-    data = img if img.ndim == 2 else img[:, :, [2, 1, 0, 3][: img.shape[2]]]
-    if not cv2.imwrite(str(path), np.ascontiguousarray(data), [cv2.IMWRITE_PNG_COMPRESSION, 1]):
-        raise UserError(f"{path}: could not write image")
+PNG_COMPRESSION = 1  # zlib level of the masks, parsing, normal and torso PNGs (lossless; 3-4x faster to write)
 
 
 def parse(sub: Path, masks: Path, lms: np.ndarray, a: int, b: int, keep: frozenset) -> list[tuple[int, np.ndarray, np.ndarray]]:
@@ -34,9 +29,9 @@ def parse(sub: Path, masks: Path, lms: np.ndarray, a: int, b: int, keep: frozens
     person)`` of the frames in ``keep`` (the plate's samples)."""
     out, model = [], None
     for i in range(a, b):
-        img = io.read_rgb_u8(sub / "ori_imgs" / f"{i}.jpg")
+        img = read_rgb_u8(sub / "ori_imgs" / f"{i}.jpg")
         person, model = person_mask(img, lms[i], None if i % KEYFRAME == 0 or model is None else model)
-        png(masks / f"{i}.png", person.astype(np.uint8) * 255)
+        write_png(masks / f"{i}.png", person.astype(np.uint8) * 255, PNG_COMPRESSION)
         if i in keep:
             out.append((i, img, person))
     return out
@@ -45,37 +40,35 @@ def parse(sub: Path, masks: Path, lms: np.ndarray, a: int, b: int, keep: frozens
 def refine(sub: Path, masks: Path, lms: np.ndarray, a: int, b: int) -> None:
     """Parsing maps and mouth masks of frames ``[a, b)``: GrabCut's person grown against the
     plate (``bc.jpg``), then split into head, neck and torso."""
-    bc = io.read_rgb_u8(sub / "bc.jpg")
+    bc = read_rgb_u8(sub / "bc.jpg")
     for i in range(a, b):
-        img = io.read_rgb_u8(sub / "ori_imgs" / f"{i}.jpg")
-        person = refine_person(io.read_rgb_u8(masks / f"{i}.png")[..., 0] > 127, img, bc)
+        img = read_rgb_u8(sub / "ori_imgs" / f"{i}.jpg")
+        person = refine_person(read_rgb_u8(masks / f"{i}.png")[..., 0] > 127, img, bc)
         parts = split_parts(person, lms[i])
-        png(sub / "parsing" / f"{i}.png", parts.colour_map())
+        write_png(sub / "parsing" / f"{i}.png", parts.colour_map(), PNG_COMPRESSION)
         np.save(sub / "teeth_mask" / f"{i}.npy", mouth_mask(lms[i], img.shape[:2]) & parts.head)
 
 
 def geometry(sub: Path, w2c: np.ndarray, focal: float, centre: np.ndarray, axes: np.ndarray, a: int, b: int) -> None:
     """Depth and normal priors of frames ``[a, b)`` inside their head masks."""
-    from lmgs_eval.data.ingest.geometry import DEPTH_SCALE, render_prior
-
     for i in range(a, b):
-        p = io.read_rgb_u8(sub / "parsing" / f"{i}.png")
+        p = read_rgb_u8(sub / "parsing" / f"{i}.png")
         h, w = p.shape[:2]
         depth, normal = render_prior(w2c[i], focal, w, h, centre, axes, np.all(p == (255, 0, 0), axis=-1))
-        io.write_depth(sub / "depth" / f"{i}.png", depth, DEPTH_SCALE)
-        valid = normal.any(-1, keepdims=True)  # the encoding of io.write_normal, in float32
-        png(sub / "normal" / f"{i}.png", np.where(valid, np.clip(np.rint((normal + 1) * 127.5), 0, 255), 0).astype(np.uint8))
+        write_depth(sub / "depth" / f"{i}.png", depth, DEPTH_SCALE)
+        write_normal(sub / "normal" / f"{i}.png", normal, dtype=np.float32, compression=PNG_COMPRESSION)
 
 
 def composite(sub: Path, a: int, b: int) -> None:
     """``gt_imgs`` (the frame over the plate outside the person) and ``torso_imgs`` (RGBA)."""
-    bc = io.read_rgb_u8(sub / "bc.jpg")
+    bc = read_rgb_u8(sub / "bc.jpg")
     for i in range(a, b):
-        img = io.read_rgb_u8(sub / "ori_imgs" / f"{i}.jpg")
-        parts = Parts.from_colour_map(io.read_rgb_u8(sub / "parsing" / f"{i}.png"))
-        io.write_rgb(sub / "gt_imgs" / f"{i}.jpg", np.where(parts.person[..., None], img, bc))
+        img = read_rgb_u8(sub / "ori_imgs" / f"{i}.jpg")
+        parts = Parts.from_colour_map(read_rgb_u8(sub / "parsing" / f"{i}.png"))
+        write_rgb(sub / "gt_imgs" / f"{i}.jpg", np.where(parts.person[..., None], img, bc))
         rgb, alpha = torso_layer(img, parts)
-        png(sub / "torso_imgs" / f"{i}.png", np.concatenate([rgb, alpha[..., None].astype(np.uint8) * 255], -1))
+        rgba = np.concatenate([rgb, alpha[..., None].astype(np.uint8) * 255], -1)
+        write_png(sub / "torso_imgs" / f"{i}.png", rgba, PNG_COMPRESSION)
 
 
 def run_chunks(fn: Callable, n: int, args: tuple, jobs: int, bar=None) -> list:

@@ -8,10 +8,11 @@ The fit, in three steps:
    similarity transform, then the per-point median), scaled so the jaw (landmarks 0-16) spans
    :data:`JAW_WIDTH` metres; its depth ``z`` is the generic relief
    :data:`lmgs.landmarks.MEAN_FACE_DEPTH` (nose tip in front, jaw angle behind) times the same
-   width times :data:`RELIEF`. The median over every frame would be a turned face's layout
-   wherever the head looks to one side for most of the clip, and the fit would take that turn
-   for frontal: on a bundled head that turns from 0 to 30 deg and back (astronaut, 256 px, 3 s)
-   it did (yaw -13..+9 deg, 5.5 deg mean rotation error); from the frontal quarter 2.8 deg.
+   width times :data:`lmgs_eval.data.geometry.RELIEF`. The median over every frame would be a
+   turned face's layout wherever the head looks to one side for most of the clip, and the fit
+   would take that turn for frontal: on a bundled head that turns from 0 to 30 deg and back
+   (astronaut, 256 px, 3 s) it did (yaw -13..+9 deg, 5.5 deg mean rotation error); from the
+   frontal quarter 2.8 deg.
 2. **Focal length, by search over the clip.** For each candidate focal (a geometric grid of
    0.8-8 frame widths, then a finer one around the best) every sampled frame's rigid pose is
    solved (``cv2.solvePnP``); the focal with the lowest median reprojection error wins, within
@@ -41,6 +42,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lmgs_eval.data.geometry import RELIEF
+
 JAW_WIDTH = 0.135  # metres between landmarks 0 and 16 (an adult face; the bundled heads use the same)
 GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 # Points that move with the skull, for the rigid fit: nose and eyes. The jaw line is left out
@@ -51,12 +54,6 @@ GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 # line helps instead: 0.34 deg with it, 1.8 without; that is the generic relief of nose and
 # eyes differing from the bundled head's, a limit of the template.)
 RIGID = np.r_[27:48]
-# Depth of the template relative to MEAN_FACE_DEPTH. Small head turns cannot separate depth
-# relief from rotation angle (a flatter face turned further projects alike), so the relief is
-# a prior. At 1.0 the yaw of both bundled heads came out about twice the truth; at 1.5 the mean
-# rotation error fell from 0.84 / 2.45 deg to 0.55 / 1.74 deg (astronaut / hopper, 256 px, 4 s),
-# and on the real 8 s clip the yaw range from +-25 to +-20 deg (a visibly moderate turn).
-RELIEF = 1.5
 # The template's layout: the median of this share of the frames, those nearest frontal (at least 10).
 FRONTAL_SHARE = 0.25
 # Focal lengths searched, in frame widths: about 25-55 degrees of horizontal field of view, the

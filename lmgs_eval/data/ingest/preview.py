@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lmgs_eval.data import io
+from lmgs_eval.data.images import read_rgb_u8, write_rgb
 from lmgs_eval.errors import UserError
 
 AXIS_M = 0.05
@@ -53,9 +53,9 @@ def contact_sheet(subject_dir: str | Path, out_png: str | Path, *, tiles: int = 
     ids = np.linspace(0, n - 1, min(tiles, n)).round().astype(int)
     out = []
     for i in ids:
-        img = io.read_rgb_u8(root / "ori_imgs" / f"{i}.jpg").copy()
+        img = read_rgb_u8(root / "ori_imgs" / f"{i}.jpg").copy()
         lms = np.loadtxt(root / "ori_imgs" / f"{i}.lms")
-        p = io.read_rgb_u8(root / "parsing" / f"{i}.png")
+        p = read_rgb_u8(root / "parsing" / f"{i}.png")
         _outline(img, np.all(p == (255, 0, 0), axis=-1), (255, 40, 40))
         _outline(img, np.all(p == (0, 255, 0), axis=-1) | np.all(p == (0, 0, 255), axis=-1), (60, 120, 255))
         s = max(1, round(img.shape[0] / 256))
@@ -71,8 +71,8 @@ def contact_sheet(subject_dir: str | Path, out_png: str | Path, *, tiles: int = 
         euler = None
     if euler is not None:
         out = [(im, f"{lab}  p{euler[i, 0]:+.0f} y{euler[i, 1]:+.0f} r{euler[i, 2]:+.0f}") for (im, lab), i in zip(out, ids)]
-    out.append((io.read_rgb_u8(root / "bc.jpg"), "plate bc.jpg"))
-    out.append((io.read_rgb_u8(root / "parsing" / f"{ids[len(ids) // 2]}.png"), f"parsing {ids[len(ids) // 2]}"))
+    out.append((read_rgb_u8(root / "bc.jpg"), "plate bc.jpg"))
+    out.append((read_rgb_u8(root / "parsing" / f"{ids[len(ids) // 2]}.png"), f"parsing {ids[len(ids) // 2]}"))
     cols = 4
     rows = (len(out) + cols - 1) // cols
     sheet = np.full((rows * tile, cols * tile, 3), 32, np.uint8)
@@ -83,5 +83,5 @@ def contact_sheet(subject_dir: str | Path, out_png: str | Path, *, tiles: int = 
         r, c = divmod(k, cols)
         sheet[r * tile : (r + 1) * tile, c * tile : (c + 1) * tile] = t
     out_png = Path(out_png)
-    io.write_rgb(out_png, sheet)
+    write_rgb(out_png, sheet)
     return out_png

@@ -7,13 +7,16 @@ import time
 
 import numpy as np
 
-from lmgs_eval.data import io
+from lmgs_eval.data.audio import write_wav
+from lmgs_eval.data.images import read_rgb_u8, write_rgb
 from lmgs_eval.data.ingest import decode, pose as pose_mod, track as track_mod, writer, zoom as zoom_mod
-from lmgs_eval.data.ingest.align import MIN_SHARE
-from lmgs_eval.data.ingest.crop import choose_window
 from lmgs_eval.data.ingest import frames as frames_mod
+from lmgs_eval.data.ingest.align import MIN_SHARE
+from lmgs_eval.data.ingest.checks import INGEST_VERSION, MIN_FACE_PX, MOVING_SHARE, STATIC_LEVELS, check_frames
+from lmgs_eval.data.ingest.crop import choose_window
 from lmgs_eval.data.ingest.parsing import PlateBuilder
-from lmgs_eval.data.ingest.pipeline import INGEST_VERSION, MIN_FACE_PX, MOVING_SHARE, STATIC_LEVELS, check_frames, save_npz
+from lmgs_eval.data.layout_writer import file_hashes, write_au_csv, write_json, write_lms, write_track_params, write_transforms
+from lmgs_eval.data.video import write_video
 from lmgs_eval.errors import UserError
 
 SPF = 640
@@ -52,7 +55,7 @@ def track(ctx, info: decode.VideoInfo) -> None:
         if len(other):
             seen.append(f"a face other than the tracked one in frames {_ranges(other.tolist())}, left alone")
         ctx.warn("several_faces", f"{ctx.video}: {'; '.join(seen)}; tracked the largest, most central face and kept to it")
-    save_npz(ctx.work / "track.npz", lms=tr.lms, faces=tr.faces, detected=tr.detected, others=tr.others)
+    writer.save_npz(ctx.work / "track.npz", lms=tr.lms, faces=tr.faces, detected=tr.detected, others=tr.others)
 
 
 def frames(ctx, info: decode.VideoInfo, tr, audio: np.ndarray) -> None:
@@ -85,7 +88,7 @@ def frames(ctx, info: decode.VideoInfo, tr, audio: np.ndarray) -> None:
         if k >= last:
             break
         if k in at:
-            io.write_rgb(out / f"{at[k]}.jpg", win.apply(img))
+            write_rgb(out / f"{at[k]}.jpg", win.apply(img))
             if bar is not None:
                 bar.update(1)
     if bar is not None:
@@ -96,9 +99,9 @@ def frames(ctx, info: decode.VideoInfo, tr, audio: np.ndarray) -> None:
         for seg in track_mod.segments(source):
             smooth[seg] = track_mod.smooth_landmarks(lms_out[seg], ctx.cfg.smooth_window)
     for i in range(n):
-        writer.write_lms(out / f"{i}.lms", smooth[i])
+        write_lms(out / f"{i}.lms", smooth[i])
     found = ~np.isin(source, missing)
-    save_npz(ctx.work / "frames.npz", lms=smooth, raw=lms_out, found=found, first=first, last=last, source=source,
+    writer.save_npz(ctx.work / "frames.npz", lms=smooth, raw=lms_out, found=found, first=first, last=last, source=source,
              window=json.dumps(win.to_json()), jaw_px=jaw)
     ctx.timed("crop_frames", t0, n)
 
@@ -143,8 +146,8 @@ def pose(ctx, sel) -> None:
     if fit.focal_curve and (fit.focal >= 0.99 * hi * s or fit.focal <= 1.01 * lo * s):
         ctx.log.append(f"the focal search ended at its range's edge ({fit.focal / s:.2f} frame widths): the head turns too little "
                        f"to pin the focal down; pass --focal to set it")
-    writer.write_transforms(ctx.sub, fit.c2w, fit.focal, s, s)
-    writer.write_track_params(ctx.sub / "track_params.pt", fit.euler, fit.trans, fit.focal)
+    write_transforms(ctx.sub, fit.c2w, fit.focal, s, s)
+    write_track_params(ctx.sub / "track_params.pt", fit.euler, fit.trans, fit.focal)
     np.save(ctx.sub / "lms3d.npy", pose_mod.lift_landmarks(fit, lms, s, s))
     sc = zoom_mod.check_scale(ctx.sub / "ori_imgs", lms, fit.c2w, s)
     if sc.zooms:
@@ -157,7 +160,7 @@ def pose(ctx, sel) -> None:
     if failed > len(sc.frame) // 2:
         ctx.log.append(f"zoom check: {failed} of {len(sc.frame)} sampled frames could not be registered outside the head "
                        f"(too little of it, or too little texture): a zoom would go unseen; the face's scale changes by {100 * sc.face_range:.1f} %")
-    save_npz(ctx.work / "pose.npz", w2c=fit.w2c, c2w=fit.c2w, euler=fit.euler, trans=fit.trans, template=fit.template,
+    writer.save_npz(ctx.work / "pose.npz", w2c=fit.w2c, c2w=fit.c2w, euler=fit.euler, trans=fit.trans, template=fit.template,
              focal=fit.focal, reproj=fit.reproj_px, curve=np.asarray(fit.focal_curve, np.float64).reshape(-1, 2),
              scale=json.dumps(sc.to_json()))
     ctx.timed("pose", t0, len(lms))
@@ -181,7 +184,7 @@ def parsing(ctx, sel) -> None:
     if bar is not None:
         bar.close()
     bc, seen, resid = plate.plate()
-    io.write_rgb(ctx.sub / "bc.jpg", bc)
+    write_rgb(ctx.sub / "bc.jpg", bc)
     bar = ctx.bar(n, "parsing against the plate")
     frames_mod.run_chunks(frames_mod.refine, n, ((ctx.sub, masks, lms), ()), ctx.jobs, bar)
     if bar is not None:
@@ -199,7 +202,7 @@ def parsing(ctx, sel) -> None:
 
 def geometry(ctx, sel) -> None:
     """Depth and normal priors from the posed head ellipsoid, inside each frame's head mask."""
-    from lmgs_eval.data.ingest.geometry import head_ellipsoid
+    from lmgs_eval.data.geometry import head_ellipsoid
 
     t0 = time.perf_counter()
     n = len(sel["lms"])
@@ -234,12 +237,10 @@ def finish(ctx, info: decode.VideoInfo, sel, audio: np.ndarray, source: str, key
     n = len(src)
     runs = [(int(src[g.start]), int(src[g.stop - 1]) + 1) for g in track_mod.segments(src)]  # [a, b) source frames
     aud = np.concatenate([audio[a * SPF : b * SPF] for a, b in runs])
-    io.write_wav(ctx.sub / "aud.wav", aud)
+    write_wav(ctx.sub / "aud.wav", aud)
     aus = writer.action_units(sel["lms"])
-    writer.write_au_csv(ctx.sub / "au.csv", aus, sel["found"])
-    frames = np.stack([io.read_rgb_u8(ctx.sub / "ori_imgs" / f"{i}.jpg") for i in range(n)])
-    io.write_video(ctx.sub / f"{ctx.name}.mp4", frames, 25, aud)
-    del frames
+    write_au_csv(ctx.sub / "au.csv", aus, sel["found"], writer.AU_COLUMNS)
+    write_video(ctx.sub / f"{ctx.name}.mp4", (read_rgb_u8(ctx.sub / "ori_imgs" / f"{i}.jpg") for i in range(n)), 25, aud)
     ctx.timed("audio_video", t0, n)
     pz = np.load(ctx.work / "pose.npz")
     eul = np.degrees(pz["euler"])
@@ -258,7 +259,7 @@ def finish(ctx, info: decode.VideoInfo, sel, audio: np.ndarray, source: str, key
         "normal": "prior: camera-space unit normals (OpenCV axes) of the same ellipsoid, facing the camera; 0 elsewhere",
         "world_units": "metres; the head is fixed, the camera moves (ER-NeRF convention)",
     }
-    writer.write_json(ctx.sub / "meta.json", meta)
+    write_json(ctx.sub / "meta.json", meta)
     manifest = {
         "ingest_version": INGEST_VERSION,
         "input": {"video": str(ctx.video), "sha256": key["input_sha256"], "bytes": ctx.video.stat().st_size, "probe": info.to_json()},
@@ -276,5 +277,5 @@ def finish(ctx, info: decode.VideoInfo, sel, audio: np.ndarray, source: str, key
         "notes": ctx.log,
         "timings": ctx.timings,
     }
-    manifest["files"] = writer.file_hashes(ctx.sub)
-    writer.write_json(ctx.sub / "manifest.json", manifest)
+    manifest["files"] = file_hashes(ctx.sub)
+    write_json(ctx.sub / "manifest.json", manifest)

@@ -1,50 +1,15 @@
-"""Writing the layout's small files: landmarks, transforms, track_params, au.csv, the manifest."""
+"""What the ingest writes beside the layout's files (:mod:`lmgs_eval.data.layout_writer`): action units
+from the landmarks, the tools' versions for the manifest, the work folder's arrays."""
 
 from __future__ import annotations
 
-import io as _io
-import json
 from pathlib import Path
 
 import numpy as np
 
-from lmgs.fileio import sha256_file
-from lmgs_eval.data.layout import split_point
+from lmgs.fileio import atomic_path
 
-FPS = 25
 AU_COLUMNS = ("AU25_r", "AU26_r", "AU45_r")
-
-
-def write_json(path: Path, obj) -> None:
-    Path(path).write_text(json.dumps(obj, indent=1, sort_keys=True) + "\n", encoding="utf-8")
-
-
-def write_lms(path: Path, lms: np.ndarray) -> None:
-    Path(path).write_text("".join(f"{x:.4f} {y:.4f}\n" for x, y in lms), encoding="ascii")
-
-
-def write_transforms(root: Path, c2w: np.ndarray, focal: float, w: int, h: int) -> None:
-    """``transforms_train.json`` (first ``int(n * 10 / 11)`` frames) and ``transforms_val.json``."""
-    n = len(c2w)
-    cut = split_point(n)
-
-    def part(ids):
-        return {"focal_len": float(focal), "cx": float(w / 2), "cy": float(h / 2),
-                "frames": [{"img_id": int(i), "aud_id": int(i), "transform_matrix": np.asarray(c2w[i]).tolist()} for i in ids]}
-
-    write_json(root / "transforms_train.json", part(range(cut)))
-    write_json(root / "transforms_val.json", part(range(cut, n)))
-
-
-def write_track_params(path: Path, euler: np.ndarray, trans: np.ndarray, focal: float) -> None:
-    """ER-NeRF's ``track_params.pt`` fields this fit has: ``euler`` (pitch, yaw, roll, radians),
-    ``trans`` (metres) ``[N, 3]`` and ``focal`` ``[1]``; no ``id``/``exp`` (no 3DMM)."""
-    import torch
-
-    buf = _io.BytesIO()
-    torch.save({"euler": torch.from_numpy(np.asarray(euler, np.float32)), "trans": torch.from_numpy(np.asarray(trans, np.float32)),
-                "focal": torch.tensor([focal], dtype=torch.float32)}, buf)
-    Path(path).write_bytes(buf.getvalue())
 
 
 def eye_openness(lms: np.ndarray) -> np.ndarray:
@@ -81,24 +46,6 @@ def action_units(lms: np.ndarray) -> dict[str, np.ndarray]:
     return {"AU25_r": au25, "AU26_r": au26, "AU45_r": au45}
 
 
-def write_au_csv(path: Path, aus: dict[str, np.ndarray], found: np.ndarray) -> None:
-    """OpenFace's CSV layout (", " separated, so the AU columns read with a leading space)."""
-    n = len(found)
-    cols = ["frame", "face_id", "timestamp", "confidence", "success", *AU_COLUMNS]
-    lines = [", ".join(cols)]
-    for i in range(n):
-        ok = bool(found[i])
-        vals = [str(i + 1), "0", f"{i / FPS:.3f}", "0.98" if ok else "0.00", "1" if ok else "0"]
-        lines.append(", ".join(vals + [f"{aus[c][i]:.2f}" for c in AU_COLUMNS]))
-    Path(path).write_text("\n".join(lines) + "\n", encoding="ascii")
-
-
-def file_hashes(folder: Path, skip: tuple[str, ...] = ("manifest.json",)) -> dict[str, str]:
-    """sha256 of every file under ``folder`` by relative path (except ``skip``)."""
-    folder = Path(folder)
-    return {p.relative_to(folder).as_posix(): sha256_file(p) for p in sorted(folder.rglob("*")) if p.is_file() and p.name not in skip}
-
-
 def tool_versions() -> dict[str, str]:
     import importlib.metadata as md
 
@@ -115,3 +62,10 @@ def tool_versions() -> dict[str, str]:
     except ImportError:
         pass
     return out
+
+
+def save_npz(path: Path, **arrays) -> None:
+    """Arrays into an ``.npz`` file, written through a temporary file and a rename."""
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez(f, **arrays)

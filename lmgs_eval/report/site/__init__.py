@@ -33,7 +33,8 @@ from lmgs_eval.errors import UserError
 from lmgs_eval.paths import atomic_dir, check_out_dir
 from lmgs_eval.report.site.model import (CURVE_METRICS, FILTER_FAMILIES, MARKS_LEGEND, WatchRun, curve_meta, curves, leaderboards,
                                          make_runs, watch_groups)
-from lmgs_eval.results import iter_store, resolve_artefact
+from lmgs_eval.results.store import iter_store, resolve_artefact
+from lmgs_eval.results.types import Record
 
 HERE = Path(__file__).resolve().parent
 INDEX = "index.html"
@@ -99,7 +100,7 @@ def build_site(store: str | os.PathLike, out: str | os.PathLike, previews: bool 
     boards = leaderboards(tables, run_ids)
     groups = watch_groups(runs)
     env = _env()
-    subjects = sorted({r["subject"]["name"] for r in records})
+    subjects = sorted({r.subject.name for r in records})
     old_media = out / "media" if (out / "media").is_dir() else None
     with atomic_dir(out) as tmp:
         shutil.copytree(HERE / "static", tmp / "static")
@@ -111,7 +112,7 @@ def build_site(store: str | os.PathLike, out: str | os.PathLike, previews: bool 
         from lmgs_eval.report.site.svgcharts import capacity_svgs, speed_charts_svg
 
         common = {"subjects": subjects, "watches": watches, "n_runs": len(runs), "store": str(store),
-                  "families": [f for f in FILTER_FAMILIES if any(r["method"]["family"] == f for r in records)]}
+                  "families": [f for f in FILTER_FAMILIES if any(r.method.family == f for r in records)]}
         page = lambda name, tpl, **kw: (tmp / name).write_text(  # noqa: E731
             env.get_template(tpl).render(**common, **kw), encoding="utf-8")
         page(INDEX, "index.html.j2", title="Benchmark report", status=boards.get("", []), warnings=warnings,
@@ -133,12 +134,13 @@ def build_site(store: str | os.PathLike, out: str | os.PathLike, previews: bool 
         tpl = env.get_template("run.html.j2")
         for run in runs:
             rel_json = os.path.relpath(run.path.resolve(), (out / "runs").resolve())
-            arts = [{"role": role, "path": a["path"], "sha256": a["sha256"],
-                     "here": resolve_artefact(renders if renders is not None else store, a["path"]).is_file()}
-                    for role, a in sorted((run.record.get("artefacts") or {}).items())]
+            arts = [{"role": role, "path": a.path, "sha256": a.sha256,
+                     "here": resolve_artefact(renders if renders is not None else store, a.path).is_file()}
+                    for role, a in sorted(run.record.artefacts.items())]
+            # the page lists the record's fields as its JSON holds them
             (tmp / "runs" / f"{run.id}.html").write_text(
-                tpl.render(**common, title=f"Run {run.label} / {run.record['subject']['name']}", run=run,
-                           rec=run.record, record_json=Path(rel_json).as_posix(), artefacts=arts, root="../"),
+                tpl.render(**common, title=f"Run {run.label} / {run.record.subject.name}", run=run,
+                           rec=run.record.to_dict(), record_json=Path(rel_json).as_posix(), artefacts=arts, root="../"),
                 encoding="utf-8")
     log(f"[report] {len(runs)} runs, {len(subjects)} subject(s) -> {out / INDEX}")
     return out / INDEX, warnings
@@ -158,10 +160,10 @@ def _check_out(out: Path) -> None:
     check_out_dir(out, "--out")
 
 
-def _protocol_counts(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
+def _protocol_counts(records: list[Record]) -> list[dict[str, Any]]:
     counts: dict[tuple[str, str], int] = {}
     for r in records:
-        key = (r["subject"]["name"], r["protocol"]["name"])
+        key = (r.subject.name, r.protocol.name)
         counts[key] = counts.get(key, 0) + 1
     return [{"subject": s, "protocol": p, "runs": n} for (s, p), n in sorted(counts.items())]
 
@@ -174,7 +176,7 @@ def _watch_players(tmp: Path, out: Path, store: Path, groups: dict, previews: bo
     made = Previews(store, tmp / "media", reuse=reuse, max_side=side)
     pages = []
     for (subject, protocol, clip), by_method in groups.items():
-        gt = next((r for r in by_method.values() if r.record["method"]["family"] == "ground-truth"), None)
+        gt = next((r for r in by_method.values() if r.record.method.family == "ground-truth"), None)
         players = []
         carrier = None  # the player whose preview has the sound: the ground truth, else the first with a render
         for run in by_method.values():
@@ -195,21 +197,20 @@ def _watch_players(tmp: Path, out: Path, store: Path, groups: dict, previews: bo
             log(f"[report] watch {subject}/{clip}: {run.label}: {w.video or w.missing}")
             players.append(w)
         name = f"watch-{_slug(subject)}-{_slug(clip) if protocol == 'self' else _slug(protocol + '-' + clip)}.html"
-        n_frames = next((r.record["protocol"]["n_frames"] for r in by_method.values() if r.record["protocol"]["n_frames"]),
-                        None)
+        n_frames = next((r.record.protocol.n_frames for r in by_method.values() if r.record.protocol.n_frames), None)
         data = {"fps": made.fps or 25.0, "n_frames": n_frames, "metrics": curve_meta(), "order": list(CURVE_METRICS),
                 "gain": ERROR_GAIN,
-                "players": [{"id": w.run.id, "label": w.run.label, "family": w.run.record["method"]["family"],
+                "players": [{"id": w.run.id, "label": w.run.label, "family": w.run.record.method.family,
                              "gt": w.run is gt, "video": w.video, "error": w.error, "missing": w.missing, "full": w.full,
                              "audio": w.audio, "note": w.note,
-                             "seed": w.run.record["seed"], "config_hash": w.run.record["config_hash"],
+                             "seed": w.run.record.seed, "config_hash": w.run.record.config_hash,
                              "curves": w.curves} for w in players]}
         pages.append({"subject": subject, "clip": clip, "protocol": protocol, "file": name, "players": players,
                       "data": data, "with_video": sum(1 for w in players if w.video)})
     return pages
 
 
-def _static_charts(records: list[dict[str, Any]], tmp: Path, log: Callable[[str], None]) -> list[str]:
+def _static_charts(records: list[Record], tmp: Path, log: Callable[[str], None]) -> list[str]:
     """The matplotlib charts (PNG, and SVG where made) under ``charts/``; site-relative paths of the PNGs."""
     from lmgs_eval.report.charts import all_charts
 

@@ -18,9 +18,11 @@ from typing import Any
 
 import numpy as np
 
-from lmgs_eval.data.io import read_video
+from lmgs_eval.data.frames import FrameFile
+from lmgs_eval.data.video import write_video
 from lmgs_eval.errors import UserError
-from lmgs_eval.results import resolve_artefact
+from lmgs_eval.results.store import resolve_artefact
+from lmgs_eval.results.types import Record
 
 CRF = "30"
 ERROR_CRF = "36"  # error maps are grey noise: at CRF 30 they cost three times a preview (8 s at 256 px: 431 vs 148 KiB)
@@ -28,50 +30,32 @@ ERROR_GAIN = 4.0
 MAX_SIDE = 256
 
 
-def _downscale(frames: np.ndarray, max_side: int) -> np.ndarray:
-    """``[T, H, W, 3]`` float frames with the longer side at most ``max_side`` (area filter), even sizes."""
-    t, h, w, _ = frames.shape
+def _downscale(clip: FrameFile, max_side: int) -> np.ndarray:
+    """A clip's frames as float32 ``[T, H, W, 3]`` in [0, 1], the longer side at most ``max_side`` (area
+    filter), even sizes; decoded and scaled a frame at a time."""
+    h, w = clip.height, clip.width
     s = min(1.0, max_side / max(h, w))
     nh, nw = max(2, int(round(h * s)) // 2 * 2), max(2, int(round(w * s)) // 2 * 2)
-    if (nh, nw) == (h, w):
-        return frames
     import cv2
 
-    return np.stack([cv2.resize(f, (nw, nh), interpolation=cv2.INTER_AREA) for f in frames])
+    out = []
+    for f in clip:
+        f = f.astype(np.float32) / 255.0
+        out.append(f if (nh, nw) == (h, w) else cv2.resize(f, (nw, nh), interpolation=cv2.INTER_AREA))
+    return np.stack(out)
 
 
 def _encode(path: Path, frames: np.ndarray, fps: float, audio: np.ndarray | None, sr: int | None,
             crf: str = CRF) -> None:
-    import av
-
-    frames = np.clip(np.rint(frames * 255.0), 0, 255).astype(np.uint8)
-    # write_video's settings are for renders (CRF 18); previews trade quality for size
-    t, h, w, _ = frames.shape
-    with av.open(str(path), "w", format="mp4") as c:
-        vs = c.add_stream("libx264", rate=int(round(fps)))
-        vs.width, vs.height = w, h
-        vs.pix_fmt = "yuv420p"
-        vs.options = {"crf": crf, "preset": "medium", "movflags": "+faststart"}
-        as_ = None
-        if audio is not None and len(audio) and sr:
-            as_ = c.add_stream("aac", rate=int(sr))
-            as_.layout = "mono"
-        for i in range(t):
-            for p in vs.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(frames[i]), format="rgb24")):
-                c.mux(p)
-        for p in vs.encode():
-            c.mux(p)
-        if as_ is not None:
-            mono = np.asarray(audio, np.float64)
-            mono = mono.mean(axis=1) if mono.ndim == 2 else mono
-            pcm = np.clip(np.rint(mono * 32767), -32768, 32767).astype(np.int16)
-            for k in range(0, len(pcm), 1024):
-                af = av.AudioFrame.from_ndarray(pcm[None, k:k + 1024], format="s16", layout="mono")
-                af.sample_rate, af.pts = int(sr), k
-                for p in as_.encode(af):
-                    c.mux(p)
-            for p in as_.encode():
-                c.mux(p)
+    """A preview: :func:`~lmgs_eval.data.video.write_video` at ``crf`` and x264's medium preset (renders are
+    stored at CRF 18; previews trade quality for size), audio mixed to mono."""
+    frames = np.clip(np.rint(frames * 255.0), 0, 255).astype(np.uint8)  # float32 arithmetic, as the previews were made
+    mono = None
+    if audio is not None and len(audio) and sr:
+        mono = np.asarray(audio, np.float64)
+        mono = mono.mean(axis=1) if mono.ndim == 2 else mono
+    write_video(path, frames, int(round(fps)), mono, sr or 16000, crf=crf, preset="medium",
+                options={"movflags": "+faststart"})
 
 
 def error_map(render: np.ndarray, gt: np.ndarray, gain: float = ERROR_GAIN) -> np.ndarray:
@@ -98,30 +82,30 @@ class Previews:
         self._gt_key: str | None = None
         self.fps: float | None = None  # of the last clip decoded
 
-    def _source(self, rec: dict[str, Any]) -> tuple[Path | None, str | None, str | None]:
+    def _source(self, rec: Record) -> tuple[Path | None, str | None, str | None]:
         """``(file, sha256, why not)`` of a record's render."""
-        art = (rec.get("artefacts") or {}).get("render")
+        art = rec.artefacts.get("render")
         if not art:
             return None, None, "this run recorded no render"
-        path = resolve_artefact(self.store, art["path"])
+        path = resolve_artefact(self.store, art.path)
         if not path.is_file():
-            where = rec["machine"].get("cpu") or "another machine"
-            return None, art["sha256"], (f"render not on this machine ({art['path']}; made on {where}, "
-                                         f"{rec['created'][:10]}): metrics and curves only")
-        return path, art["sha256"], None
+            where = rec.machine.cpu or "another machine"
+            return None, art.sha256, (f"render not on this machine ({art.path}; made on {where}, "
+                                      f"{rec.created[:10]}): metrics and curves only")
+        return path, art.sha256, None
 
-    def full(self, rec: dict[str, Any]) -> Path | None:
+    def full(self, rec: Record) -> Path | None:
         """The record's render file when it is on this machine."""
         return self._source(rec)[0]
 
     def _frames(self, path: Path) -> tuple[np.ndarray, float, Any, Any]:
         key = str(path)
         if key not in self._decoded:
-            frames, fps, audio, sr = read_video(path)
-            self.fps = fps
+            clip = FrameFile(path)
+            self.fps = clip.fps
             if len(self._decoded) >= 2:  # the ground truth and one render at a time
                 self._decoded.pop(next(k for k in self._decoded if k != self._gt_key))
-            self._decoded[key] = (_downscale(frames, self.max_side), fps, audio, sr)
+            self._decoded[key] = (_downscale(clip, self.max_side), clip.fps, clip.audio, clip.sr)
         return self._decoded[key]
 
     def _file(self, name: str, make) -> str:
@@ -135,7 +119,7 @@ class Previews:
                 make(out)
         return f"media/{name}"
 
-    def preview(self, rec: dict[str, Any], audio: bool) -> tuple[str | None, str | None]:
+    def preview(self, rec: Record, audio: bool) -> tuple[str | None, str | None]:
         """``(site-relative file, None)`` for a record's render preview, or ``(None, why)``
         (no render here, or one that does not decode: the page says so, the rest of the site is made)."""
         try:
@@ -143,7 +127,7 @@ class Previews:
         except UserError as exc:
             return None, f"render not readable: {exc}"
 
-    def _preview(self, rec: dict[str, Any], audio: bool) -> tuple[str | None, str | None]:
+    def _preview(self, rec: Record, audio: bool) -> tuple[str | None, str | None]:
         path, sha, why = self._source(rec)
         if path is None:
             return None, why
@@ -154,14 +138,14 @@ class Previews:
 
         return self._file(f"{sha[:16]}-{self.max_side}{'-a' if audio else ''}.mp4", make), None
 
-    def error(self, rec: dict[str, Any], gt: dict[str, Any]) -> tuple[str | None, str | None]:
+    def error(self, rec: Record, gt: Record) -> tuple[str | None, str | None]:
         """``(site-relative file, None)`` for the error map of a render against the ground truth's, or ``(None, why)``."""
         try:
             return self._error(rec, gt)
         except UserError as exc:
             return None, f"no error map: {exc}"
 
-    def _error(self, rec: dict[str, Any], gt: dict[str, Any]) -> tuple[str | None, str | None]:
+    def _error(self, rec: Record, gt: Record) -> tuple[str | None, str | None]:
         path, sha, why = self._source(rec)
         gpath, gsha, gwhy = self._source(gt)
         if path is None or gpath is None:

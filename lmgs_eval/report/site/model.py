@@ -16,8 +16,7 @@ from typing import Any
 
 from lmgs_eval.report.cells import is_ok, is_variant
 from lmgs_eval.report.table_model import BUSY, METRICS, MIXED, TIE, UNTRUSTED, Cell, Column, Table
-
-Record = dict[str, Any]
+from lmgs_eval.results.types import Record
 
 CURVE_METRICS = ("psnr", "ssim", "lpips", "lmd", "lse_d")
 """Metrics whose ``per_item`` values are drawn under the Watch page's players (per frame or per window)."""
@@ -40,8 +39,8 @@ class Run:
 
     @property
     def label(self) -> str:
-        m = self.record["method"]
-        return m["display_name"] or m["name"]
+        m = self.record.method
+        return m.display_name or m.name
 
 
 def make_runs(items: Sequence[tuple[Path, Record]], root: Path) -> list[Run]:
@@ -131,8 +130,8 @@ def html_cell(cell: Cell | None, col: Column) -> HtmlCell:
 def _column(c: Column, recs: Sequence[Record]) -> dict[str, Any]:
     """A column's header: label, arrow, and the stand-ins of the metric scorers that made its numbers."""
     arrow = "" if c.higher_is_better is None else ("↑" if c.higher_is_better else "↓")
-    standins = sorted({m["standin"] for r in recs for m in [r["metrics"].get(c.key)]
-                       if c.kind == "metric" and m and m.get("value") is not None and m.get("standin")})
+    standins = sorted({m.standin for r in recs for m in [r.metrics.get(c.key)]
+                       if c.kind == "metric" and m and m.value is not None and m.standin})
     return {"id": c.id, "label": f"{c.group} {c.label}".strip(), "arrow": arrow, "kind": c.kind,
             "higher": c.higher_is_better, "standin": "; ".join(standins)}
 
@@ -140,7 +139,7 @@ def _column(c: Column, recs: Sequence[Record]) -> dict[str, Any]:
 def _row_standins(recs: Sequence[Record]) -> list[str]:
     out: list[str] = []
     for r in recs:
-        for s in r["method"].get("standins") or []:
+        for s in r.method.standins:
             if s not in out:
                 out.append(s)
     return out
@@ -156,7 +155,7 @@ def leaderboards(tables: Sequence[Table], run_ids: dict[int, str]) -> dict[str, 
     for t in tables:
         for k, sec in enumerate(t.sections):
             recs = [r for row in sec.rows for r in row.records]
-            subjects = sorted({r["subject"]["name"] for r in recs})
+            subjects = sorted({r.subject.name for r in recs})
             key = subjects[0] if len(subjects) == 1 else ""
             cols = [_column(c, recs) for c in t.columns]
             rows = []
@@ -168,7 +167,7 @@ def leaderboards(tables: Sequence[Table], run_ids: dict[int, str]) -> dict[str, 
                     runs=[run_ids[id(r)] for r in row.records if id(r) in run_ids],
                     standins=_row_standins(row.records), rule_before=row.rule_before,
                     failed=any(not is_ok(r) for r in row.records)))
-            standin = recs[0]["subject"].get("standin") if key and recs else None
+            standin = recs[0].subject.standin if key and recs else None
             stability = t.name.startswith("stability_")
             if stability:
                 _heat(t, rows)
@@ -234,19 +233,19 @@ def watch_groups(runs: Sequence[Run]) -> dict[tuple[str, str, str], dict[str, Ru
     out: dict[tuple[str, str, str], dict[str, Run]] = defaultdict(dict)
     for run in runs:
         r = run.record
-        if r["protocol"]["name"] not in WATCHED or not is_ok(r) or is_variant(r) or r["method"]["family"] == "control":
+        if r.protocol.name not in WATCHED or not is_ok(r) or is_variant(r) or r.method.family == "control":
             continue
-        key = (r["subject"]["name"], r["protocol"]["name"], r["protocol"]["clip"])
-        name = r["method"]["name"]
+        key = (r.subject.name, r.protocol.name, r.protocol.clip)
+        name = r.method.name
         have = out[key].get(name)
-        if have is None or (r["seed"], run.id) < (have.record["seed"], have.id):
+        if have is None or (r.seed, run.id) < (have.record.seed, have.id):
             out[key][name] = run
     ordered = {}
     for key in sorted(out, key=lambda k: (k[0], WATCHED.index(k[1]), k[2])):
         group = out[key]
-        names = sorted(group, key=lambda n: (group[n].record["method"]["family"] != "ground-truth",
-                                             FILTER_FAMILIES.index(group[n].record["method"]["family"])
-                                             if group[n].record["method"]["family"] in FILTER_FAMILIES else 99,
+        names = sorted(group, key=lambda n: (group[n].record.method.family != "ground-truth",
+                                             FILTER_FAMILIES.index(group[n].record.method.family)
+                                             if group[n].record.method.family in FILTER_FAMILIES else 99,
                                              n != "lmgs", group[n].label))
         ordered[key] = {n: group[n] for n in names}
     return ordered
@@ -256,9 +255,9 @@ def curves(rec: Record) -> dict[str, list[float | None]]:
     """The per-frame (or per-window) values of the metrics the Watch page draws."""
     out = {}
     for key in CURVE_METRICS:
-        m = rec["metrics"].get(key)
-        if m and m.get("per_item"):
-            out[key] = list(m["per_item"])
+        m = rec.metrics.get(key)
+        if m and m.per_item:
+            out[key] = list(m.per_item)
     return out
 
 

@@ -18,19 +18,20 @@ from lmgs_eval.report.capacity import budget_means, knee, points_from_records, t
 from lmgs_eval.report.cells import by_subject, cost_cell, is_ok, is_variant, make_rows, metric_cell
 from lmgs_eval.report.charts import FAMILY_COLOURS, SPEED_CHARTS, pareto_front
 from lmgs_eval.report.table_model import METRICS
+from lmgs_eval.results.types import Record
 
 W, H = 720, 420
 LEFT, RIGHT, TOP, BOTTOM = 64, 120, 20, 46
 CHAR_W, LINE_H = 7.5, 13.5  # label box estimate at font-size 12.5px (DejaVu Sans)
 
 
-def chart_points(records: Sequence[dict[str, Any]], cost_key: str, metric: str,
+def chart_points(records: Sequence[Record], cost_key: str, metric: str,
                  run_ids: dict[int, str]) -> list[dict[str, Any]]:
     """One point per (subject, method, config): x the cost, y the metric, with the runs behind it."""
-    use = [r for r in records if r["protocol"]["name"] == "self" and is_ok(r) and not is_variant(r)
-           and r["method"]["family"] not in ("control", "ground-truth", "reference")]
+    use = [r for r in records if r.protocol.name == "self" and is_ok(r) and not is_variant(r)
+           and r.method.family not in ("control", "ground-truth", "reference")]
     pts = []
-    multi = len({r["subject"]["name"] for r in use}) > 1
+    multi = len({r.subject.name for r in use}) > 1
     for subject, recs in by_subject(use).items():
         for row in make_rows(recs):
             c, m = cost_cell(row.records, cost_key), metric_cell(row.records, metric)
@@ -40,7 +41,7 @@ def chart_points(records: Sequence[dict[str, Any]], cost_key: str, metric: str,
             pts.append({"x": x, "y": m.mean, "family": row.family, "subject": subject,
                         "label": f"{row.label} / {subject}" if multi else row.label,
                         "runs": [run_ids.get(id(r), "") for r in row.records],
-                        "config_hash": row.records[0]["config_hash"], "seeds": len(row.records),
+                        "config_hash": row.records[0].config_hash, "seeds": len(row.records),
                         "backends": sorted(m.backends)})
     return pts
 
@@ -164,7 +165,7 @@ def speed_svg(points: list[dict[str, Any]], xlabel: str, ylabel: str, logx: bool
     return "".join(out)
 
 
-def speed_charts_svg(records: Sequence[dict[str, Any]], run_ids: dict[int, str]) -> list[dict[str, str]]:
+def speed_charts_svg(records: Sequence[Record], run_ids: dict[int, str]) -> list[dict[str, str]]:
     """Every speed / training-time chart the records allow: ``{id, title, svg, static}`` (static: the PNG's stem)."""
     out = []
     for stem, cost_key, xlabel, logx, x_higher, metric in SPEED_CHARTS:
@@ -227,7 +228,7 @@ def _capacity_panel(mean: list[dict[str, Any]], key: str, label: str, knee_x: fl
     return "".join(out)
 
 
-def capacity_svgs(records: Sequence[dict[str, Any]], run_ids: dict[int, str]) -> list[dict[str, str]]:
+def capacity_svgs(records: Sequence[Record], run_ids: dict[int, str]) -> list[dict[str, str]]:
     """Per subject of the capacity protocol, small panels of quality and speed against the Gaussian count
     (mean over seeds per budget, :func:`lmgs_eval.report.capacity.budget_means`), the knee dashed,
     a hover card per budget with its runs and config hashes."""
@@ -237,10 +238,10 @@ def capacity_svgs(records: Sequence[dict[str, Any]], run_ids: dict[int, str]) ->
         k = knee(mean)
         info: dict[int, tuple[str, str]] = {}
         for b in {p["budget"] for p in pts}:
-            recs = [r for r in records if r["protocol"]["name"] == "capacity" and r["subject"]["name"] == subject
-                    and r["protocol"]["clip"] == f"budget-{b}" and is_ok(r)]
+            recs = [r for r in records if r.protocol.name == "capacity" and r.subject.name == subject
+                    and r.protocol.clip == f"budget-{b}" and is_ok(r)]
             ids = [run_ids.get(id(r), "") for r in recs]
-            info[b] = (f"budget {b}, {len(recs)} seed(s), config {', '.join(sorted({r['config_hash'] for r in recs}))}; "
+            info[b] = (f"budget {b}, {len(recs)} seed(s), config {', '.join(sorted({r.config_hash for r in recs}))}; "
                        f"runs: {', '.join(ids)}", ids[0] if ids else "")
         kx = (k["n_gaussians"] or k["budget"]) if k is not None else None
         panels = [_capacity_panel(mean, key, label, kx, info) for key, label in CAPACITY_PANELS]

@@ -1,6 +1,6 @@
 """Train the bundled SyncNet-style scorer (``weights/bundled_sync.{onnx,json}``).
 
-``python -m lmgs_eval.metrics.train_sync --out lmgs_eval/metrics/weights [--minutes M] [--seed S]``
+``python -m lmgs_eval.metrics.sync.train.pixel --out lmgs_eval/metrics/sync/weights [--minutes M] [--seed S]``
 
 Recipe (deterministic for a seed; recorded in ``bundled_sync.json``):
 
@@ -8,16 +8,16 @@ Recipe (deterministic for a seed; recorded in ``bundled_sync.json``):
   frame sizes drawn from :data:`SIZES`, spoken by every available voice *except* the
   cross-driven voices of the bundled subjects (``generator.CROSS``, which include the
   subjects' own piper voice), saying two sentences each from the ``[train]`` sections of
-  ``data/bundled/corpus.txt`` and ``metrics/sync_corpus.txt``. The cross-driven texts
-  (``[cross-a]``, ``[cross-b]``) and ``sync_corpus.txt [heldout]`` are never trained on;
+  ``data/bundled/corpus.txt`` and ``metrics/sync/train/corpus.txt``. The cross-driven texts
+  (``[cross-a]``, ``[cross-b]``) and ``corpus.txt [heldout]`` are never trained on;
   they make the held-out acceptance clips, with the held-out voices.
-* **Crops.** Exactly the ``lse()`` pipeline: ``sync.face_boxes`` (dlib, every frame,
-  median-9), ``sync.crop_faces`` (224 x 224 BGR), then ``SyncScorer.prepare`` (region
-  ``mouth`` = ``sync.MOUTH_BOX``, INTER_AREA to 48 x 48, 0..1; the ``lower_half`` region
+* **Crops.** Exactly the ``lse()`` pipeline: ``crops.face_boxes`` (dlib, every frame,
+  median-9), ``crops.crop_faces`` (224 x 224 BGR), then ``SyncScorer.prepare`` (region
+  ``mouth`` = ``pixel.MOUTH_BOX``, INTER_AREA to 48 x 48, 0..1; the ``lower_half`` region
   starts at the mouth of a dlib-box crop and often cuts it off). A second crop per clip comes from boxes jittered
   by a per-clip shift (+-6 % of the box) and scale (+-8 %).
-* **Audio.** ``sync.mfcc_13`` of the clean audio and of two augmented copies (gain 0.25-2,
-  white noise at 12-40 dB SNR, clipped to [-1, 1]); windows exactly as ``sync.windows``.
+* **Audio.** ``maths.mfcc_13`` of the clean audio and of two augmented copies (gain 0.25-2,
+  white noise at 12-40 dB SNR, clipped to [-1, 1]); windows exactly as ``maths.windows``.
 * **Cache.** One ``.npz`` per clip (frames, audio, boxes, MFCCs, articulation) under
   ``cache_root()/sync_train/<key>/`` (the key hashes the recipe) plus the prepared scorer
   inputs beside it, so reruns skip rendering. Training steps are ``--minutes`` x
@@ -48,8 +48,9 @@ from pathlib import Path
 
 import numpy as np
 
-from lmgs_eval.metrics import sync
-from lmgs_eval.metrics.train_sync_data import (FACES, HW, N_ART, RECIPE_VERSION, REGION, SIZES, build_cache, cache_dir,
+from lmgs_eval.metrics.sync import maths, nets, pixel, scoring
+from lmgs_eval.metrics.sync.probe import shifted
+from lmgs_eval.metrics.sync.train.pixel_data import (FACES, HW, N_ART, RECIPE_VERSION, REGION, SIZES, build_cache, cache_dir,
                                                clip_specs, heldout_specs, load_clip, split)
 
 SHIFTS = (-10, -5, -3, 3, 5, 10)
@@ -58,7 +59,7 @@ STEPS_PER_MINUTE = 400  # measured on 2 cores of the development machine (see de
 
 
 # ----------------------------------------------------------------------------- training
-def _batch(clips: list[dict], rng: np.random.Generator, n_seg: int, seg_len: int, vshift: int = sync.VSHIFT):
+def _batch(clips: list[dict], rng: np.random.Generator, n_seg: int, seg_len: int, vshift: int = maths.VSHIFT):
     """Segments of consecutive video windows and the audio windows around them.
 
     Returns video ``[B, 3, 5, H, W]`` (uint8 as float), audio ``[A, 1, 13, 20]``, and for each video
@@ -114,7 +115,7 @@ def _loss(a_emb, v_emb, shift, margin: float, scale: float, w_con: float = 1.0):
     d = torch.cdist(v_emb, a_emb) + 1e-6  # [B, A]
     sh = torch.as_tensor(shift)
     pos = sh == 0
-    valid = (sh.abs() <= sync.VSHIFT) | (sh == 10**6)
+    valid = (sh.abs() <= maths.VSHIFT) | (sh == 10**6)
     neg = valid & ((sh.abs() >= NEG_MIN_SHIFT))
     l_pos = (d[pos] ** 2).mean()
     l_neg = (torch.relu(margin - d[neg]) ** 2).mean()
@@ -157,14 +158,14 @@ def quick_eval(net, clips: list[dict]) -> dict:
             v = np.stack([d["video"][0][i:i + 5] for i in range(last)]).astype(np.float32) / 255.0
             v = np.ascontiguousarray(v.transpose(0, 4, 1, 2, 3))
             ae, ve = _embed_torch(net, d["awin"][0][:, None], v)
-            r = sync.lse_from_embeddings(ve, ae)
+            r = maths.lse_from_embeddings(ve, ae)
             zero += r["offset"] == 0
             conf.append(r["lse_c"])
             for k in SHIFTS:  # audio delayed by k frames -> offset -k
                 if k > 0:
-                    rr = sync.lse_from_embeddings(ve[k:], ae[:last - k])
+                    rr = maths.lse_from_embeddings(ve[k:], ae[:last - k])
                 else:
-                    rr = sync.lse_from_embeddings(ve[:last + k], ae[-k:])
+                    rr = maths.lse_from_embeddings(ve[:last + k], ae[-k:])
                 hits += rr["offset"] == -k
                 n += 1
     net.train()
@@ -172,36 +173,22 @@ def quick_eval(net, clips: list[dict]) -> dict:
 
 
 # ----------------------------------------------------------------------------- acceptance
-def shifted(frames: np.ndarray, audio: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """The clip with its audio delayed by ``k`` frames (``k < 0``: advanced); both trimmed to the overlap.
-
-    SyncNet's convention: the reported AV offset is then ``-k``.
-    """
-    spf = sync.SAMPLES_PER_FRAME
-    t = frames.shape[0]
-    if k > 0:
-        return frames[k:], audio[:(t - k) * spf]
-    if k < 0:
-        return frames[:t + k], audio[-k * spf:t * spf]
-    return frames, audio
-
-
 def acceptance(scorer, held: list[dict], log=print) -> dict:
     """Held-out clips through the public ``lse()``: synced, injected shifts, wrong audio."""
     rows = []
     for j, d in enumerate(held):
-        fr = d["frames"].astype(np.float32) / 255.0
+        fr = d["frames"]  # uint8, as the scorers read them
         au = d["audio"]
-        gt = sync.lse(fr, au, scorer=scorer)
+        gt = scoring.lse(fr, au, scorer=scorer)
         other = held[(j + 1) % len(held)]["audio"]
         n = min(len(au), len(other))
         wrong_audio = np.zeros_like(au)
         wrong_audio[:n] = other[:n]
-        wr = sync.lse(fr, wrong_audio, scorer=scorer)
+        wr = scoring.lse(fr, wrong_audio, scorer=scorer)
         sh = {}
         for k in SHIFTS:
             f2, a2 = shifted(fr, au, k)
-            sh[k] = sync.lse(f2, a2, scorer=scorer).values["offset"]
+            sh[k] = scoring.lse(f2, a2, scorer=scorer).values["offset"]
         row = {"id": d["id"], "face": d["face"], "voice": d["voice"], "size": d["size"], "offset": gt.values["offset"],
                "lse_c": gt.values["lse_c"], "lse_d": gt.values["lse_d"], "wrong_lse_c": wr.values["lse_c"],
                "wrong_lse_d": wr.values["lse_d"], "shift_offsets": {str(k): v for k, v in sh.items()}}
@@ -225,17 +212,18 @@ def acceptance(scorer, held: list[dict], log=print) -> dict:
 
 def load_scorer(folder: Path):
     """The bundled scorer from ``folder`` exactly as ``find_scorer()`` loads it."""
-    from lmgs_eval.metrics.ort import load_session, sha256_file
+    from lmgs.fileio import sha256_file
+    from lmgs_eval.metrics.ort import load_session
 
     p, j = Path(folder) / "bundled_sync.onnx", Path(folder) / "bundled_sync.json"
     m = json.loads(j.read_text())
-    return sync.SyncScorer("bundled-sync", load_session(p), sha256_file(p), tuple(m["input_hw"]), m["region"], m["pixel"],
+    return pixel.SyncScorer("bundled-sync", load_session(p), sha256_file(p), tuple(m["input_hw"]), m["region"], m["pixel"],
                            standin="bundled-sync")
 
 
 # ----------------------------------------------------------------------------- main
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m lmgs_eval.metrics.train_sync", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m lmgs_eval.metrics.sync.train.pixel", description=__doc__.split("\n")[0])
     ap.add_argument("--out", type=Path, required=True, help="folder for bundled_sync.onnx + bundled_sync.json")
     ap.add_argument("--minutes", type=float, default=11.0, help="training wall time (after the corpus is cached)")
     ap.add_argument("--steps", type=int, default=0, help="optimizer steps (default: --minutes x %d)" % STEPS_PER_MINUTE)
@@ -276,7 +264,7 @@ def main(argv=None) -> int:
     torch.set_num_threads(args.threads)
     g = torch.Generator().manual_seed(args.seed)
     rng = np.random.default_rng([args.seed, 2])
-    _, Bundled = sync.nets()
+    _, Bundled = nets.nets()
     net = Bundled()
     from torch import nn
 
@@ -332,7 +320,7 @@ def main(argv=None) -> int:
     recipe = {
         "version": RECIPE_VERSION,
         "corpus": ("bundled generator synthesize_clip; two sentences per clip from data/bundled/corpus.txt [train] + "
-                   "metrics/sync_corpus.txt [train]; cross-driven texts/voices and sync_corpus [heldout] held out"),
+                   "metrics/sync/train/corpus.txt [train]; cross-driven texts/voices and its [heldout] held out"),
         "faces": list(FACES), "sizes": list(SIZES), "voices": sp["train_voices"], "heldout_voices": sp["heldout_voices"],
         "texts": len(sp["train_texts"]), "heldout_texts": len(sp["heldout_texts"]), "clips": len(clips),
         "windows": n_windows,
@@ -352,11 +340,11 @@ def main(argv=None) -> int:
         "steps": step, "train_seconds": round(t_train, 1), "corpus_seconds": round(t_corpus, 1),
         "threads": args.threads, "heldout_torch": q,
     }
-    from lmgs_eval.metrics.ort import sha256_file
+    from lmgs.fileio import sha256_file
     from lmgs_eval.paths import atomic_write_text
 
     args.out.mkdir(parents=True, exist_ok=True)
-    m = sync.export_bundled(net, args.out, {"recipe": recipe, "seed": args.seed, "input_hw": list(HW),
+    m = nets.export_bundled(net, args.out, {"recipe": recipe, "seed": args.seed, "input_hw": list(HW),
                                             "region": REGION, "pixel": "bgr_0_1"})
     if not args.no_accept:
         scorer = load_scorer(args.out)

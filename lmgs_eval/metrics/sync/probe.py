@@ -13,9 +13,14 @@ What the scorer should do on an in-sync clip, measured on the clip itself:
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
-from lmgs_eval.metrics.sync import SAMPLES_PER_FRAME, lse
+from lmgs_eval.errors import UserError
+from lmgs_eval.metrics.base import MetricResult
+from lmgs_eval.metrics.sync.crops import FaceClip
+from lmgs_eval.metrics.sync.maths import SAMPLES_PER_FRAME, is_silent
 
 SHIFTS = (-10, -5, 5, 10)
 OTHER_MIN_S = 2.0  # other speech shorter than this (or than the clip) is too short to loop into a control
@@ -28,9 +33,6 @@ def check_other(other: np.ndarray, n_samples: int, what: str) -> None:
     Raises:
         UserError: naming ``what``, its length and the minimum.
     """
-    from lmgs_eval.errors import UserError
-    from lmgs_eval.metrics.sync import is_silent
-
     need = min(int(OTHER_MIN_S * 16000), int(n_samples))
     if len(other) < need:
         raise UserError(f"{what}: {len(other) / 16000:.2f} s of audio ({len(other)} samples at 16 kHz); other speech "
@@ -49,15 +51,17 @@ def shifted(x: np.ndarray, audio: np.ndarray, k: int) -> tuple[np.ndarray, np.nd
     return x, audio
 
 
-def probe(frames: np.ndarray, audio: np.ndarray, other: np.ndarray | None = None, shifts=SHIFTS, scorer=None,
-          n_other: int = 6) -> dict:
-    """The figures of the module doc for one clip (``frames`` ``[T, H, W, 3]`` or a :class:`~lmgs_eval.metrics.sync.FaceClip`,
-    16 kHz audio). The clip's faces are found once; each shifted copy takes its part of them."""
-    from lmgs_eval.metrics.sync import FaceClip
+def probe(frames: np.ndarray, audio: np.ndarray, measure: Callable[..., MetricResult], other: np.ndarray | None = None,
+          shifts=SHIFTS, n_other: int = 6) -> dict:
+    """The figures of the module doc for one clip (``frames`` ``[T, H, W, 3]`` or a
+    :class:`~lmgs_eval.metrics.sync.crops.FaceClip`, 16 kHz audio). The clip's faces are found once; each
+    shifted copy takes its part of them.
 
+    ``measure(frames, audio, reference=...)``: the LSE to probe (the ``lse`` metric's
+    :meth:`~lmgs_eval.metrics.sync.scoring.LSE.score`, with the run's ``--sync`` scorers)."""
     if not getattr(frames, "is_face_clip", False):
         frames = FaceClip(frames)
-    own = lse(frames, audio, scorer=scorer, reference=True)
+    own = measure(frames, audio, reference=True)
     if not own.available:
         return {"available": False, "reason": own.reason}
     out = {"available": True, "backend": own.spec.backend,
@@ -65,7 +69,7 @@ def probe(frames: np.ndarray, audio: np.ndarray, other: np.ndarray | None = None
            "flags": own.flags, "shifts": {}}
     for k in shifts:
         f, a = shifted(frames, audio, k)
-        out["shifts"][k] = lse(f, a, scorer=scorer).values.get("offset")
+        out["shifts"][k] = measure(f, a).values.get("offset")
     out["shifts_within_1"] = sum(v is not None and abs(v + k) <= 1 for k, v in out["shifts"].items())
     if other is not None:
         n = len(audio)
@@ -73,7 +77,7 @@ def probe(frames: np.ndarray, audio: np.ndarray, other: np.ndarray | None = None
         cs = []
         for s in starts:
             seg = np.resize(other[s:s + n], n)  # a shorter file is looped to the clip's length
-            r = lse(frames, seg, scorer=scorer)
+            r = measure(frames, seg)
             cs.append(r.values.get("lse_c"))
         out["other_lse_c"] = cs
         out["own_above_every_other"] = bool(all(c is not None and own.values["lse_c"] > c for c in cs))

@@ -1,5 +1,5 @@
 """The training corpus of the bundled SyncNet-style scorer: clips rendered by the bundled generator,
-their face crops and MFCC windows, cached by recipe (see :mod:`lmgs_eval.metrics.train_sync`).
+their face crops and MFCC windows, cached by recipe (see :mod:`lmgs_eval.metrics.sync.train.pixel`).
 """
 
 from __future__ import annotations
@@ -11,34 +11,20 @@ from pathlib import Path
 
 import numpy as np
 
-from lmgs_eval.metrics import sync
+from lmgs_eval.metrics.sync import crops, maths, pixel
+from lmgs_eval.metrics.sync.train.clips import cached_npz
 
 FACES = ("astronaut", "hopper")
 SIZES = (112, 128, 160)
 HW = (48, 48)
-REGION = "mouth"  # sync.MOUTH_BOX of the 224 crop: the lower half of a dlib-box crop cuts through the mouth
-CORPUS_FILE = Path(__file__).with_name("sync_corpus.txt")
+REGION = "mouth"  # pixel.MOUTH_BOX of the 224 crop: the lower half of a dlib-box crop cuts through the mouth
+CORPUS_FILE = Path(__file__).with_name("corpus.txt")
 RECIPE_VERSION = "2"
 SPEC_POOL = 160
 N_ART = 5  # articulation.MOUTH: jaw, lip width, rounding, closure, lip-to-teeth
 
 
 # ----------------------------------------------------------------------------- corpus
-def _load_sections(path: Path) -> dict[str, list[str]]:
-    out: dict[str, list[str]] = {}
-    sec = None
-    for line in path.read_text(encoding="utf-8").splitlines():
-        line = line.strip()
-        if not line or line.startswith("#"):
-            continue
-        if line.startswith("[") and line.endswith("]"):
-            sec = line[1:-1]
-            out[sec] = []
-        elif sec is not None:
-            out[sec].append(line)
-    return out
-
-
 def heldout_voices() -> list[str]:
     from lmgs_eval.data.bundled.generator import CROSS
 
@@ -48,10 +34,10 @@ def heldout_voices() -> list[str]:
 def split() -> dict:
     """Training and held-out voices and texts (disjoint)."""
     from lmgs_eval.data.bundled import list_voices
-    from lmgs_eval.data.bundled.generator import load_corpus
+    from lmgs_eval.data.bundled.generator import load_corpus, read_sections
 
     corpus = load_corpus()
-    extra = _load_sections(CORPUS_FILE)
+    extra = read_sections(CORPUS_FILE)
     train_texts = list(corpus["train"]) + list(extra["train"])
     held_texts = list(corpus["cross-a"]) + list(corpus["cross-b"]) + list(extra["heldout"])
     hv = heldout_voices()
@@ -96,7 +82,7 @@ def heldout_specs(n_clips: int, sp: dict) -> list[dict]:
 # ----------------------------------------------------------------------------- crops + mfcc
 def prepare(crops224: np.ndarray) -> np.ndarray:
     """The scorer's own input preparation (``SyncScorer.prepare``), as uint8 0..255."""
-    sc = sync.SyncScorer("bundled-sync", None, "", HW, REGION, "bgr_0_1")
+    sc = pixel.SyncScorer("bundled-sync", None, "", HW, REGION, "bgr_0_1")
     return np.clip(np.rint(sc.prepare(crops224) * 255.0), 0, 255).astype(np.uint8)
 
 
@@ -113,14 +99,13 @@ def render_clip(spec: dict) -> dict:
     from lmgs_eval.data.bundled import synthesize_clip
 
     clip = synthesize_clip(spec["face"], spec["text"], spec["voice"], size=spec["size"], seed=spec["seed"])
-    frames = clip.frames.astype(np.float32) / 255.0
-    boxes, n_missing = sync.face_boxes(frames)
+    boxes, n_missing = crops.face_boxes(clip.frames)  # uint8, as lse() reads a clip
     rng = np.random.default_rng([spec["seed"], 7])
     jb = boxes.copy()
     jb[:, 0] += boxes[:, 2] * rng.uniform(-0.06, 0.06)
     jb[:, 1] += boxes[:, 2] * rng.uniform(-0.06, 0.06)
     jb[:, 2] *= rng.uniform(0.92, 1.08)
-    mf = [sync.mfcc_13(clip.audio)] + [sync.mfcc_13(_augment_audio(clip.audio, rng)) for _ in range(2)]
+    mf = [maths.mfcc_13(clip.audio)] + [maths.mfcc_13(_augment_audio(clip.audio, rng)) for _ in range(2)]
     return {"frames": clip.frames, "audio": clip.audio, "boxes": np.stack([boxes, jb]),
             "art": np.asarray(clip.articulation[:, :N_ART], np.float32),
             "mfcc": np.stack(mf).astype(np.float32), "n_samples": np.int64(len(clip.audio)),
@@ -132,24 +117,13 @@ def cache_dir(meta: dict) -> Path:
     from lmgs_eval.paths import cache_root
 
     key = hashlib.sha256(json.dumps({**meta, "generator": GENERATOR_VERSION, "recipe": RECIPE_VERSION,
-                                     "crop": [sync.CROP_SIZE, sync.CROP_SCALE, sync.PAD_VALUE, sync.SMOOTH_KERNEL]},
+                                     "crop": [crops.CROP_SIZE, crops.CROP_SCALE, crops.PAD_VALUE, crops.SMOOTH_KERNEL]},
                                     sort_keys=True).encode()).hexdigest()[:16]
     return cache_root() / "sync_train" / key
 
 
-def _spec_key(spec: dict) -> str:
-    return hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:12]
-
-
 def _build_one(args) -> str:
-    spec, folder = args
-    path = Path(folder) / f"{spec['id']}-{_spec_key(spec)}.npz"
-    if not path.is_file():
-        data = render_clip(spec)
-        tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")
-        np.savez(tmp, **data)
-        tmp.replace(path)
-    return str(path)
+    return cached_npz(*args, render_clip)
 
 
 def build_cache(specs: list[dict], folder: Path, workers: int, desc: str) -> list[Path]:
@@ -178,15 +152,14 @@ def load_clip(path: Path, keep_frames: bool = False) -> dict:
     if prep.is_file():
         d["video"] = np.load(prep)
     else:
-        fr = d["frames"].astype(np.float32) / 255.0
-        d["video"] = np.stack([prepare(sync.crop_faces(fr, b)) for b in d["boxes"]])
+        d["video"] = np.stack([prepare(crops.crop_faces(d["frames"], b)) for b in d["boxes"]])
         tmp = prep.with_name(f"{prep.stem}.{os.getpid()}.tmp.npy")
         np.save(tmp, d["video"])
         tmp.replace(prep)
     if not keep_frames:
         del d["frames"], d["audio"]
     n = d["video"].shape[1]
-    last = min(n, int(d["n_samples"]) // sync.SAMPLES_PER_FRAME) - 5
+    last = min(n, int(d["n_samples"]) // maths.SAMPLES_PER_FRAME) - 5
     m = d["mfcc"]  # [3, 13, M]
     aw = np.zeros((m.shape[0], max(last, 0), 13, 20), np.float32)
     for i in range(max(last, 0)):

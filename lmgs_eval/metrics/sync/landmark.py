@@ -16,7 +16,7 @@ Video input, per frame (:func:`mouth_features`):
    and the result is divided by the clip's RMS motion (at least :data:`MIN_RMS` inter-ocular distances, so
    a still face stays still rather than amplified jitter).
 
-Audio input: ``sync.mfcc_13`` (syncnet_python's MFCC) with each coefficient normalised to
+Audio input: :func:`~lmgs_eval.metrics.sync.maths.mfcc_13` (syncnet_python's MFCC) with each coefficient normalised to
 zero mean and unit variance over the clip (cepstral mean and variance normalisation: the
 voice's timbre and the channel are removed, the timing stays).
 
@@ -24,8 +24,9 @@ Windows are syncnet_python's (window ``i``: frames ``i .. i+4``, MFCC steps ``4 
 widened symmetrically to ``context`` frames (and ``4 context`` MFCC steps) around the same
 centre when the manifest says so: a mouth shape alone says less than a pixel crop, a
 syllable's worth of trajectory says more. The window index, the distances, LSE-D, LSE-C and
-the offset search of :func:`sync.lse_from_embeddings` are unchanged; only the embedding
-networks differ. Trained by :mod:`train_sync_landmark`.
+the offset search of :func:`~lmgs_eval.metrics.sync.maths.lse_from_embeddings` are unchanged; only the
+embedding networks differ. Trained by :mod:`lmgs_eval.metrics.sync.train.landmark`; loaded by
+:func:`lmgs_eval.metrics.sync.scorers.load_landmark`.
 """
 
 from __future__ import annotations
@@ -43,7 +44,6 @@ RIGID = (27, 28, 29, 30, 31, 32, 33, 34, 35, 36, 39, 42, 45)  # nose bridge + ba
 MOUTH = slice(48, 68)
 N_FEAT = 40  # 20 mouth points x (x, y)
 MIN_RMS = 0.01  # inter-ocular distances
-WEIGHTS = Path(__file__).resolve().parent / "weights"
 ONNX_NAME, JSON_NAME = "landmark_sync.onnx", "landmark_sync.json"
 
 
@@ -175,7 +175,8 @@ def export(net, out_dir: Path, meta: dict) -> dict:
     """Write the trained network as ``landmark_sync.onnx`` and its manifest (recipe, seed, sha256)."""
     import torch
 
-    from lmgs_eval.metrics.ort import export_onnx, sha256_file
+    from lmgs.fileio import sha256_file
+    from lmgs_eval.metrics.ort import export_onnx
     from lmgs_eval.paths import atomic_write_text
 
     out_dir = Path(out_dir)
@@ -194,7 +195,7 @@ def export(net, out_dir: Path, meta: dict) -> dict:
 # ----------------------------------------------------------------------------- scorer
 @dataclass
 class LandmarkScorer:
-    """A loaded landmark scorer; :meth:`embed_clip` is the interface ``sync.lse`` calls."""
+    """A loaded landmark scorer; :meth:`embed_clip` is the interface LSE calls (:mod:`~lmgs_eval.metrics.sync.scoring`)."""
 
     session: object
     sha256: str
@@ -221,7 +222,7 @@ class LandmarkScorer:
         if lms is None:
             if frames is None:
                 raise UserError("landmark-sync needs frames or landmarks, not face crops")
-            if getattr(frames, "is_face_clip", False):  # found once per clip (sync.FaceClip)
+            if getattr(frames, "is_face_clip", False):  # found once per clip (crops.FaceClip)
                 lms = frames.landmarks()
             else:
                 from lmgs_eval.metrics.landmarks import DlibBackend, cached_landmarks
@@ -243,21 +244,3 @@ class LandmarkScorer:
         _, still = self.embed(aw[:1], np.zeros((1, N_FEAT, self.context), np.float32))
         return a_emb, v_emb, still[0], flags, notes
 
-
-def load(folder: Path | None = None) -> tuple[LandmarkScorer | None, str]:
-    """The shipped landmark scorer, or ``(None, reason)``.
-
-    Raises:
-        UserError: the ONNX file does not match the sha256 in its manifest.
-    """
-    from lmgs_eval.metrics.ort import load_session, sha256_file
-
-    folder = Path(folder if folder is not None else WEIGHTS)
-    p, j = folder / ONNX_NAME, folder / JSON_NAME
-    if not (p.is_file() and j.is_file()):
-        return None, f"landmark-sync weights not present ({ONNX_NAME} + {JSON_NAME} in {folder})"
-    m = json.loads(j.read_text())
-    sha = sha256_file(p)
-    if m.get("sha256") and sha != m["sha256"]:
-        raise UserError(f"{p}: sha256 {sha[:12]}... does not match {j} (corrupt or replaced weights)")
-    return LandmarkScorer(load_session(p), sha, int(m.get("context", 5)), int(m.get("highpass", 0))), ""

@@ -6,7 +6,7 @@ first Gaussians. The same fit ``ingest`` uses derives them:
 
 * **3D landmarks**: each 2D landmark on its camera ray, at the depth of the head's centre (the
   world origin, where the field's trackers put the head) plus the generic face relief
-  (:func:`lmgs.landmarks.lift_2d_landmarks`, relief x :data:`pose.RELIEF`, as the template);
+  (:func:`lmgs.landmarks.lift_2d_landmarks`, relief x :data:`geometry.RELIEF`, as the ingest's template);
 * **head prior**: the ellipsoid of :mod:`geometry`, placed on the per-point median of those 3D
   landmarks; depth and normal maps are ray-cast from it on demand (no files), inside each
   frame's head parsing mask.
@@ -45,7 +45,7 @@ class HeadPrior:
 
     def render(self, w2c: np.ndarray, focal: float, cx: float, cy: float, w: int, h: int, mask: np.ndarray):
         """Depth ``[H, W]`` and normals ``[H, W, 3]`` (OpenCV camera) inside ``mask``."""
-        from lmgs_eval.data.ingest.geometry import render_prior
+        from lmgs_eval.data.geometry import render_prior
 
         return render_prior(w2c, focal, w, h, np.asarray(self.centre), np.asarray(self.axes), mask, cx=cx, cy=cy)
 
@@ -68,9 +68,9 @@ def derive(root: Path, lms2d: np.ndarray, c2w: np.ndarray, focal: float, cx: flo
 
     ``cache_dir``: where the derived results are kept (default ``<cache>/derived``)."""
     from lmgs.landmarks import MEAN_FACE_DEPTH, lift_2d_landmarks
-    from lmgs_eval.data.ingest.geometry import head_ellipsoid
-    from lmgs_eval.data.ingest.pose import RELIEF
-    from lmgs_eval.paths import atomic_write_bytes, atomic_write_text, cache_root
+    from lmgs.fileio import atomic_write_bytes
+    from lmgs_eval.data.geometry import RELIEF, head_ellipsoid
+    from lmgs_eval.paths import atomic_write_text, cache_root
 
     root = Path(root)
     key = content_key(root, len(lms2d))
@@ -89,7 +89,7 @@ def derive(root: Path, lms2d: np.ndarray, c2w: np.ndarray, focal: float, cx: flo
     lms3d = lift_2d_landmarks(lms2d, c2w, focal, cx, cy, depth_prior=prior).numpy().astype(np.float32)
     template = np.median(lms3d, axis=0)
     centre, axes = head_ellipsoid(template.astype(np.float64))
-    source = (f"derived by lmgs_eval.data.ingest.complete v{DERIVED_VERSION} from the folder's 2D landmarks and cameras "
+    source = (f"derived by lmgs_eval.data.complete v{DERIVED_VERSION} from the folder's 2D landmarks and cameras "
               f"(sha256 {key[:16]}...)")
     cache.mkdir(parents=True, exist_ok=True)
     import io as _io

@@ -1,6 +1,7 @@
 """The SyncNet-style networks of LSE: syncnet_python's ``S`` (official weights, imported) and the bundled pixel scorer.
 
-Split from :mod:`lmgs_eval.metrics.sync` (the procedure); that module re-exports these names.
+Torch is needed only here, to import the official weights (``lmgs-eval weights import-syncnet``) or to
+export a trained bundled scorer; scoring runs the exported ONNX graphs (:mod:`~lmgs_eval.metrics.sync.scorers`).
 """
 
 from __future__ import annotations
@@ -9,12 +10,11 @@ import json
 from pathlib import Path
 
 from lmgs_eval.errors import UserError
-
-CROP_SIZE = 224  # syncnet_python's face crop side, the official network's input
+from lmgs_eval.metrics.sync import scorers
+from lmgs_eval.metrics.sync.crops import CROP_SIZE
 
 
 def _build_nets():
-    import torch
     from torch import nn
 
     class SyncNetS(nn.Module):
@@ -104,12 +104,6 @@ def _export_sync(net, path: Path, hw: tuple[int, int]) -> None:
                 {"audio": {0: "n"}, "video": {0: "n"}, "a_emb": {0: "n"}, "v_emb": {0: "n"}})
 
 
-def syncnet_manifest_path() -> Path:
-    from lmgs_eval.paths import cache_root
-
-    return cache_root() / "weights" / "syncnet_v2.json"
-
-
 def import_syncnet(state_dict_path: Path) -> dict:
     """Convert the official ``syncnet_v2.model`` state dict to ONNX in the cache; return the manifest.
 
@@ -118,7 +112,8 @@ def import_syncnet(state_dict_path: Path) -> dict:
     """
     import torch
 
-    from lmgs_eval.metrics.ort import load_torch_state, onnx_cache_dir, sha256_file
+    from lmgs.fileio import sha256_file
+    from lmgs_eval.metrics.ort import load_torch_state, onnx_cache_dir
     from lmgs_eval.paths import atomic_write_text
 
     src = Path(state_dict_path)
@@ -145,7 +140,7 @@ def import_syncnet(state_dict_path: Path) -> dict:
     manifest = {"name": "syncnet-v2", "source": str(src), "source_sha256": sha, "onnx": str(out),
                 "onnx_sha256": sha256_file(out), "input_hw": [CROP_SIZE, CROP_SIZE], "region": "full",
                 "pixel": "bgr_0_255"}
-    atomic_write_text(syncnet_manifest_path(), json.dumps(manifest, indent=2))
+    atomic_write_text(scorers.syncnet_manifest_path(), json.dumps(manifest, indent=2))
     return manifest
 
 
@@ -155,7 +150,7 @@ def export_bundled(net, out_dir: Path, meta: dict) -> dict:
     ``meta`` must hold the training ``recipe`` and ``seed``; the sha256 of the graph is
     added. For the engineer training the bundled scorer.
     """
-    from lmgs_eval.metrics.ort import sha256_file
+    from lmgs.fileio import sha256_file
     from lmgs_eval.paths import atomic_write_text
 
     for k in ("recipe", "seed"):
@@ -163,8 +158,8 @@ def export_bundled(net, out_dir: Path, meta: dict) -> dict:
             raise UserError(f"bundled sync meta must include {k!r}")
     out_dir = Path(out_dir)
     hw = tuple(meta.get("input_hw", (48, 96)))
-    _export_sync(net, out_dir / "bundled_sync.onnx", hw)
+    _export_sync(net, out_dir / scorers.PIXEL_ONNX, hw)
     m = {"name": "bundled-sync", "input_hw": list(hw), "region": meta.get("region", "lower_half"),
-         "pixel": meta.get("pixel", "bgr_0_1"), **meta, "sha256": sha256_file(out_dir / "bundled_sync.onnx")}
-    atomic_write_text(out_dir / "bundled_sync.json", json.dumps(m, indent=2))
+         "pixel": meta.get("pixel", "bgr_0_1"), **meta, "sha256": sha256_file(out_dir / scorers.PIXEL_ONNX)}
+    atomic_write_text(out_dir / scorers.PIXEL_JSON, json.dumps(m, indent=2))
     return m

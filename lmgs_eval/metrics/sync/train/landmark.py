@@ -1,17 +1,17 @@
 """Train the landmark sync scorer (``weights/landmark_sync.{onnx,json}``).
 
-``python -m lmgs_eval.metrics.train_sync_landmark --out lmgs_eval/metrics/weights`` (the defaults made the
+``python -m lmgs_eval.metrics.sync.train.landmark --out lmgs_eval/metrics/sync/weights`` (the defaults made the
 shipped weights: 320 clips, 15-frame windows, 3500 steps, seed 0, 2 threads; about 26 minutes on 2 shared cores)
 
 Recipe (deterministic for a seed and thread count; recorded in ``landmark_sync.json``):
 
 * **Corpus.** Mouth trajectories made by the bundled generator's own parts, without
   rasterising: speech (``speech.synthesize``, two sentences from the ``[train]`` texts of
-  ``corpus.txt`` and ``sync_corpus.txt``), articulation (``articulation.articulation``) and
+  ``corpus.txt`` and ``sync/train/corpus.txt``), articulation (``articulation.articulation``) and
   the head model's deformation and camera (``HeadModel.deform``, ``HeadModel.c2w``)
   projected like ``HeadModel.render``: the ground-truth 68 landmarks of each frame. Both
   faces, frame sizes 128-512. Voices: every espeak-ng voice except the held-out ones
-  (``train_sync_data.heldout_voices`` minus piper's ``joe``) plus piper's ``joe`` on training
+  (``pixel_data.heldout_voices`` minus piper's ``joe``) plus piper's ``joe`` on training
   texts only: it is the only neural voice here, the closest to real speech.
 * **Pose and articulation jitter** per clip: head yaw, pitch, roll and translation x1-4 of
   the generator's, mouth articulation (jaw, width, rounding) x0.6-1.5.
@@ -37,7 +37,7 @@ Recipe (deterministic for a seed and thread count; recorded in ``landmark_sync.j
   mouth shape from the start.
 * **Held-out acceptance** (``--heldout``): clips rendered in full by ``synthesize_clip`` with
   held-out texts and voices, landmarks from dlib on the frames (as every user's footage),
-  scored through the public ``sync.lse``: offset on synced audio, injected shifts of -10,
+  scored through the public ``scoring.lse``: offset on synced audio, injected shifts of -10,
   -5, -3, 3, 5, 10 frames, LSE-C with another clip's audio.
 """
 
@@ -52,8 +52,10 @@ from pathlib import Path
 
 import numpy as np
 
-from lmgs_eval.metrics import sync
-from lmgs_eval.metrics import sync_landmark as L
+from lmgs_eval.metrics.sync import maths, scorers, scoring
+from lmgs_eval.metrics.sync.probe import shifted
+from lmgs_eval.metrics.sync.train.clips import cached_npz
+from lmgs_eval.metrics.sync import landmark as L
 
 FACES = ("astronaut", "hopper")
 SIZES = (128, 256, 512)
@@ -65,7 +67,7 @@ SHIFTS = (-10, -5, -3, 3, 5, 10)
 
 def split() -> dict:
     """Training and held-out voices and texts; piper's joe speaks training texts only."""
-    from lmgs_eval.metrics.train_sync_data import split as pixel_split
+    from lmgs_eval.metrics.sync.train.pixel_data import split as pixel_split
 
     sp = pixel_split()
     joe = [v for v in sp["heldout_voices"] if v.startswith("piper:")]
@@ -86,7 +88,7 @@ def clip_specs(n: int, seed: int, sp: dict) -> list[dict]:
 
 
 def heldout_specs(n: int, sp: dict) -> list[dict]:
-    from lmgs_eval.metrics.train_sync_data import heldout_specs as pixel_heldout
+    from lmgs_eval.metrics.sync.train.pixel_data import heldout_specs as pixel_heldout
 
     return pixel_heldout(n, sp)
 
@@ -134,14 +136,7 @@ def _cache_key(specs: list[dict]) -> str:
 
 
 def _build_one(args) -> str:
-    spec, folder = args
-    path = Path(folder) / f"{spec['id']}-{hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:12]}.npz"
-    if not path.is_file():
-        d = make_clip(spec)
-        tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")
-        np.savez(tmp, **d)
-        tmp.replace(path)
-    return str(path)
+    return cached_npz(*args, make_clip)
 
 
 def build_corpus(specs: list[dict], folder: Path, workers: int) -> list[Path]:
@@ -204,7 +199,7 @@ def noisy_audio(audio: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 
 
 def warped_mfcc(audio: np.ndarray, alpha: float) -> np.ndarray:
-    """``sync.mfcc_13`` with the mel filterbank's frequency axis scaled by ``alpha`` (vocal tract length
+    """``maths.mfcc_13`` with the mel filterbank's frequency axis scaled by ``alpha`` (vocal tract length
     perturbation): the same 400-sample frames every 160 samples, the filters placed as for a rate of ``16000 alpha``."""
     import python_speech_features
 
@@ -224,12 +219,12 @@ def load_clip(path: Path, seed: int, highpass: int = 0) -> dict | None:
             return {"feat": z["feat"], "mfcc": z["mfcc"], "last": int(z["last"])}
     with np.load(path) as z:
         lms, audio = z["lms"], z["audio"]
-    last = min(len(lms), len(audio) // sync.SAMPLES_PER_FRAME) - 5
+    last = min(len(lms), len(audio) // maths.SAMPLES_PER_FRAME) - 5
     if last < 8:
         return None
     rng = np.random.default_rng([seed, int(hashlib.sha256(path.name.encode()).hexdigest()[:8], 16)])
     feat = np.stack([L.mouth_features(noisy_landmarks(lms, rng), highpass) for _ in range(N_VARIANTS)])
-    mf = [L.audio_features(sync.mfcc_13(audio))]
+    mf = [L.audio_features(maths.mfcc_13(audio))]
     mf += [L.audio_features(warped_mfcc(noisy_audio(audio, rng), rng.uniform(0.85, 1.18))) for _ in range(N_VARIANTS - 1)]
     m = min(x.shape[1] for x in mf)
     d = {"feat": feat, "mfcc": np.stack([x[:, :m] for x in mf]), "last": last}
@@ -241,7 +236,7 @@ def load_clip(path: Path, seed: int, highpass: int = 0) -> dict | None:
 
 # ----------------------------------------------------------------------------- training
 def batch(clips: list[dict], rng: np.random.Generator, n_seg: int, seg_len: int, context: int = 5,
-          vshift: int = sync.VSHIFT):
+          vshift: int = maths.VSHIFT):
     """Video windows of a few clip segments, the audio windows around them, each pair's shift (10**6: other
     clip), and the mouth features in sync with each audio window (the auxiliary target)."""
     picks = rng.choice(len(clips), size=min(n_seg, len(clips)), replace=False)
@@ -324,37 +319,27 @@ def render_heldout(specs: list[dict], folder: Path) -> list[dict]:
         p = folder / f"{s['id']}-{hashlib.sha256(json.dumps(s, sort_keys=True).encode()).hexdigest()[:12]}.npz"
         if not p.is_file():
             c = synthesize_clip(s["face"], s["text"], s["voice"], size=s["size"], seed=s["seed"])
-            lms = DlibBackend(redetect=10).landmarks(c.frames.astype(np.float32) / 255.0)
+            lms = DlibBackend(redetect=10).landmarks(c.frames)  # uint8, read as it is
             np.savez(p, lms=lms, gt_lms=c.lms2d, audio=c.audio)
         with np.load(p) as z:
             out.append({**s, "lms": z["lms"], "audio": z["audio"]})
     return out
 
 
-def shifted(x: np.ndarray, audio: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per-frame ``x`` with the audio delayed by ``k`` frames (both trimmed); the AV offset is then ``-k``."""
-    spf, t = sync.SAMPLES_PER_FRAME, len(x)
-    if k > 0:
-        return x[k:], audio[:(t - k) * spf]
-    if k < 0:
-        return x[:t + k], audio[-k * spf:t * spf]
-    return x, audio
-
-
 def acceptance(scorer, held: list[dict], shifts=SHIFTS, log=print) -> dict:
-    """Offsets, injected shifts and other-audio LSE-C of landmark clips through ``sync.lse``."""
+    """Offsets, injected shifts and other-audio LSE-C of landmark clips through ``scoring.lse``."""
     rows = []
     for j, d in enumerate(held):
         other = held[(j + 1) % len(held)]["audio"]
         wrong = np.zeros_like(d["audio"])
         n = min(len(wrong), len(other))
         wrong[:n] = other[:n]
-        gt = sync.lse(None, d["audio"], scorer=scorer, lms=d["lms"], reference=True)
-        wr = sync.lse(None, wrong, scorer=scorer, lms=d["lms"])
+        gt = scoring.lse(None, d["audio"], scorer=scorer, lms=d["lms"], reference=True)
+        wr = scoring.lse(None, wrong, scorer=scorer, lms=d["lms"])
         sh = {}
         for k in shifts:
             x, a = shifted(d["lms"], d["audio"], k)
-            sh[str(k)] = sync.lse(None, a, scorer=scorer, lms=x).values["offset"]
+            sh[str(k)] = scoring.lse(None, a, scorer=scorer, lms=x).values["offset"]
         row = {"id": d.get("id"), "offset": gt.values["offset"], "lse_c": gt.values["lse_c"], "lse_d": gt.values["lse_d"],
                "separation": gt.values["separation"], "trusted": gt.values["trusted"],
                "wrong_lse_c": wr.values["lse_c"], "wrong_trusted": wr.values["trusted"], "shift_offsets": sh}
@@ -372,7 +357,7 @@ def acceptance(scorer, held: list[dict], shifts=SHIFTS, log=print) -> dict:
 
 # ----------------------------------------------------------------------------- main
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m lmgs_eval.metrics.train_sync_landmark", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m lmgs_eval.metrics.sync.train.landmark", description=__doc__.split("\n")[0])
     ap.add_argument("--out", type=Path, required=True, help="folder for landmark_sync.onnx + landmark_sync.json")
     ap.add_argument("--clips", type=int, default=320)
     ap.add_argument("--steps", type=int, default=3500)
@@ -406,7 +391,7 @@ def main(argv=None) -> int:
     net, final = train(clips, args.steps, args.seed, args.lr, args.segments, args.seg_len, args.context, log=tqdm.write)
     t_train = time.time() - t0 - t_corpus
     recipe = {
-        "version": RECIPE_VERSION, "script": "python -m lmgs_eval.metrics.train_sync_landmark", "doc": "see the script's docstring",
+        "version": RECIPE_VERSION, "script": "python -m lmgs_eval.metrics.sync.train.landmark", "doc": "see the script's docstring",
         "faces": list(FACES), "sizes": list(SIZES), "voices": sp["train_voices"], "clips": len(clips),
         "windows": int(sum(c["last"] for c in clips)), "variants_per_clip": N_VARIANTS, "steps": args.steps,
         "context": args.context, "highpass": args.highpass,
@@ -416,7 +401,7 @@ def main(argv=None) -> int:
     m = L.export(net, args.out, {"recipe": recipe, "seed": args.seed, "context": args.context, "highpass": args.highpass})
     if args.heldout:
         held = render_heldout(heldout_specs(args.heldout, sp), root / "heldout")
-        scorer, _ = L.load(args.out)
+        scorer, _ = scorers.load_landmark(args.out)
         m["acceptance"] = acceptance(scorer, held, log=tqdm.write)
         from lmgs_eval.paths import atomic_write_text
 

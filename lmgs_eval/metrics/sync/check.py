@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lmgs_eval.metrics.sync import VSHIFT, lse_from_embeddings
+from lmgs_eval.metrics.sync.maths import VSHIFT, lse_from_embeddings
 
 MIN_ROLL = VSHIFT + 5 + 1  # windows: beyond the offset search and the window's own span
 N_ROLLS = 16
