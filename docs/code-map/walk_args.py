@@ -8,11 +8,13 @@ Usage (every argument given on the command line, so that each is an object of it
 ``WALK_VERBOSE=1`` lists the stops. The command runs under a tracer. An argument's value is the
 object argparse made from the command line (generation 0). A *stop* is a distinct project function
 (``lmgs``, ``baselines``, ``lmgs_eval``) called with the value (by identity) as an argument other
-than ``self``, or with an object holding the value as an attribute the function's code reads
-(``args.subject``, ``cfg.sync``). What a stop that received a generation-0 value returns (an
-object: not None, a bool, a number or a str) carries the argument on (generation 1: the Subject
-``--subject`` resolves to, the scorers ``--sync`` resolves to); generation-1 receivers are stops,
-their returns are not followed further.
+than ``self``, or with an object holding the value as an attribute the function's code reads off
+that parameter (``args.subject``, ``cfg.sync``). What a stop that received one argument's
+generation-0 value and no other argument returns (an object: not None, a bool, a number or a str)
+is that argument resolved and carries it on (generation 1: the Subject ``--subject`` resolves to,
+the scorers ``--sync`` resolves to); generation-1 receivers are stops, their returns are not
+followed further. A value made from several arguments (a method built from the run config) is not
+followed: it resolves none of them.
 
 *modules*: the distinct modules among the stops. *climbs*: in the order the stops are first
 reached, a step from a module of a lower layer to one of a higher layer (lmgs 0 < baselines 1 <
@@ -46,21 +48,28 @@ def rank(module: str) -> int | None:
     return None
 
 
-def attrs_read(code) -> set[str]:
+def attrs_read(code, name: str) -> set[str]:
+    """The attributes ``code`` reads off its local ``name`` (``name.attr``)."""
     if code not in _attrs:
-        _attrs[code] = {i.argval for i in dis.get_instructions(code) if i.opname in ("LOAD_ATTR", "LOAD_METHOD")}
-    return _attrs[code]
+        reads: dict[str, set[str]] = {}
+        ins = list(dis.get_instructions(code))
+        for a, b in zip(ins, ins[1:]):
+            if a.opname.startswith("LOAD_FAST") and b.opname in ("LOAD_ATTR", "LOAD_METHOD") and isinstance(a.argval, str):
+                reads.setdefault(a.argval, set()).add(b.argval)
+        _attrs[code] = reads
+    return _attrs[code].get(name, set())
 
 
-def carried(x, code) -> dict[str, int]:
-    """The arguments ``x`` carries: itself, or an attribute of it that ``code`` reads."""
+def carried(x, code, name: str) -> dict[str, int]:
+    """The arguments ``x`` (the function's parameter ``name``) carries: itself, or an attribute of it that
+    ``code`` reads (``name.attr``)."""
     out: dict[str, int] = {}
     t = taint.get(id(x))
     if t is not None and t[0] is x:
         out.update(t[1])
     d = getattr(x, "__dict__", None)
     if isinstance(d, dict) and not isinstance(x, type):
-        for a in attrs_read(code) & d.keys():
+        for a in attrs_read(code, name) & d.keys():
             t = taint.get(id(d[a]))
             if t is not None and t[0] is d[a]:
                 for name, g in t[1].items():
@@ -92,7 +101,7 @@ def tracer(frame, event, arg):
         x = frame.f_locals.get(n)
         if n in ("self", "cls") or x is None or isinstance(x, bool):
             continue  # a method called on the object is not a step of following it
-        for name, g in carried(x, code).items():
+        for name, g in carried(x, code, n).items():
             hits[name] = min(g, hits.get(name, 9))
     if not hits:
         return None
@@ -100,8 +109,8 @@ def tracer(frame, event, arg):
     for name in hits:
         if key not in stops.setdefault(name, []):
             stops[name].append(key)
-    carry = {n: 1 for n, g in hits.items() if g == 0}
-    if not carry:
+    carry = {n: 1 for n, g in hits.items() if g == 0} if len(hits) == 1 else {}
+    if not carry:  # a value made from several arguments (a method from the run config) resolves none of them
         return None
 
     def on_return(fr, ev, value):
