@@ -124,13 +124,15 @@ class FaceMesh:
 
 
 def dlib_box(frame: np.ndarray, max_side: int = 640) -> Box | None:
-    """The largest face dlib's HOG detector finds (on the frame shrunk to ``max_side``), or None."""
+    """The largest face dlib's HOG detector (the ingest's, loaded once) finds on the frame shrunk to
+    ``max_side``, or None."""
     import cv2
-    import dlib
+
+    from lmgs_eval.data.ingest.track import _models
 
     k = min(1.0, max_side / max(frame.shape[:2]))
     small = cv2.resize(frame, None, fx=k, fy=k, interpolation=cv2.INTER_AREA) if k < 1 else frame
-    found = dlib.get_frontal_face_detector()(small, 1)
+    found = _models()[0](small, 1)
     if not found:
         return None
     r = max(found, key=lambda r: r.area())
