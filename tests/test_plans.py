@@ -12,7 +12,7 @@ from conftest import run_cli
 
 from lmgs_eval.errors import UserError
 from lmgs_eval.plans import expand, load_plan, make_executor, plan_from_dict, run_plan
-from lmgs_eval.results import is_failed, load_records
+from lmgs_eval.results import load_records
 
 import plan_toys
 
@@ -152,19 +152,19 @@ def test_a_failing_run_is_retried_then_recorded_as_failed_and_retried_on_the_nex
     s = run_plan(plan_from_dict(_toy_plan(marks / "a", fail_times=1)), make_executor("serial"), res, progress=_quiet)
     assert s.failed == [] and len(s.done) == 1 and len(plan_toys.fits(marks / "a", 0)) == 2
     recs, _ = load_records(res)
-    assert sorted(r.protocol.clip for r in recs) == ["A", "B"] and not any(is_failed(r) for r in recs)
+    assert sorted(r.protocol.clip for r in recs) == ["A", "B"] and not any(r.failed for r in recs)
     assert all((res / r.artefacts["render"].path).is_file() for r in recs)
     # fails on both tries: each record it would have made is a failed record with the message
     plan = plan_from_dict(_toy_plan(marks / "b", fail_times=2))
     s = run_plan(plan, make_executor("serial"), res, progress=_quiet)
     assert len(s.failed) == 1 and "RuntimeError: toy failure 2" in s.failed[0]
-    failed = [r for r in load_records(res)[0] if is_failed(r)]
+    failed = [r for r in load_records(res)[0] if r.failed]
     assert sorted(r.protocol.clip for r in failed) == ["A", "B"]
     assert all(r.status.reason == "RuntimeError: toy failure 2" for r in failed)
     # the next start retries it (a failed record is not a finished run); the third fit succeeds
     s = run_plan(plan, make_executor("serial"), res, progress=_quiet)
     assert s.failed == [] and s.skipped == 0 and len(plan_toys.fits(marks / "b", 0)) == 3
-    assert not any(is_failed(r) for r in load_records(res)[0])
+    assert not any(r.failed for r in load_records(res)[0])
 
 
 def test_a_stopped_driver_resumes_without_redoing_finished_runs(tmp_path):

@@ -14,7 +14,7 @@ import pytest
 
 import plan_toys
 from lmgs_eval.plans import make_executor, plan_from_dict, run_plan
-from lmgs_eval.results import is_failed, load_records
+from lmgs_eval.results import load_records
 
 ray = pytest.importorskip("ray")
 
@@ -87,8 +87,8 @@ def test_a_plan_on_a_two_node_ray_cluster_records_what_the_serial_executor_recor
         assert len(once) == 2 and once[0] != once[1]  # the retry ran in another process
         assert len(always) == 2  # retries = 1: two tries, then given up
         recs, _ = load_records(tmp_path / "killed")
-        ok = [r for r in recs if not is_failed(r)]
-        failed = [r for r in recs if is_failed(r)]
+        ok = [r for r in recs if not r.failed]
+        failed = [r for r in recs if r.failed]
         assert sorted(r.protocol.clip for r in ok) == ["A", "B"] and {r.config["kill_times"] for r in ok} == {1}
         assert sorted(r.protocol.clip for r in failed) == ["A", "B"]
         assert all("died" in r.status.reason.lower() or "crash" in r.status.reason.lower() for r in failed), \

@@ -106,7 +106,7 @@ class Identities:
 
     def known_records(self, run: Run) -> dict[str, str]:
         """The store's records of the run's subject but failed ones (relative path -> JSON text): what the worker resumes from."""
-        folder = store.run_path(self.results, self.subject(run.subject).name, "p", "m", "c", 0, "h").parent.parent
+        folder = store.subject_dir(self.results, self.subject(run.subject).name)
         if not folder.is_dir():
             return {}
         out = {}
@@ -115,10 +115,10 @@ class Identities:
                 continue
             text = p.read_text(encoding="utf-8")
             try:
-                rec = store.check(store.migrate(json.loads(text)))[0]
-            except ValueError:
+                status = store.migrate(json.loads(text)).get("status") or {}
+            except (ValueError, AttributeError):
                 continue
-            if rec is None or not rec.failed:  # a failed run is redone: the protocol must not find it (some take any record as done)
+            if status.get("state") != "failed":  # a failed run is redone: the protocol must not find it (some take any record as done)
                 out[p.relative_to(self.results).as_posix()] = text
         return out
 

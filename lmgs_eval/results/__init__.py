@@ -73,15 +73,16 @@ from lmgs_eval.results.provenance import (EMPTY_COST, compact, config_hash, git_
                                           metric_entries, now_iso)
 from lmgs_eval.results.schema import FAMILIES, PROTOCOLS, READ_VERSIONS, SCHEMA_VERSION, check, validate
 from lmgs_eval.results.store import (IMPORTED_FILE, MADE_ELSEWHERE, check_artefacts, copy_records, find_finished, find_record,
-                                     imported_records, is_failed, iter_store, load_records, package_file, record_path,
-                                     resolve_artefact, run_path, se_fraction, snapshot_records, to_record, write_record)
+                                     imported_records, iter_store, load_records, package_file, record_path,
+                                     resolve_artefact, run_path, se_fraction, snapshot_records, subject_dir, to_record,
+                                     write_record)
 from lmgs_eval.results.types import Record, replace
 
 __all__ = [
     "BUDGET_NOTE", "EMPTY_COST", "FAMILIES", "IMPORTED_FILE", "MADE_ELSEWHERE", "PROTOCOLS", "READ_VERSIONS", "Record",
     "SCHEMA_VERSION", "SE_NOTE", "budget_note", "check", "check_artefacts", "compact", "config_hash", "copy_records",
-    "find_finished", "find_record", "frame", "git_info", "imported_records", "is_failed", "iter_store", "load_records",
+    "find_finished", "find_record", "frame", "git_info", "imported_records", "iter_store", "load_records",
     "machine_info", "make_record", "metric_entries", "migrate", "now_iso", "package_file", "record_path", "replace",
-    "resolve_artefact", "run_path", "se_fraction", "se_note", "sha256_file", "snapshot_records", "to_record", "validate",
+    "resolve_artefact", "run_path", "se_fraction", "se_note", "sha256_file", "snapshot_records", "subject_dir", "to_record", "validate",
     "write_record",
 ]

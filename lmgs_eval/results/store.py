@@ -29,11 +29,16 @@ def _slug(s: str) -> str:
     return slug
 
 
+def subject_dir(root: str | os.PathLike, subject: str) -> Path:
+    """The folder of store ``root`` holding a subject's records (one sub-folder per protocol)."""
+    return Path(root) / _slug(subject)
+
+
 def run_path(root: str | os.PathLike, subject: str, protocol: str, method: str, clip: str, seed: int,
              config_hash: str) -> Path:
     """Stable file of a run: ``root/<subject>/<protocol>/<method>--<clip>--seed<N>--<config_hash>.json``."""
     name = f"{_slug(method)}--{_slug(clip)}--seed{int(seed)}--{_slug(config_hash)}.json"
-    return Path(root) / _slug(subject) / _slug(protocol) / name
+    return subject_dir(root, subject) / _slug(protocol) / name
 
 
 def record_path(root: str | os.PathLike, record: Record) -> Path:
@@ -164,11 +169,6 @@ def snapshot_records(records: Iterable[Record], dst: str | os.PathLike) -> Path:
 def se_fraction(rec: Record) -> float | None:
     """The share of face points Spatial Enhancement selected in this run (0..1); None if not recorded."""
     return rec.run.se_fraction if rec.run is not None else None
-
-
-def is_failed(rec: Record) -> bool:
-    """True for a run recorded as failed (``status.state == "failed"``; no status means ok)."""
-    return rec.failed
 
 
 def find_finished(root: str | os.PathLike, method: str, subject: str, protocol: str, clip: str, seed: int,
