@@ -138,12 +138,14 @@ def test_check_output_names_the_failure():
 
 
 def test_stress_lse_of_uint8_frames_equals_lse_of_float_frames(monkeypatch):
-    """The stress suite scores uint8 renders without a float copy; same numbers as the float path,
-    and a long clip (here: longer than a patched 10-frame limit) detects faces every 5th frame."""
+    """The stress suite scores uint8 renders without a float copy, reading the landmarks its own tracker
+    found instead of tracking again; same numbers as the float path that tracks the face itself, and a
+    long clip (here: longer than a patched 10-frame limit) detects faces every 5th frame."""
     import cv2
     from skimage import data
 
     from lmgs_eval.metrics.config import SuiteConfig
+    from lmgs_eval.metrics.landmarks import DlibBackend
     from lmgs_eval.metrics.metric_suite import MetricSuite
     from lmgs_eval.protocols import stress
 
@@ -153,15 +155,16 @@ def test_stress_lse_of_uint8_frames_equals_lse_of_float_frames(monkeypatch):
     audio = (0.3 * np.sin(2 * np.pi * 180 * t) * (0.6 + 0.4 * np.sin(2 * np.pi * 3 * t))).astype(np.float32)
     want = MetricSuite().lse(frames.astype(np.float32) / 255.0, audio)
     assert want.available
-    got = stress.lse_u8(MetricSuite(), frames, audio)
+    lms = DlibBackend().landmarks(frames)  # the stress suite's tracker, as run_stress builds it
+    got = stress.lse_u8(MetricSuite(), frames, audio, lms)
     assert got.values == want.values and got.flags == want.flags
     monkeypatch.setattr(stress, "LONG_CLIP_FRAMES", 10)
-    long_got = stress.lse_u8(MetricSuite(), frames, audio)
+    long_got = stress.lse_u8(MetricSuite(), frames, audio, lms)
     long_want = MetricSuite().lse(frames.astype(np.float32) / 255.0, audio, detect_every=5)
     assert long_got.values == long_want.values
     assert any("every 5th frame" in n for n in long_got.notes)
     # the run's --sync choice travels with its suite (stress workers are other processes)
-    assert stress.lse_u8(MetricSuite(SuiteConfig(sync="pixel")), frames, audio).spec.backend == "onnxruntime:bundled-sync"
+    assert stress.lse_u8(MetricSuite(SuiteConfig(sync="pixel")), frames, audio, lms).spec.backend == "onnxruntime:bundled-sync"
 
 
 def test_jobs_run_the_suites_in_worker_processes_with_the_same_results(monkeypatch, tmp_path):

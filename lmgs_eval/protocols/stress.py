@@ -91,18 +91,14 @@ def silence_open_result(lms: np.ndarray, spans, fps: float = 25.0) -> MetricResu
                         available=val is not None, reason="" if val is not None else "no face found")
 
 
-def landmarks_u8(backend, frames: np.ndarray, chunk: int = 256) -> np.ndarray:
-    """Landmarks of uint8 frames, converted to float a chunk at a time (a 5-minute clip stays in memory once)."""
-    return np.concatenate([backend.landmarks(frames[i:i + chunk].astype(np.float32) / 255.0)
-                           for i in range(0, len(frames), chunk)])
-
-
-def lse_u8(suite: MetricSuite, frames: np.ndarray, audio: np.ndarray):
+def lse_u8(suite: MetricSuite, frames: np.ndarray, audio: np.ndarray, lms: np.ndarray):
     """LSE of uint8 frames with the run's sync scorer (cropped a chunk at a time by ``lse``, no float
-    copy of the clip); a long clip detects faces every 5 frames (the boxes are median-smoothed anyway)."""
+    copy of the clip), reading ``lms`` (the frames' landmarks, found by the tracker the landmark scorer
+    uses) instead of tracking the face again; a long clip detects faces every 5 frames (the boxes are
+    median-smoothed anyway)."""
     if len(frames) <= LONG_CLIP_FRAMES:
-        return suite.lse(frames, audio)
-    r = suite.lse(frames, audio, detect_every=5)
+        return suite.lse(frames, audio, lms=lms)
+    r = suite.lse(frames, audio, detect_every=5, lms=lms)
     r.notes.append(f"long clip ({len(frames)} frames): faces detected every 5th frame")
     return r
 
@@ -148,7 +144,7 @@ def _context(cfg: RunConfig, long_seconds: float) -> dict:
         conds = make_conditions(test.audio, seed=0, other_voice=None if other is None else other.audio,
                                 long_seconds=long_seconds)
         backend = DlibBackend()
-        gt_lms = backend.landmarks(test.frames.astype(np.float32) / 255.0)
+        gt_lms = backend.landmarks(test.frames)
         _CONTEXTS.clear()  # one subject per process at a time
         _CONTEXTS[key] = {"subject": subject, "test": test, "other": other, "conds": conds, "backend": backend,
                           "gt_lms": gt_lms, "gt_found": float(np.isfinite(gt_lms).all(axis=(1, 2)).mean()),
@@ -345,9 +341,9 @@ def _stress_one(cfg: RunConfig, ctx: dict, conds, name: str, seed: int, max_minu
                 clean_fps = rc.get("fps")
             why = check_output(frames, n, audio)
             if why is None:
-                lms = landmarks_u8(backend, frames)
+                lms = backend.landmarks(frames)  # the tracker reads uint8 frames as they are
                 res = {"jitter": jitter_result(lms)}
-                res["lse"] = lse_u8(cfg.suite, frames, audio)
+                res["lse"] = lse_u8(cfg.suite, frames, audio, lms)
                 so = silence_open_result(lms, cond.silent_spans)
                 if so is not None:
                     res["silence_open"] = so
@@ -356,7 +352,7 @@ def _stress_one(cfg: RunConfig, ctx: dict, conds, name: str, seed: int, max_minu
                     gl = gt_lms[:n]
                 elif cond.name == "other-voice" and other is not None and other.gt_frames is not None:
                     if ctx["other_gt_lms"] is None:
-                        ctx["other_gt_lms"] = backend.landmarks(other.gt_frames.astype(np.float32) / 255.0)
+                        ctx["other_gt_lms"] = backend.landmarks(other.gt_frames)
                     gl = ctx["other_gt_lms"][:n] if len(ctx["other_gt_lms"]) >= n else None
                 if gl is not None:
                     res["lmd"] = lmd_result(lms, gl)
