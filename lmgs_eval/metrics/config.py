@@ -9,7 +9,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 SYNC_CHOICES = ("auto", "landmark", "pixel", "syncnet-v2")
-LPIPS_CHOICES = ("lpips-alex", "stlpips-alex")
 
 
 @dataclass(frozen=True)

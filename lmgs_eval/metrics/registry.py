@@ -39,15 +39,6 @@ def _ssim(**kw):
     return SSIM()
 
 
-def _lpips_alex(alexnet=None, **kw):
-    """LPIPS alex; named ``lpips-alex`` or ``lpips-alex-custom`` by the trunk's sha256, not by the name asked for."""
-    return LPIPS("lpips-alex", alexnet=alexnet)
-
-
-def _stlpips_alex(**kw):
-    return LPIPS("stlpips-alex")
-
-
 def _lpips(lpips=None, alexnet=None, **kw):
     """The LPIPS network of the run's choices: ``lpips`` when forced, else by the trunk found."""
     return LPIPS(lpips, alexnet=alexnet)
@@ -64,10 +55,10 @@ def _lse(sync="auto", scorers=None, **kw):
 
 METRICS.register("psnr", _psnr)
 METRICS.register("ssim", _ssim)
-METRICS.register("lpips-alex", _lpips_alex)
-METRICS.register("lpips-alex-custom", _lpips_alex)
-METRICS.register("stlpips-alex", _stlpips_alex)
 METRICS.register("lpips", _lpips)
+# one network by name; ``lpips-alex-custom`` builds ``lpips-alex`` (the trunk's sha256 names the result)
+for _name, _net in (("lpips-alex", "lpips-alex"), ("lpips-alex-custom", "lpips-alex"), ("stlpips-alex", "stlpips-alex")):
+    METRICS.register(_name, lambda _net=_net, **kw: _lpips(lpips=_net, **kw))
 METRICS.register("lmd", _lmd)
 METRICS.register("lse", _lse)
 
