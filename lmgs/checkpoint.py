@@ -64,10 +64,7 @@ def load_model(path: Path, cfg=None, device: torch.device | str = "cpu") -> LMGS
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path}: checkpoint not found")
-    try:
-        blob = torch.load(path, map_location=device, weights_only=False)
-    except (RuntimeError, EOFError, OSError, ValueError, pickle.UnpicklingError) as exc:
-        raise InputError(f"{path}: not a readable checkpoint ({exc.__class__.__name__})") from None
+    blob = _read_blob(path, device, "not a readable checkpoint ({error})")
     if not isinstance(blob, dict) or blob.get("version") != CHECKPOINT_VERSION:
         raise InputError(f"{path}: not an lmgs checkpoint of version {CHECKPOINT_VERSION}")
     if cfg is not None and blob["config_hash"] != cfg.hash():
@@ -85,6 +82,15 @@ def load_model(path: Path, cfg=None, device: torch.device | str = "cpu") -> LMGS
         lines = [l.strip() for l in str(exc).splitlines() if l.strip()]
         raise InputError(f"{path}: weights do not match the model ({'; '.join(lines[1:3])[:300]})") from None
     return model
+
+
+def _read_blob(path: Path, device, unreadable: str):
+    """``torch.load`` of a checkpoint file; a file torch cannot read is an :class:`InputError`: ``path: unreadable``
+    with ``{error}`` the exception's class name."""
+    try:
+        return torch.load(path, map_location=device, weights_only=False)
+    except (RuntimeError, EOFError, OSError, ValueError, pickle.UnpicklingError) as exc:
+        raise InputError(f"{path}: {unreadable.format(error=exc.__class__.__name__)}") from None
 
 
 def _empty_model(cfg, sizes: dict, build: dict, device) -> LMGSModel:
@@ -114,10 +120,7 @@ def resume(path: Path, model, g_opt, n_opt, cfg, dev, curve_rows) -> tuple[int, 
     """Load a checkpoint of :func:`save_checkpoint` into the model and optimisers (the Gaussians' optimiser
     rebuilt for the saved counts) and extend ``curve_rows``; returns the step to go on from and the
     seconds trained up to it."""
-    try:
-        blob = torch.load(path, map_location=dev, weights_only=False)
-    except (RuntimeError, EOFError, OSError, ValueError, pickle.UnpicklingError) as exc:
-        raise InputError(f"{path}: unreadable checkpoint ({exc.__class__.__name__}); delete it to start over") from None
+    blob = _read_blob(path, dev, "unreadable checkpoint ({error}); delete it to start over")
     if blob.get("config_hash") != cfg.hash():
         raise InputError(f"{path}: checkpoint of config {blob.get('config_hash')}, not {cfg.hash()}; delete it to start over")
     for name, size in blob["sizes"].items():
