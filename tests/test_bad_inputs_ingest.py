@@ -133,3 +133,28 @@ def test_a_truncated_video_is_refused_or_flagged(truth, tmp_path):
 
 
 # ----------------------------------------------------------------------------- subjects, protocols
+
+
+def test_a_missing_or_altered_shipped_model_stops_the_ingest_before_anything_is_written(truth, tmp_path, monkeypatch):
+    """The ingest's model files are checked first: a missing one, or one whose bytes differ from those
+    shipped, is one line naming the file, exit 2, and no data root."""
+    import shutil
+
+    from conftest import ingest_error_line
+    from lmgs_eval.data.ingest import vendored
+
+    models = tmp_path / "models"
+    shutil.copytree(vendored.FOLDER, models)
+    monkeypatch.setattr(vendored, "FOLDER", models)
+    root = tmp_path / "data"
+    for name in vendored.MODELS:
+        f = models / name
+        keep = f.read_bytes()
+        f.unlink()
+        rc, out, err = run_cli("ingest", str(truth / "astronaut.mp4"), "--data-root", str(root), "--quiet")
+        ingest_error_line(rc, err, str(f), "is missing")
+        f.write_bytes(keep[:-1] + bytes([keep[-1] ^ 1]))
+        rc, out, err = run_cli("ingest", str(truth / "astronaut.mp4"), "--data-root", str(root), "--quiet")
+        ingest_error_line(rc, err, str(f), "is altered")
+        f.write_bytes(keep)
+        assert not root.exists()

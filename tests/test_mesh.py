@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from skimage import data
 
-from lmgs_eval.data.ingest import mesh
+from lmgs_eval.data.ingest import mesh, vendored
 from lmgs_eval.errors import UserError
 
 # mesh vertex -> dlib-68 index: outer eye corners, mouth corners, chin
@@ -72,7 +72,7 @@ def test_a_missing_or_altered_model_stops_with_one_line_naming_it(tmp_path):
         mesh.load_session(tmp_path / "gone.onnx")
     assert str(tmp_path / "gone.onnx") in str(e.value) and "\n" not in str(e.value)
     bad = tmp_path / "face.onnx"
-    shutil.copyfile(mesh.MODEL, bad)
+    shutil.copyfile(vendored.FOLDER / mesh.MODEL, bad)
     raw = bytearray(bad.read_bytes())
     raw[len(raw) // 2] ^= 0xFF
     bad.write_bytes(bytes(raw))

@@ -18,11 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from lmgs.fileio import sha256_file
-from lmgs_eval.errors import UserError
 
-MODEL = Path(__file__).with_name("models") / "face_landmarks_detector.onnx"
-MODEL_SHA256 = "017f267ddd81e042224c43f00a3ef6d548a6595fe2a8e2a2ceacd0214269a79c"
+MODEL = "face_landmarks_detector.onnx"  # in the shipped models (:mod:`vendored`)
 CROP = 256  # the model's input side
 SCALE = 1.5  # crop side / the mesh's larger extent (MediaPipe's region of interest)
 PRESENCE = 0.0  # presence logit below which the face counts as lost
@@ -31,16 +28,15 @@ RIGHT_EYE_OUTER, LEFT_EYE_OUTER = 33, 263  # mesh vertices (the subject's right 
 Box = tuple[float, float, float, float]  # x0, y0, x1, y1 in image pixels
 
 
-def load_session(path: Path = MODEL, sha256: str = MODEL_SHA256):
-    """An ONNX Runtime session of the mesh model; a missing or altered file is a :class:`UserError` naming it."""
+def load_session(path: Path | None = None):
+    """An ONNX Runtime session of the mesh model (default: the shipped one; another file is checked
+    against the shipped one's sha256); a missing or altered file is a :class:`UserError` naming it."""
     import onnxruntime as ort
 
-    path = Path(path)
-    if not path.is_file():
-        raise UserError(f"{path}: the face mesh model is missing (reinstall lmgs-eval)")
-    got = sha256_file(path)
-    if got != sha256:
-        raise UserError(f"{path}: the face mesh model is altered (sha256 {got[:12]}..., expected {sha256[:12]}...)")
+    from lmgs_eval.data.ingest import vendored
+
+    what, sha = vendored.MODELS[MODEL]
+    path = vendored.checked(vendored.FOLDER / MODEL if path is None else path, sha, what)
     opts = ort.SessionOptions()
     opts.log_severity_level = 3
     return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
@@ -81,6 +77,7 @@ class FaceMesh:
         self.session = session if session is not None else load_session()
         self._input = self.session.get_inputs()[0].name
         self.detect = detect if detect is not None else dlib_box
+        self._region: tuple[float, float, float, float] | None = None
 
     def mesh(self, frame: np.ndarray, region: tuple[float, float, float, float]) -> tuple[np.ndarray, float]:
         """``(points [478, 3] in image pixels (z in pixels of the same scale), presence logit)`` of uint8 RGB ``frame``."""
@@ -97,30 +94,33 @@ class FaceMesh:
         pts[:, 2] = local[:, 2] * (region[2] / CROP)
         return pts, float(np.asarray(out[1], np.float32).ravel()[0])
 
+    def step(self, frame: np.ndarray) -> tuple[np.ndarray, float, bool]:
+        """The next frame of a clip: ``(points [478, 3], presence logit, detected)``; the crop follows the
+        previous frame's mesh, a detector is run on the first frame and whenever the face is lost. No
+        face: NaN points, presence -inf."""
+        fresh = self._region is None
+        if fresh:
+            box = self.detect(frame)
+            self._region = region_from_box(box) if box is not None else None
+        p, logit = self.mesh(frame, self._region) if self._region is not None else (None, -np.inf)
+        if p is not None and logit < PRESENCE and not fresh:  # lost: detect again on this frame
+            box = self.detect(frame)
+            fresh = True
+            p, logit = self.mesh(frame, region_from_box(box)) if box is not None else (None, -np.inf)
+        if p is None or logit < PRESENCE:
+            self._region = None
+            return np.full((478, 3), np.nan, np.float32), logit, fresh
+        self._region = region_from_mesh(p)
+        return p, logit, fresh
+
     def track(self, frames: Iterable[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Every frame's mesh: ``(points [T, 478, 3], presence [T], detected [T] bool)``; a frame with no face
-        has NaN points and presence -inf."""
-        pts, pres, detected = [], [], []
-        region = None
-        for frame in frames:
-            fresh = region is None
-            if fresh:
-                box = self.detect(frame)
-                region = region_from_box(box) if box is not None else None
-            p, logit = (self.mesh(frame, region) if region is not None else (None, -np.inf))
-            if p is not None and logit < PRESENCE and not fresh:  # lost: detect again on this frame
-                box = self.detect(frame)
-                fresh = True
-                p, logit = self.mesh(frame, region_from_box(box)) if box is not None else (None, -np.inf)
-            if p is None or logit < PRESENCE:
-                pts.append(np.full((478, 3), np.nan, np.float32))
-                region = None
-            else:
-                pts.append(p)
-                region = region_from_mesh(p)
-            pres.append(logit)
-            detected.append(fresh)
-        return np.stack(pts) if pts else np.zeros((0, 478, 3), np.float32), np.asarray(pres, np.float32), np.asarray(detected)
+        """Every frame's mesh: ``(points [T, 478, 3], presence [T], detected [T] bool)`` (:meth:`step` over a clip)."""
+        self._region = None
+        out = [self.step(frame) for frame in frames]
+        if not out:
+            return np.zeros((0, 478, 3), np.float32), np.zeros(0, np.float32), np.zeros(0, bool)
+        return (np.stack([o[0] for o in out]), np.asarray([o[1] for o in out], np.float32),
+                np.asarray([o[2] for o in out]))
 
 
 def dlib_box(frame: np.ndarray, max_side: int = 640) -> Box | None:

@@ -112,6 +112,9 @@ def ingest(video: str | Path, name: str | None = None, *, audio: str | Path | No
         raise UserError(f"--focal {cfg.focal}: must be positive")
     njobs = _jobs(jobs)
     # Every input is checked before anything is made: a refused ingest leaves the data root as it was.
+    from lmgs_eval.data.ingest import vendored
+
+    vendored.check_all()
     _check_file(video, "video")
     if audio is not None:
         _check_file(Path(audio).expanduser(), "audio")
@@ -215,9 +218,9 @@ def _done(ctx: _Ctx, stage: str, **extra) -> None:
     st["done"].append(stage)
     st["flags"], st["log"], st["timings"] = ctx.flags, ctx.log, ctx.timings
     st.update(extra)
-    from lmgs_eval.paths import atomic_write_text
+    from lmgs.fileio import atomic_write
 
-    atomic_write_text(ctx.work / "state.json", json.dumps(st, indent=1, sort_keys=True))
+    atomic_write(ctx.work / "state.json", json.dumps(st, indent=1, sort_keys=True))
 
 
 def _run(ctx: _Ctx, key: dict, info: decode.VideoInfo, sound: tuple, cut_short: str | None) -> None:

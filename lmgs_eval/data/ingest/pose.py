@@ -13,13 +13,10 @@ The fit, in three steps:
    would take that turn for frontal: on a bundled head that turns from 0 to 30 deg and back
    (astronaut, 256 px, 3 s) it did (yaw -13..+9 deg, 5.5 deg mean rotation error); from the
    frontal quarter 2.8 deg.
-2. **Focal length, by search over the clip.** For each candidate focal (a geometric grid of
-   0.8-8 frame widths, then a finer one around the best) every sampled frame's rigid pose is
-   solved (``cv2.solvePnP``); the focal with the lowest median reprojection error wins, within
-   :data:`FOCAL_RANGE` (frame widths). A head that hardly turns constrains the focal weakly, and
-   a generic template depth biases it towards long lenses (a flatter projection hides a depth
-   error): on the bundled subjects (true focal 2.5 widths) the error falls steadily up to the
-   range's end. The whole curve is stored in the manifest, and ``--focal`` overrides the search.
+2. **Focal length**: given (``--focal``, or :mod:`focal`'s joint fit on the dense mesh). Of the
+   68 points and a generic template it cannot be had: a search over focal lengths found the
+   reprojection error falling steadily to the longest lens tried (a flatter projection hides
+   the template's depth error) on the bundled subjects and on 4 of 5 real clips.
 3. **Pose, per frame**, with that focal; given the frames, refined by corners of the upper
    head tracked from a reference frame (:mod:`align`: every frame or none); then smoothed
    over time (Gaussian, ``sigma`` frames).
@@ -56,10 +53,6 @@ GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 RIGID = np.r_[27:48]
 # The template's layout: the median of this share of the frames, those nearest frontal (at least 10).
 FRONTAL_SHARE = 0.25
-# Focal lengths searched, in frame widths: about 25-55 degrees of horizontal field of view, the
-# span of the field's processed subjects (2.4-2.7) with room on both sides.
-FOCAL_RANGE = (1.0, 5.0)
-
 
 @dataclass
 class PoseFit:
@@ -73,7 +66,6 @@ class PoseFit:
         euler: ``[N, 3]`` head (pitch, yaw, roll) in radians, relative to facing the camera.
         trans: ``[N, 3]`` head translation in the camera frame (OpenGL axes), metres.
         reproj_px: ``[N]`` mean reprojection error of the rigid points after smoothing.
-        focal_curve: ``[(focal, median error px)]`` of the search.
         aligned: ``[N]`` bool, the frames whose pose the images refined (:mod:`align`), or None.
         reference: the frame the others were tracked from (-1 without images).
         refinable: how many frames the images could refine (all are, or none: ``align.MIN_SHARE``).
@@ -86,7 +78,6 @@ class PoseFit:
     euler: np.ndarray
     trans: np.ndarray
     reproj_px: np.ndarray
-    focal_curve: list[tuple[float, float]]
     aligned: np.ndarray | None = None
     reference: int = -1
     refinable: int = 0
@@ -157,23 +148,6 @@ def _solve(obj: np.ndarray, img: np.ndarray, f: float, w: int, h: int, guess=Non
     return rvec, tvec, err
 
 
-def search_focal(obj: np.ndarray, lms: np.ndarray, w: int, h: int, max_frames: int = 60) -> tuple[float, list[tuple[float, float]]]:
-    """The focal length (pixels) with the lowest median reprojection error over sampled frames."""
-    pick = np.linspace(0, len(lms) - 1, min(max_frames, len(lms))).round().astype(int)
-
-    def cost(f):
-        return float(np.median([_solve(obj, lms[i], f, w, h)[2] for i in pick]))
-
-    curve = [(float(f), cost(f)) for f in np.geomspace(*FOCAL_RANGE, 9) * w]
-    best = min(range(len(curve)), key=lambda i: curve[i][1])
-    lo = curve[max(0, best - 1)][0]
-    hi = curve[min(len(curve) - 1, best + 1)][0]
-    curve += [(float(f), cost(f)) for f in np.geomspace(lo, hi, 9)[1:-1]]
-    curve.sort()
-    f = min(curve, key=lambda c: c[1])[0]
-    return f, curve
-
-
 def _rodrigues(v: np.ndarray) -> np.ndarray:
     import cv2
 
@@ -188,9 +162,9 @@ def euler_pyr(R: np.ndarray) -> np.ndarray:
     return np.array([pitch, yaw, roll])
 
 
-def fit_poses(lms: np.ndarray, w: int, h: int, *, focal: float | None = None, sigma: float = 2.0,
+def fit_poses(lms: np.ndarray, w: int, h: int, *, focal: float, sigma: float = 2.0,
               frames: list | None = None, runs: list[slice] | None = None) -> PoseFit:
-    """Template, focal and smoothed per-frame poses for landmarks ``[N, 68, 2]`` (output pixels).
+    """Template and smoothed per-frame poses for landmarks ``[N, 68, 2]`` (output pixels) seen with ``focal`` (pixels).
 
     ``frames``: the frames' image paths; with them each landmark pose is refined by the upper
     head's texture tracked from a reference frame (:mod:`align`) before the smoothing.
@@ -201,9 +175,6 @@ def fit_poses(lms: np.ndarray, w: int, h: int, *, focal: float | None = None, si
     from scipy.spatial.transform import Rotation
 
     obj = build_template(lms)
-    curve: list[tuple[float, float]] = []
-    if focal is None:
-        focal, curve = search_focal(obj, lms, w, h)
     n = len(lms)
     rv, tv = np.zeros((n, 3)), np.zeros((n, 3))
     guess = None
@@ -234,7 +205,7 @@ def fit_poses(lms: np.ndarray, w: int, h: int, *, focal: float | None = None, si
     euler = np.stack([euler_pyr(flip @ R[i]) for i in range(n)])
     trans = (flip @ tv.T).T
     err = np.array([_reproj(obj, lms[i], w2c[i], focal, w, h) for i in range(n)])
-    return PoseFit(obj, float(focal), w2c, c2w, euler, trans, err, curve, aligned, ref, refinable)
+    return PoseFit(obj, float(focal), w2c, c2w, euler, trans, err, aligned, ref, refinable)
 
 
 def project(pts: np.ndarray, w2c: np.ndarray, f: float, w: int, h: int) -> tuple[np.ndarray, np.ndarray]:

@@ -26,12 +26,17 @@ def track(ctx, info: decode.VideoInfo) -> None:
     """Decode at 25 fps, track the face, look for scene cuts."""
     import cv2
 
+    from lmgs_eval.data.ingest.mesh import FaceMesh
+
     t0 = time.perf_counter()
     thumbs = np.zeros((info.n_frames, 64, 64), np.float32)
+    face_mesh = FaceMesh()
+    mesh = np.full((info.n_frames, 478, 3), np.nan, np.float32)
 
     def frames():
         for k, img in decode.frames_25fps(info):
             thumbs[k] = cv2.resize(cv2.cvtColor(img, cv2.COLOR_RGB2GRAY), (64, 64), interpolation=cv2.INTER_AREA) / 255.0
+            mesh[k] = face_mesh.step(img)[0]
             yield k, img
 
     bar = ctx.bar(info.n_frames, "decode + track")
@@ -55,7 +60,7 @@ def track(ctx, info: decode.VideoInfo) -> None:
         if len(other):
             seen.append(f"a face other than the tracked one in frames {_ranges(other.tolist())}, left alone")
         ctx.warn("several_faces", f"{ctx.video}: {'; '.join(seen)}; tracked the largest, most central face and kept to it")
-    writer.save_npz(ctx.work / "track.npz", lms=tr.lms, faces=tr.faces, detected=tr.detected, others=tr.others)
+    writer.save_npz(ctx.work / "track.npz", lms=tr.lms, faces=tr.faces, detected=tr.detected, others=tr.others, mesh=mesh)
 
 
 def frames(ctx, info: decode.VideoInfo, tr, audio: np.ndarray) -> None:
@@ -101,8 +106,11 @@ def frames(ctx, info: decode.VideoInfo, tr, audio: np.ndarray) -> None:
     for i in range(n):
         write_lms(out / f"{i}.lms", smooth[i])
     found = ~np.isin(source, missing)
+    mesh = tr["mesh"][source].astype(np.float64)  # the dense mesh in output pixels (z in the same scale)
+    mesh[..., :2] = win.to_out(mesh[..., :2])
+    mesh[..., 2] *= win.scale
     writer.save_npz(ctx.work / "frames.npz", lms=smooth, raw=lms_out, found=found, first=first, last=last, source=source,
-             window=json.dumps(win.to_json()), jaw_px=jaw)
+             window=json.dumps(win.to_json()), jaw_px=jaw, mesh=mesh.astype(np.float32))
     ctx.timed("crop_frames", t0, n)
 
 
@@ -132,7 +140,18 @@ def pose(ctx, sel) -> None:
     s = ctx.cfg.size
     frames = [ctx.sub / "ori_imgs" / f"{i}.jpg" for i in range(len(lms))] if ctx.cfg.pose_refine else None
     src = source_frames(sel)
-    fit = pose_mod.fit_poses(lms, s, s, focal=ctx.cfg.focal, sigma=ctx.cfg.pose_sigma, frames=frames,
+    focal, ff = ctx.cfg.focal, None
+    if focal is None:
+        from lmgs_eval.data.ingest.focal import fit_focal
+
+        ff = fit_focal(sel["mesh"], s, s)
+        focal = ff.focal
+        rng = f"{ff.lo / s:.2f}-{ff.hi / s:.2f}"
+        ctx.log.append(f"focal length {ff.focal / s:.2f} frame widths (interval {rng}) from the dense mesh of {ff.frames} frames; "
+                       + ("the clip's head motion decides little of it (evidence "
+                          f"{ff.evidence:.2f} < 1): the prior about the field's 2.5 widths does; pass --focal if the camera's is known"
+                          if ff.evidence < 1 else f"the clip's evidence {ff.evidence:.2f}"))
+    fit = pose_mod.fit_poses(lms, s, s, focal=focal, sigma=ctx.cfg.pose_sigma, frames=frames,
                              runs=track_mod.segments(src))
     ref = int(src[fit.reference])  # in the source's frame numbers
     if fit.aligned is not None and fit.aligned.any():
@@ -142,10 +161,6 @@ def pose(ctx, sel) -> None:
         ctx.log.append(f"pose: the landmark poses are kept: the upper head's texture could refine {fit.refinable} of {len(lms)} "
                        f"frames, fewer than {100 * MIN_SHARE:.0f} % (the head turns too far from frame {ref}, or too little "
                        "texture follows)")
-    lo, hi = pose_mod.FOCAL_RANGE
-    if fit.focal_curve and (fit.focal >= 0.99 * hi * s or fit.focal <= 1.01 * lo * s):
-        ctx.log.append(f"the focal search ended at its range's edge ({fit.focal / s:.2f} frame widths): the head turns too little "
-                       f"to pin the focal down; pass --focal to set it")
     write_transforms(ctx.sub, fit.c2w, fit.focal, s, s)
     write_track_params(ctx.sub / "track_params.pt", fit.euler, fit.trans, fit.focal)
     np.save(ctx.sub / "lms3d.npy", pose_mod.lift_landmarks(fit, lms, s, s))
@@ -161,7 +176,7 @@ def pose(ctx, sel) -> None:
         ctx.log.append(f"zoom check: {failed} of {len(sc.frame)} sampled frames could not be registered outside the head "
                        f"(too little of it, or too little texture): a zoom would go unseen; the face's scale changes by {100 * sc.face_range:.1f} %")
     writer.save_npz(ctx.work / "pose.npz", w2c=fit.w2c, c2w=fit.c2w, euler=fit.euler, trans=fit.trans, template=fit.template,
-             focal=fit.focal, reproj=fit.reproj_px, curve=np.asarray(fit.focal_curve, np.float64).reshape(-1, 2),
+             focal=fit.focal, reproj=fit.reproj_px, focal_fit=json.dumps(ff.to_json(s) if ff is not None else {"method": "--focal"}),
              scale=json.dumps(sc.to_json()))
     ctx.timed("pose", t0, len(lms))
 
@@ -270,7 +285,7 @@ def finish(ctx, info: decode.VideoInfo, sel, audio: np.ndarray, source: str, key
                    "source_runs": [list(r) for r in runs]},
         "window": json.loads(str(sel["window"])),
         "pose": {"focal": float(pz["focal"]), "focal_widths": float(pz["focal"]) / ctx.cfg.size,
-                 "focal_search": pz["curve"].tolist(), "reprojection_px_mean": float(pz["reproj"].mean()),
+                 "focal_fit": json.loads(str(pz["focal_fit"])), "reprojection_px_mean": float(pz["reproj"].mean()),
                  "pitch_yaw_roll_deg_min": eul.min(0).round(2).tolist(), "pitch_yaw_roll_deg_max": eul.max(0).round(2).tolist(),
                  "scale": json.loads(str(pz["scale"]))},
         "flags": ctx.flags,

@@ -1,0 +1,39 @@
+"""The model files the ingest ships (``models/``, each with its licence notice in ``models/README.md``),
+checked before use: present and with the sha256 they were shipped with. Nothing is downloaded."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from lmgs.fileio import sha256_file
+from lmgs_eval.errors import UserError
+
+FOLDER = Path(__file__).with_name("models")
+# file name -> (what it is, sha256)
+MODELS = {
+    "face_landmarks_detector.onnx": ("the face mesh model", "017f267ddd81e042224c43f00a3ef6d548a6595fe2a8e2a2ceacd0214269a79c"),
+    "canonical_face_model.obj": ("the canonical face model", "8bac80443397e113f41a8b565ea72c59390bc031d9defab289dba7bc0c54e618"),
+}
+
+
+def checked(path: str | Path, sha256: str, what: str) -> Path:
+    """``path`` if it holds the file shipped (``sha256``); else a :class:`UserError` naming it."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"{path}: {what} is missing (reinstall lmgs-eval)")
+    got = sha256_file(path)
+    if got != sha256:
+        raise UserError(f"{path}: {what} is altered (sha256 {got[:12]}..., expected {sha256[:12]}...)")
+    return path
+
+
+def model(name: str) -> Path:
+    """The shipped model file ``name`` (a key of :data:`MODELS`), checked."""
+    what, sha = MODELS[name]
+    return checked(FOLDER / name, sha, what)
+
+
+def check_all() -> None:
+    """Every shipped model present and unaltered: run before an ingest writes anything."""
+    for name in MODELS:
+        model(name)
