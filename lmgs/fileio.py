@@ -46,13 +46,13 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         raise
 
 
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file, fsync and a rename."""
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
+def atomic_write(path: str | os.PathLike, data: bytes | str) -> None:
+    """Write ``data`` (a str as UTF-8) to ``path`` through a temporary file beside it (:func:`atomic_path`),
+    fsync and a rename."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        f.write(data.encode("utf-8") if isinstance(data, str) else data)
+        f.flush()
+        os.fsync(f.fileno())
 
 
 def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:

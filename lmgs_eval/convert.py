@@ -3,7 +3,7 @@
 Every method takes :class:`lmgs.types.TrainingClip` and :class:`lmgs.types.DrivingAudio`;
 nothing below the toolkit knows a folder layout. :func:`subject_to_clip` loads a split of a
 :class:`~lmgs_eval.data.Subject` (frames, plate behind the head, cameras, audio, landmarks,
-masks, geometry priors); :func:`driving_from_subject` is the self-driven input of a split.
+masks, geometry priors); :func:`driving_from_clip` is the self-driven input of a loaded split.
 """
 
 from __future__ import annotations
@@ -18,9 +18,8 @@ from lmgs_eval.data.subject import Subject
 PARSING_HEAD = (255, 0, 0)
 
 
-def _background(subject: Subject, i: int, bc: np.ndarray) -> np.ndarray:
-    """The torso (``torso_imgs`` RGBA) composited over ``bc.jpg``: what lies behind the head."""
-    torso = subject.torso(i)
+def _background(torso: np.ndarray | None, bc: np.ndarray) -> np.ndarray:
+    """A frame's torso (``torso_imgs`` RGBA, if any) composited over ``bc.jpg``: what lies behind the head."""
     if torso is None:
         return bc
     a = torso[..., 3:4]
@@ -45,7 +44,7 @@ def subject_to_clip(subject: Subject, ids: np.ndarray, *, progress: bool = False
         it = tqdm(list(it), desc=f"loading {subject.name}", unit="frame", leave=False)
     for k, i in it:
         frames[k] = subject.frame(i)
-        backs[k] = to_u8(_background(subject, i, bc))
+        backs[k] = to_u8(_background(subject.torso(i), bc))
         m = subject.mouth_mask(i)
         if m is not None:
             mouth[k], have_mouth = m, True
@@ -78,11 +77,8 @@ def subject_to_clip(subject: Subject, ids: np.ndarray, *, progress: bool = False
     )
 
 
-def driving_from_subject(subject: Subject, ids: np.ndarray, clip: TrainingClip | None = None) -> DrivingAudio:
-    """The self-driven input for frames ``ids``: their audio, cameras, backgrounds and blinks."""
-    ids = np.asarray(ids)
-    if clip is None:
-        clip = subject_to_clip(subject, ids)
+def driving_from_clip(clip: TrainingClip) -> DrivingAudio:
+    """The self-driven input of a loaded split (:func:`subject_to_clip`): its audio, cameras, backgrounds and blinks."""
     return DrivingAudio(
         audio=clip.audio,
         w2c=clip.w2c,

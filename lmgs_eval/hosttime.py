@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from lmgs_eval.paths import atomic_write_text, cache_root
+from lmgs.fileio import atomic_write
+from lmgs_eval.paths import cache_root
 
 
 def peak_rss_mb() -> float:
@@ -136,7 +137,7 @@ class HostSpeed:
             book[key] = {"best_ms": best, "n": int(entry.get("n", 0)) + 1}
             try:
                 self.ledger.parent.mkdir(parents=True, exist_ok=True)
-                atomic_write_text(self.ledger, json.dumps(book, indent=1, sort_keys=True))
+                atomic_write(self.ledger, json.dumps(book, indent=1, sort_keys=True))
             except OSError:
                 pass  # a read-only cache loses the ledger, not the timing
         self.best = best

@@ -9,9 +9,9 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
-from lmgs.fileio import atomic_write_bytes, public_mode
+from lmgs.fileio import public_mode
 
-__all__ = ["atomic_dir", "atomic_write_text", "cache_root", "check_out_dir", "claim", "data_root", "existing_ancestor"]
+__all__ = ["atomic_dir", "cache_root", "check_out_dir", "claim", "data_root", "existing_ancestor"]
 
 
 def cache_root() -> Path:
@@ -85,10 +85,6 @@ def atomic_dir(final: Path) -> Iterator[Path]:
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    atomic_write_bytes(path, text.encode("utf-8"))
 
 
 @contextlib.contextmanager

@@ -8,17 +8,20 @@ the metric suite on uint8 frames, the render written with its audio, and one rec
 
 from __future__ import annotations
 
+import contextlib
 import inspect
 import json
 import shutil
 import sys
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from baselines.protocol import TalkingHead, create_method
+from lmgs.fileio import atomic_write
 from lmgs.types import DrivingAudio
 from lmgs_eval import results as store
 from lmgs_eval.data.video import write_video
@@ -26,9 +29,8 @@ from lmgs_eval.errors import UserError
 from lmgs_eval.hooks import adapter_hooks
 from lmgs_eval.hosttime import HostSpeed, OthersCPU, peak_rss_mb
 from lmgs_eval.metrics.metric_suite import MetricSuite
-from lmgs_eval.paths import atomic_write_text, cache_root, claim
-from lmgs_eval.results.notes import se_note
-from lmgs_eval.results.records import build_record, metrics_block, subject_sha
+from lmgs_eval.paths import cache_root, claim
+from lmgs_eval.results.records import RunId, build_record, manifest_sha, metrics_block
 
 WARMUP_FRAMES = 3
 REPEATS = 3  # timed renders of the clip (median reported) ...
@@ -73,33 +75,34 @@ def log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-def model_dir(subject, method_name: str, config_hash: str, seed: int) -> Path:
-    return cache_root() / "models" / subject.name / method_name / f"{config_hash}-seed{seed}"
-
-
 DATA_MARKER = "subject.sha256"
+LOCK = ".lock"
 
 
-def claim_model_dir(workdir: Path, subject) -> None:
-    """A cached model (or checkpoint) is reused only on the data it was trained on.
+@contextlib.contextmanager
+def claim_model_dir(workdir: Path, run: RunId) -> Iterator[None]:
+    """Hold a model folder for one fit of ``run``, on the data it is trained on.
 
-    The folder keeps the subject's manifest hash (:data:`DATA_MARKER`); a model of the same
-    method, config and seed but other data of a subject of the same name (re-generated,
-    re-processed) is a :class:`UserError`, not a silent reuse. A folder from before the
-    marker is taken to be of the current data. Subjects without a manifest are not checked.
+    The claim (:func:`lmgs_eval.paths.claim`, on the folder's :data:`LOCK`): a second run of the
+    same method, config and seed on this machine waits, then reloads the model the first one
+    trained instead of training it again. The data: a cached model (or checkpoint) is reused only
+    on the data it was trained on. The folder keeps the subject's manifest hash
+    (:data:`DATA_MARKER`); a model of the same method, config and seed but other data of a subject
+    of the same name (re-generated, re-processed) is a :class:`UserError`, not a silent reuse. A
+    folder from before the marker is taken to be of the current data. Subjects without a manifest
+    are not checked.
     """
-    sha = subject_sha(subject)
-    if sha is None:
-        return
-    marker = Path(workdir) / DATA_MARKER
-    old = marker.read_text().strip() if marker.exists() else None
-    if old == sha:
-        return
-    if old is not None and any((Path(workdir) / f).exists() for f in ("model.pt", "checkpoint.pt")):
-        raise UserError(f"{workdir}: a model trained on other data of subject '{subject.name}' (manifest sha256 "
-                        f"{old[:12]}, now {sha[:12]}); delete the folder to train on this data")
-    Path(workdir).mkdir(parents=True, exist_ok=True)
-    atomic_write_text(marker, sha + "\n")
+    subject, workdir = run.subject, Path(workdir)
+    with claim(workdir / LOCK, f"{run.label} on {subject.name}", log):
+        sha = manifest_sha(subject.root)
+        marker = workdir / DATA_MARKER
+        old = marker.read_text().strip() if sha is not None and marker.exists() else None
+        if old is not None and old != sha and any((workdir / f).exists() for f in ("model.pt", "checkpoint.pt")):
+            raise UserError(f"{workdir}: a model trained on other data of subject '{subject.name}' (manifest sha256 "
+                            f"{old[:12]}, now {sha[:12]}); delete the folder to train on this data")
+        if sha is not None and old != sha:
+            atomic_write(marker, sha + "\n")
+        yield
 
 
 def head_of(driving: DrivingAudio, k: int) -> DrivingAudio:
@@ -155,52 +158,41 @@ def timed_render(method, driving: DrivingAudio, timings: dict | None = None,
                     "others_cpu_share": busy.share, **host.cost()}
 
 
-LOCK = ".lock"
+def fit_method(method, clip, run: RunId, progress: bool, workdir: Path | None = None) -> dict:
+    """Fit (or reload) a method for ``run``, in its model folder (:func:`claim_model_dir`); returns the cost of training.
 
-
-def fit_method(method, clip, subject, seed: int, progress: bool, workdir: Path | None = None) -> dict:
-    """Fit (or reload) a method; returns the cost of training.
-
-    The model's cache folder is claimed for the fit (:func:`lmgs_eval.paths.claim`): a second
-    run of the same method, config and seed on this machine waits, then reloads the model the
-    first one trained instead of training it again. A fit that fails in a folder it made,
-    before anything was saved there, removes the folder (no empty model folders are left).
-    ``workdir``: a folder of the caller's instead of the model cache (a benchmark that must
-    train afresh); a model already in it is reloaded all the same.
+    A fit that fails in a folder it made, before anything was saved there, removes the folder
+    (no empty model folders are left). ``workdir``: a folder of the caller's instead of the model
+    cache (a benchmark that must train afresh); a model already in it is reloaded all the same.
     """
-    info = method.describe()
     own = workdir is None
-    workdir = model_dir(subject, info.name, info.config_hash, seed) if own else Path(workdir)
+    workdir = run.model_dir if own else Path(workdir)
     made = not workdir.exists()
     try:
-        with claim(workdir / LOCK, f"{info.name} seed {seed} on {subject.name}", log):
-            return _fit_claimed(method, clip, subject, seed, progress, workdir)
+        with claim_model_dir(workdir, run):
+            reused = (workdir / "model.pt").exists()
+            t0 = time.perf_counter()
+            with OthersCPU() as busy:
+                method.fit(clip, seed=run.seed, workdir=workdir, progress=progress)
+            secs = time.perf_counter() - t0
+            # a training resumed from a checkpoint: add what the interrupted runs had trained (lmgs saves it;
+            # a reused model's time comes from its fit.json below)
+            secs += float(getattr(getattr(method, "report", None), "prior_seconds", 0.0) or 0.0)
+            rec = {"train_seconds": secs, "train_others_cpu_share": busy.share, "reused_checkpoint": reused,
+                   "workdir": str(workdir)}
+            if reused:
+                fit = _recorded_fit(workdir)
+                rec["train_seconds"] = fit.get("train_seconds")
+                rec["train_others_cpu_share"] = fit.get("train_others_cpu_share")
+                rec["train_peak_mb"] = fit.get("peak_mb")  # this process did not train: the training's peak is there
+            else:
+                atomic_write(workdir / "fit.json", json.dumps({"train_seconds": secs, "peak_mb": peak_rss_mb(),
+                                                               "train_others_cpu_share": busy.share}))
+            return rec
     except BaseException:
         if made and own:
             _drop_if_empty(workdir)
         raise
-
-
-def _fit_claimed(method, clip, subject, seed: int, progress: bool, workdir: Path) -> dict:
-    claim_model_dir(workdir, subject)
-    reused = (workdir / "model.pt").exists()
-    t0 = time.perf_counter()
-    with OthersCPU() as busy:
-        method.fit(clip, seed=seed, workdir=workdir, progress=progress)
-    secs = time.perf_counter() - t0
-    # a training resumed from a checkpoint: add what the interrupted runs had trained (lmgs saves it;
-    # a reused model's time comes from its fit.json below)
-    secs += float(getattr(getattr(method, "report", None), "prior_seconds", 0.0) or 0.0)
-    rec = {"train_seconds": secs, "train_others_cpu_share": busy.share, "reused_checkpoint": reused, "workdir": str(workdir)}
-    if reused:
-        fit = _recorded_fit(workdir)
-        rec["train_seconds"] = fit.get("train_seconds")
-        rec["train_others_cpu_share"] = fit.get("train_others_cpu_share")
-        rec["train_peak_mb"] = fit.get("peak_mb")  # this process did not train: the training's peak is there
-    else:
-        atomic_write_text(workdir / "fit.json", json.dumps({"train_seconds": secs, "peak_mb": peak_rss_mb(),
-                                                            "train_others_cpu_share": busy.share}))
-    return rec
 
 
 def _drop_if_empty(workdir: Path) -> None:
@@ -262,15 +254,6 @@ def cost_block(method, fit_cost: dict | None, render_cost: dict, timings: dict |
     }
 
 
-def render_stem(info, seed: int) -> str:
-    """``<method>-<config hash[:8]>-seed<N>``: the file name of a run's render, distinct per config.
-
-    Without the hash a re-run under a changed config overwrote the render an older record
-    still points to (and hashes); the record then failed ``lmgs-eval verify``.
-    """
-    return f"{info.name.replace(':', '_')}-{info.config_hash[:8]}-seed{seed}"
-
-
 def write_render(root: Path, rel: str, frames: np.ndarray, audio: np.ndarray) -> dict:
     """Write an mp4 with its driving audio under the store root; the artefact entry (relative path)."""
     path = Path(root) / rel
@@ -278,12 +261,12 @@ def write_render(root: Path, rel: str, frames: np.ndarray, audio: np.ndarray) ->
     return {"path": rel, "sha256": store.sha256_file(path)}
 
 
-def fit_render_score(cfg: RunConfig, method, subject, seed: int, train, driving: DrivingAudio, gt: np.ndarray, render_rel: str,
-                     protocol: str = "self", clip: str = "test", workdir: Path | None = None) -> store.Record:
-    """Fit (or reload) one method, render the test split from its audio, score, record; returns the (typed) record.
+def fit_render_score(cfg: RunConfig, method, run: RunId, train, driving: DrivingAudio, gt: np.ndarray, render_rel: str,
+                     workdir: Path | None = None) -> store.Record:
+    """Fit (or reload) the method of ``run``, render the test split from its audio, score, record; returns the (typed) record.
 
     ``workdir``: where the model is trained (:func:`fit_method`; default the model cache)."""
-    info = method.describe()
+    info = run.info
     timings: dict = {}
     if getattr(method, "prerendered", False):
         # Frames rendered elsewhere: nothing to fit and nothing to time here (reading files is
@@ -292,8 +275,8 @@ def fit_render_score(cfg: RunConfig, method, subject, seed: int, train, driving:
         frames = method.render(driving)
         log(f"{info.name}: {len(frames)} frames read from its renders; scoring")
     else:
-        log(f"{info.name} seed {seed}: fitting on {len(train)} frames")
-        fit_cost = fit_method(method, train, subject, seed, cfg.progress, workdir)
+        log(f"{run.label}: fitting on {len(train)} frames")
+        fit_cost = fit_method(method, train, run, cfg.progress, workdir)
         frames, rc = timed_render(method, driving, timings)
         log(f"{info.name}: {len(frames)} frames at {rc['fps']:.1f} FPS; scoring")
     res = cfg.suite.score(frames, gt, driving.audio)
@@ -301,13 +284,9 @@ def fit_render_score(cfg: RunConfig, method, subject, seed: int, train, driving:
     ck = Path(fit_cost["workdir"]) / "model.pt" if fit_cost else None
     if ck is not None and ck.exists():
         art["checkpoint"] = {"path": str(ck), "sha256": store.sha256_file(ck)}
-    notes, run = list(subject.notes), {}
-    if timings.get("se_fraction") is not None:
-        run["se_fraction"] = float(timings["se_fraction"])
-        notes.append(se_note(run["se_fraction"], (info.components or {}).get("theta")))
-    rec = build_record(info=info, subject=subject, protocol=protocol, clip=clip, split="test", n_frames=len(frames),
-                       seed=seed, metrics=metrics_block(res), cost=cost_block(method, fit_cost, rc, timings or None),
-                       artefacts=art, notes=notes, run=run)
+    rec = build_record(run, split="test", n_frames=len(frames), metrics=metrics_block(res),
+                       cost=cost_block(method, fit_cost, rc, timings or None), artefacts=art,
+                       se_fraction=timings.get("se_fraction"))
     store.write_record(cfg.results, rec)
     return rec
 

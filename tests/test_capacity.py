@@ -111,10 +111,10 @@ def test_a_budget_whose_training_collapses_is_recorded_as_failed_and_the_rest_go
 
     real = protocols.fit_render_score
 
-    def collapsing(cfg, method, subject, seed, train, driving, gt, render_rel, protocol="self", clip="test"):
-        if clip == "budget-900":
+    def collapsing(cfg, method, run, train, driving, gt, render_rel):
+        if run.clip == "budget-900":
             raise TrainingDiverged("training collapsed at step 41 (dynamic stage): the mean loss of the last 25 steps is 3.6x ...")
-        return real(cfg, method, subject, seed, train, driving, gt, render_rel, protocol, clip)
+        return real(cfg, method, run, train, driving, gt, render_rel)
 
     monkeypatch.setattr(protocols, "fit_render_score", collapsing)
     rc, out, err = run_cli("capacity", "--subject", "astronaut-64px-2s", "--results", str(tmp_path), "--no-progress",

@@ -68,7 +68,7 @@ def _one_thread():
 @pytest.fixture(scope="module")
 def plain(tmp_path_factory):
     """The stripped folder, read; its clips; and a copy with DeepSpeech features (the field's optional aud_ds.npy)."""
-    from lmgs_eval.convert import driving_from_subject, subject_to_clip
+    from lmgs_eval.convert import driving_from_clip, subject_to_clip
     from lmgs_eval.data.complete import PLAIN_LAYOUT, strip_to_plain
     from lmgs_eval.data.layout import read_subject
     from lmgs_eval.data.registry import resolve_subject_dir
@@ -81,14 +81,14 @@ def plain(tmp_path_factory):
     train = subject_to_clip(subject, subject.train_ids)
     test = subject_to_clip(subject, subject.test_ids)
     return {"full": full, "root": root, "subject": subject, "train": train, "test": test,
-            "driving": driving_from_subject(subject, subject.test_ids, test)}
+            "driving": driving_from_clip(test)}
 
 
 def _with_features(plain: dict, fname: str, tmp_path) -> dict:
     """The plain folder plus stand-in features in ``fname`` (the bundled subjects have none; their values do not matter here)."""
     import shutil
 
-    from lmgs_eval.convert import driving_from_subject, subject_to_clip
+    from lmgs_eval.convert import driving_from_clip, subject_to_clip
     from lmgs_eval.data.layout import read_subject
 
     root = tmp_path / plain["root"].name
@@ -98,7 +98,7 @@ def _with_features(plain: dict, fname: str, tmp_path) -> dict:
     s = read_subject(root)
     train, test = subject_to_clip(s, s.train_ids), subject_to_clip(s, s.test_ids)
     return {**plain, "root": root, "subject": s, "train": train, "test": test,
-            "driving": driving_from_subject(s, s.test_ids, test)}
+            "driving": driving_from_clip(test)}
 
 
 def test_the_plain_folder_is_read_with_derived_geometry(plain):
@@ -134,6 +134,7 @@ def test_the_plain_folder_is_read_with_derived_geometry(plain):
 @pytest.mark.parametrize("name", METHODS)
 def test_every_method_trains_and_renders_on_a_plain_folder(name, plain, tmp_path):
     from lmgs.errors import InputError
+    from lmgs_eval.results.records import RunId
     from lmgs_eval.runner import RunConfig, build_method, fit_render_score
 
     feature = _feature_file(name)
@@ -146,7 +147,7 @@ def test_every_method_trains_and_renders_on_a_plain_folder(name, plain, tmp_path
     s, test = plain["subject"], plain["test"]
     cfg = RunConfig(subject=str(plain["root"]), results=tmp_path / "results", progress=False)
     method = build_method(cfg, name, s, **_options(name))
-    rec = fit_render_score(cfg, method, s, 0, plain["train"], plain["driving"], test.frames,
+    rec = fit_render_score(cfg, method, RunId(s, method.describe()), plain["train"], plain["driving"], test.frames,
                            f"renders/{name}.mp4", workdir=tmp_path / "model")
 
     frames = method.render(plain["driving"])
@@ -210,13 +211,13 @@ GAP_DB = {"3DGS": 5.0, "NeRF": 1.0, "2D": 1.0}
 
 
 def _load(root: Path) -> dict:
-    from lmgs_eval.convert import driving_from_subject, subject_to_clip
+    from lmgs_eval.convert import driving_from_clip, subject_to_clip
     from lmgs_eval.data.layout import read_subject
 
     s = read_subject(root)
     test = subject_to_clip(s, s.test_ids)
     return {"root": root, "subject": s, "train": subject_to_clip(s, s.train_ids), "test": test,
-            "driving": driving_from_subject(s, s.test_ids, test)}
+            "driving": driving_from_clip(test)}
 
 
 @pytest.fixture(scope="module")

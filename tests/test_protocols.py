@@ -66,7 +66,7 @@ def test_the_lmgs_row_scores_the_checkpoints_render_of_the_test_split(store):
 
     from baselines.protocol import create_method
     from lmgs_eval.commands._common import parse_overrides
-    from lmgs_eval.convert import driving_from_subject, subject_to_clip
+    from lmgs_eval.convert import driving_from_clip, subject_to_clip
     from lmgs_eval.data.registry import find_subject
     from lmgs.fileio import sha256_file
 
@@ -79,7 +79,7 @@ def test_the_lmgs_row_scores_the_checkpoints_render_of_the_test_split(store):
     assert method.describe().config_hash == lm.config_hash
     method.fit(subject_to_clip(subject, subject.train_ids), seed=0, workdir=ck.parent, progress=False)  # reloads
     test = subject_to_clip(subject, subject.test_ids)
-    frames = method.render(driving_from_subject(subject, subject.test_ids, test))
+    frames = method.render(driving_from_clip(test))
     assert frames.shape == test.frames.shape and frames.dtype == np.uint8
     want = [peak_signal_noise_ratio(g, f, data_range=255) for g, f in zip(test.frames, frames)]
     assert lm.metrics["psnr"].value == pytest.approx(np.mean(want), abs=1e-6)
@@ -260,7 +260,7 @@ def test_a_training_that_diverges_is_one_line_and_exit_1(tmp_path, monkeypatch):
     import lmgs_eval.runner as runner
     from lmgs.train import TrainingDiverged
 
-    def diverge(method, train, subject, seed, progress, workdir=None):
+    def diverge(method, train, run, progress, workdir=None):
         raise TrainingDiverged("training collapsed at step 1040 (dynamic stage): the mean loss of the last 25 steps is 3.9x ...")
 
     monkeypatch.setattr(runner, "fit_method", diverge)
@@ -374,22 +374,29 @@ def test_a_model_or_record_of_other_data_of_the_same_subject_is_not_reused(tmp_p
     from types import SimpleNamespace
 
     from lmgs_eval.errors import UserError
+    from lmgs_eval.results.records import RunId
     from lmgs_eval.runner import DATA_MARKER, claim_model_dir
 
     subject = SimpleNamespace(name="mine", root=tmp_path / "mine")
     subject.root.mkdir()
     (subject.root / "manifest.json").write_text('{"a": 1}')
+    run = RunId(subject, SimpleNamespace(name="lmgs", config_hash="abc"))
     work = tmp_path / "models" / "lmgs" / "abc-seed0"
-    claim_model_dir(work, subject)  # a new folder takes the data's hash
+
+    def claim():
+        with claim_model_dir(work, run):
+            pass
+
+    claim()  # a new folder takes the data's hash
     (work / "model.pt").write_bytes(b"model")
     first = (work / DATA_MARKER).read_text()
-    claim_model_dir(work, subject)  # same data: reused
+    claim()  # same data: reused
     (subject.root / "manifest.json").write_text('{"a": 2}')  # re-processed
     with pytest.raises(UserError, match=r"abc-seed0: a model trained on other data of subject 'mine'"):
-        claim_model_dir(work, subject)
+        claim()
     assert (work / DATA_MARKER).read_text() == first and (work / "model.pt").exists()
     (work / DATA_MARKER).unlink()  # a folder from before the marker: taken to be of the current data
-    claim_model_dir(work, subject)
+    claim()
     assert (work / DATA_MARKER).read_text() != first
 
 

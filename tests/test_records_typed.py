@@ -94,8 +94,6 @@ def test_the_committed_tables_are_made_again_byte_for_byte(committed):
 def test_a_metric_entry_carries_each_weights_file_and_old_entries_still_read(tmp_path):
     """``weights_files`` (LPIPS alex: the trunk and the heads, path and sha256) beside ``weights_sha256``: optional,
     so the committed records (without it) read and re-encode as they were (the test above)."""
-    import types
-
     import torch
 
     from conftest import random_alexnet_state
@@ -118,7 +116,7 @@ def test_a_metric_entry_carries_each_weights_file_and_old_entries_still_read(tmp
     assert trunk.path == str(ck.resolve()) and trunk.sha256 == L.sha256_file(ck)
     assert typed.to_dict()["metrics"] == json.loads(json.dumps(rec["metrics"]))
     # lmgs-eval verify re-hashes the files the number was made with (the trunk given, not the hub cache's)
-    arts = input_artefacts(block, types.SimpleNamespace(root=tmp_path))
+    arts = input_artefacts(block, tmp_path)
     assert arts["weights:alexnet"] == {"path": str(ck.resolve()), "sha256": trunk.sha256}
     assert arts["weights:lpips_heads"]["sha256"] == L.LPIPS_HEADS_SHA256
     bad = json.loads(json.dumps(rec))

@@ -10,7 +10,8 @@ from types import SimpleNamespace
 import pytest
 
 from lmgs_eval.paths import cache_root
-from lmgs_eval.runner import fit_method, model_dir
+from lmgs_eval.results.records import RunId
+from lmgs_eval.runner import fit_method
 
 
 class FakeMethod:
@@ -47,6 +48,10 @@ def subject(tmp_path: Path):
     return SimpleNamespace(name="tiny", root=tmp_path)  # no manifest.json: the data marker is not written
 
 
+def run_of(subj, seed: int) -> RunId:
+    return RunId(subj, FakeMethod().describe(), seed)
+
+
 def test_a_second_run_of_the_same_model_waits_and_reuses(tmp_path, capsys, monkeypatch):
     """In order: the first run claims the model and trains; the second says it waits and blocks
     on the claim; only then does the first finish; the second reloads what the first trained.
@@ -70,7 +75,7 @@ def test_a_second_run_of_the_same_model_waits_and_reuses(tmp_path, capsys, monke
     monkeypatch.setattr(runner, "log", log)
 
     def run(k):
-        out[k] = fit_method(FakeMethod(), None, subj, 0, False)
+        out[k] = fit_method(FakeMethod(), None, run_of(subj, 0), False)
 
     first = threading.Thread(target=run, args=(0,))
     first.start()
@@ -92,13 +97,13 @@ def test_a_failed_fit_leaves_no_empty_model_folder(tmp_path):
     models = cache_root() / "models"
     before = sorted(models.rglob("*")) if models.exists() else []
     with pytest.raises(ValueError):
-        fit_method(FakeMethod(fail=ValueError("bad")), None, subj, 7, False)
-    assert not model_dir(subj, "fake", "0123456789abcdef", 7).exists()
+        fit_method(FakeMethod(fail=ValueError("bad")), None, run_of(subj, 7), False)
+    assert not run_of(subj, 7).model_dir.exists()
     assert (sorted(models.rglob("*")) if models.exists() else []) == before
     # a fit that saved a checkpoint before failing keeps it (the next run resumes from it)
     with pytest.raises(KeyboardInterrupt):
-        fit_method(FakeMethod(fail=KeyboardInterrupt(), save_first=True), None, subj, 8, False)
-    assert (model_dir(subj, "fake", "0123456789abcdef", 8) / "checkpoint.pt").is_file()
+        fit_method(FakeMethod(fail=KeyboardInterrupt(), save_first=True), None, run_of(subj, 8), False)
+    assert (run_of(subj, 8).model_dir / "checkpoint.pt").is_file()
 
 
 def test_saved_models_have_the_usual_file_mode(tmp_path):

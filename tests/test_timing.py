@@ -190,6 +190,7 @@ def test_training_records_the_contention_and_a_reused_checkpoint_keeps_it(tmp_pa
     from types import SimpleNamespace
 
     from lmgs_eval import runner as protocols
+    from lmgs_eval.results.records import RunId
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
 
@@ -204,7 +205,8 @@ def test_training_records_the_contention_and_a_reused_checkpoint_keeps_it(tmp_pa
                 (workdir / "model.pt").write_bytes(b"x")
 
     subject = SimpleNamespace(name="s", bundled=False, meta={}, root=tmp_path / "subject")  # no manifest: not checked
-    first = protocols.fit_method(Toy(), None, subject, 0, progress=False)
+    run = RunId(subject, Toy().describe(), 0)
+    first = protocols.fit_method(Toy(), None, run, progress=False)
     share = first["train_others_cpu_share"]
     assert not first["reused_checkpoint"] and (share is None or 0 <= share <= 1)
     if host_cpu_seconds() is not None:
@@ -212,7 +214,7 @@ def test_training_records_the_contention_and_a_reused_checkpoint_keeps_it(tmp_pa
     fit_json = tmp_path / "cache" / "lmgs" / "models" / "s" / "toy" / "abc-seed0" / "fit.json"
     saved = json.loads(fit_json.read_text())
     assert saved["train_others_cpu_share"] == share and saved["train_seconds"] == first["train_seconds"]
-    again = protocols.fit_method(Toy(), None, subject, 0, progress=False)
+    again = protocols.fit_method(Toy(), None, run, progress=False)
     assert again["reused_checkpoint"]
     assert (again["train_seconds"], again["train_others_cpu_share"]) == (first["train_seconds"], share)
     # the training's peak memory goes with the reused checkpoint into the record's cost (the higher one)
@@ -223,6 +225,6 @@ def test_training_records_the_contention_and_a_reused_checkpoint_keeps_it(tmp_pa
             return {}
 
     fit_json.write_text(json.dumps({**saved, "peak_mb": 1e6}))  # a training that peaked far above this process
-    reused = protocols.fit_method(Toy(), None, subject, 0, progress=False)
+    reused = protocols.fit_method(Toy(), None, run, progress=False)
     assert protocols.cost_block(Cost(), reused, {})["peak_mb"] == 1e6
     assert protocols.cost_block(Cost(), first, {})["peak_mb"] < 1e6  # trained here: this process's own peak

@@ -63,13 +63,13 @@ def bundled_spec(args: argparse.Namespace):
 
 def prepare(root: Path) -> dict:
     """Read a folder and load its clips (for a plain folder the depth / normal priors are ray-cast here)."""
-    from lmgs_eval.convert import driving_from_subject, subject_to_clip
+    from lmgs_eval.convert import driving_from_clip, subject_to_clip
     from lmgs_eval.data.layout import read_subject
 
     t0 = time.perf_counter()
     s = read_subject(root)
     train, test = subject_to_clip(s, s.train_ids), subject_to_clip(s, s.test_ids)
-    return {"subject": s, "train": train, "test": test, "driving": driving_from_subject(s, s.test_ids, test),
+    return {"subject": s, "train": train, "test": test, "driving": driving_from_clip(test),
             "prepare_s": time.perf_counter() - t0}
 
 
@@ -97,6 +97,7 @@ def train_both(args: argparse.Namespace, runs: dict[str, dict], tmp: Path, resul
     Returns the run config and the one config hash."""
     from lmgs_eval.commands._common import check_seeds, parse_overrides
     from lmgs_eval.commands._sync import suite
+    from lmgs_eval.results.records import RunId
     from lmgs_eval.runner import RunConfig, build_method, fit_render_score, log
 
     check_seeds([args.seed])
@@ -111,7 +112,8 @@ def train_both(args: argparse.Namespace, runs: dict[str, dict], tmp: Path, resul
         hashes.add(method.describe().config_hash)
         log(f"bench {tag}: {args.method} on the {label} folder ({r['subject'].root})")
         c0 = cpu_seconds()
-        r["record"] = fit_render_score(cfg, method, r["subject"], args.seed, r["train"], r["driving"], r["test"].frames,
+        run = RunId(r["subject"], method.describe(), args.seed)
+        r["record"] = fit_render_score(cfg, method, run, r["train"], r["driving"], r["test"].frames,
                                        f"renders/bench-{tag}/{label}-{args.method}-seed{args.seed}.mp4",
                                        workdir=tmp / "models" / label)
         r["method"] = method

@@ -23,7 +23,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Load the store (warning about skipped files), write every table and chart, print Table I."""
-    from lmgs_eval.paths import atomic_write_text, check_out_dir
+    from lmgs.fileio import atomic_write
+    from lmgs_eval.paths import check_out_dir
     from lmgs_eval.results import load_records
     from lmgs_eval.report.tables import all_tables
 
@@ -48,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
             text = {"md": lambda: t.markdown(show_ci=args.ci), "tex": lambda: t.latex(show_ci=args.ci),
                     "csv": t.csv}[fmt]()
             path = out / f"{t.name}.{fmt}"
-            atomic_write_text(path, text)
+            atomic_write(path, text)
             written.append(path)
     if not args.no_charts:
         from lmgs_eval.report.charts import all_charts

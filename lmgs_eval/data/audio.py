@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 from scipy.signal import resample_poly
 
-from lmgs.fileio import atomic_write_bytes
+from lmgs.fileio import atomic_write
 from lmgs_eval.errors import UserError
 
 SAMPLE_RATE = 16000
@@ -123,4 +123,4 @@ def write_wav(path: Path, x: np.ndarray, sr: int = SAMPLE_RATE) -> None:
         w.setsampwidth(2)
         w.setframerate(int(sr))
         w.writeframes(pcm16(x).astype("<i2").tobytes())
-    atomic_write_bytes(Path(path), buf.getvalue())
+    atomic_write(Path(path), buf.getvalue())

@@ -68,9 +68,9 @@ def derive(root: Path, lms2d: np.ndarray, c2w: np.ndarray, focal: float, cx: flo
 
     ``cache_dir``: where the derived results are kept (default ``<cache>/derived``)."""
     from lmgs.landmarks import MEAN_FACE_DEPTH, lift_2d_landmarks
-    from lmgs.fileio import atomic_write_bytes
+    from lmgs.fileio import atomic_write
     from lmgs_eval.data.geometry import RELIEF, head_ellipsoid
-    from lmgs_eval.paths import atomic_write_text, cache_root
+    from lmgs_eval.paths import cache_root
 
     root = Path(root)
     key = content_key(root, len(lms2d))
@@ -96,9 +96,9 @@ def derive(root: Path, lms2d: np.ndarray, c2w: np.ndarray, focal: float, cx: flo
 
     buf = _io.BytesIO()
     np.save(buf, lms3d)
-    atomic_write_bytes(lms_p, buf.getvalue())
-    atomic_write_text(meta_p, json.dumps({"key": key, "folder": str(root), "centre": centre.tolist(), "axes": axes.tolist(),
-                                          "source": source, "version": DERIVED_VERSION}, indent=1))
+    atomic_write(lms_p, buf.getvalue())
+    atomic_write(meta_p, json.dumps({"key": key, "folder": str(root), "centre": centre.tolist(), "axes": axes.tolist(),
+                                     "source": source, "version": DERIVED_VERSION}, indent=1))
     return lms3d, HeadPrior(tuple(centre.tolist()), tuple(axes.tolist()), source), cache
 
 

@@ -25,7 +25,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from lmgs.device import choose_device
-from lmgs.fileio import atomic_write_bytes
+from lmgs.fileio import atomic_write
 from lmgs_eval.data.images import to_u8
 from lmgs_eval.errors import UserError
 from lmgs_eval.metrics.base import MetricResult, MetricSpec, check_frames
@@ -352,7 +352,7 @@ def cached_landmarks(backend: LandmarkBackend, frames: np.ndarray, digest: str |
     lms = backend.landmarks(frames)
     buf = io.BytesIO()
     np.save(buf, lms, allow_pickle=False)
-    atomic_write_bytes(path, buf.getvalue())
+    atomic_write(path, buf.getvalue())
     return lms
 
 

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import torch
 
-from lmgs.fileio import atomic_write_bytes
+from lmgs.fileio import atomic_write
 from lmgs_eval.errors import UserError
 from lmgs_eval.paths import cache_root
 
@@ -74,7 +74,7 @@ def export_onnx(module, args: tuple, path: Path, input_names: list[str], output_
         warnings.simplefilter("ignore")
         torch.onnx.export(module, args, buf, input_names=input_names, output_names=output_names,
                           dynamic_axes=dynamic_axes, opset_version=opset, dynamo=False)
-    atomic_write_bytes(Path(path), buf.getvalue())
+    atomic_write(Path(path), buf.getvalue())
 
 
 def load_torch_state(path: Path, what: str) -> dict:

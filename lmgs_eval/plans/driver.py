@@ -15,7 +15,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from lmgs.fileio import atomic_write_bytes
+from lmgs.fileio import atomic_write
 from lmgs_eval import results as store
 from lmgs_eval.plans.execute import Outcome
 from lmgs_eval.plans.identity import Identities
@@ -109,7 +109,7 @@ def _write(results: Path, outcome: Outcome) -> list[store.Record]:
             store.write_record(results, rec)
             records.append(rec)
         else:
-            atomic_write_bytes(results / rel, data)
+            atomic_write(results / rel, data)
     return records
 
 

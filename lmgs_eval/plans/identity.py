@@ -19,7 +19,7 @@ from lmgs.fileio import sha256_file
 from lmgs_eval import results as store
 from lmgs_eval.plans.execute import run_config
 from lmgs_eval.plans.runs import Run
-from lmgs_eval.results.records import build_record, stored
+from lmgs_eval.results.records import RunId, build_record, stored
 
 
 @dataclass(frozen=True)
@@ -33,6 +33,10 @@ class Key:
     config_hash: str
     split: str
     info: object  # baselines.protocol.MethodInfo
+
+    def of(self, subject) -> RunId:
+        """The run of this key on ``subject``."""
+        return RunId(subject, self.info, self.seed, self.protocol, self.clip, self.config_hash)
 
 
 class Identities:
@@ -100,9 +104,7 @@ class Identities:
 
     def finished(self, run: Run, key: Key) -> bool:
         """The store holds this key's record, and it is not a failed one (a failure is retried)."""
-        subject = self.subject(run.subject)
-        return stored(self.results, subject, key.method, key.protocol, key.clip, key.seed, key.config_hash,
-                      finished=True) is not None
+        return stored(self.results, key.of(self.subject(run.subject)), finished=True) is not None
 
     def known_records(self, run: Run) -> dict[str, str]:
         """The store's records of the run's subject but failed ones (relative path -> JSON text): what the worker resumes from."""
@@ -124,10 +126,8 @@ class Identities:
 
     def write_failed(self, run: Run, key: Key, reason: str) -> store.Record:
         """Record ``key`` as failed with ``reason`` (never over a finished record: callers check first)."""
-        subject = self.subject(run.subject)
-        rec = build_record(info=key.info, subject=subject, protocol=key.protocol, clip=key.clip, split=key.split,
-                           n_frames=0, seed=key.seed, metrics={}, cost={}, artefacts={}, notes=list(subject.notes),
-                           status={"state": "failed", "reason": reason[:500] or "failed"}, config_hash=key.config_hash)
+        rec = build_record(key.of(self.subject(run.subject)), split=key.split, n_frames=0, metrics={}, cost={}, artefacts={},
+                           status={"state": "failed", "reason": reason[:500] or "failed"})
         store.write_record(self.results, rec)
         return rec
 

@@ -7,13 +7,15 @@ metrics it is a negative control for.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from baselines.protocol import MethodInfo
 from lmgs_eval import results as store
 from lmgs_eval.errors import UserError
 from lmgs_eval.metrics.sync.crops import crop_faces, face_boxes
-from lmgs_eval.results.records import build_record, metrics_block, stored
+from lmgs_eval.results.records import RunId, build_record, metrics_block, stored
 from lmgs_eval.runner import RunConfig, cycle, log
 
 
@@ -53,17 +55,23 @@ def control_clips(gt: np.ndarray, audio: np.ndarray, other_audio: np.ndarray) ->
     return out
 
 
-def run_controls(cfg: RunConfig, subject, gt: np.ndarray, audio: np.ndarray, other_audio: np.ndarray) -> list[store.Record]:
-    """Score the calibration controls (recorded under protocol ``calibration``); skips those in the store."""
-    todo = [c for c in control_clips(gt, audio, other_audio)
-            if cfg.force or stored(cfg.results, subject, c[0], "calibration", "test", 0, f"controls-v{CONTROLS_VERSION}") is None]
-    if not todo:
+def run_controls(cfg: RunConfig, truth: RunId, gt: np.ndarray, audio: np.ndarray, other_audio: np.ndarray) -> list[store.Record]:
+    """Score the calibration controls of the ground truth's run ``truth``: each is recorded as that run with the
+    control's method, under protocol ``calibration``; those in the store are skipped."""
+    controls = []
+    for name, display, control, frames, aud in control_clips(gt, audio, other_audio):
+        info = MethodInfo(name, display, "control", f"negative control: {display} (targets {', '.join(control['targets'])})",
+                          config={"control": control, "version": CONTROLS_VERSION}, config_hash=f"controls-v{CONTROLS_VERSION}")
+        run = dataclasses.replace(truth, info=info, protocol="calibration")
+        if cfg.force or stored(cfg.results, run) is None:
+            controls.append((run, control, frames, aud))
+    if not controls:
         return []
-    log(f"scoring {len(todo)} calibration controls")
+    log(f"scoring {len(controls)} calibration controls")
     gf = gt  # uint8, as the sync scorers and LMD read it (no float copy of the clip)
     gt_crops = None
     records = []
-    for name, display, control, frames, aud in todo:
+    for run, control, frames, aud in controls:
         if frames is gt:  # same frames as the ground truth: reuse its face crops
             if gt_crops is None:
                 try:
@@ -73,10 +81,8 @@ def run_controls(cfg: RunConfig, subject, gt: np.ndarray, audio: np.ndarray, oth
             res = {"lse": cfg.suite.lse(gf, aud, crops=gt_crops if gt_crops is not False else None)}
         else:
             res = {"lse": cfg.suite.lse(frames, aud), "lmd": cfg.suite.paired("lmd", frames, gf)}
-        info = MethodInfo(name, display, "control", f"negative control: {display} (targets {', '.join(control['targets'])})",
-                          config={"control": control, "version": CONTROLS_VERSION}, config_hash=f"controls-v{CONTROLS_VERSION}")
-        rec = build_record(info=info, subject=subject, protocol="calibration", clip="test", split="test", n_frames=len(frames),
-                           seed=0, metrics=metrics_block(res), cost={}, artefacts={}, notes=list(subject.notes), control=control)
+        rec = build_record(run, split="test", n_frames=len(frames), metrics=metrics_block(res), cost={}, artefacts={},
+                           control=control)
         store.write_record(cfg.results, rec)
         records.append(rec)
     return records

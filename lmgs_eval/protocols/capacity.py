@@ -15,17 +15,16 @@ from lmgs.errors import TrainingDiverged
 from lmgs.init import face_area_px
 from lmgs.strategy import budget_from_face_area
 from lmgs_eval import results as store
-from lmgs_eval.convert import driving_from_subject, subject_to_clip
+from lmgs_eval.convert import driving_from_clip, subject_to_clip
 from lmgs_eval.data.registry import find_subject
-from lmgs_eval.results.records import build_record, stored
-from lmgs_eval.runner import RunConfig, build_method, fit_method, fit_render_score, head_of, log, model_dir, render_stem
+from lmgs_eval.results.records import RunId, build_record, stored
+from lmgs_eval.runner import RunConfig, build_method, fit_method, fit_render_score, head_of, log
 
 DEFAULT_BUDGETS = (500, 1000, 2000, 5000, 10000, 20000)
 
 
-def _failed_record(cfg: RunConfig, info, subject, clip: str, seed: int, reason: str) -> store.Record:
-    rec = build_record(info=info, subject=subject, protocol="capacity", clip=clip, split="test", n_frames=0, seed=seed,
-                       metrics={}, cost={}, artefacts={}, notes=list(subject.notes),
+def _failed_record(cfg: RunConfig, run: RunId, reason: str) -> store.Record:
+    rec = build_record(run, split="test", n_frames=0, metrics={}, cost={}, artefacts={},
                        status={"state": "failed", "reason": reason[:500]})
     store.write_record(cfg.results, rec)
     return rec
@@ -36,25 +35,24 @@ def run_capacity(cfg: RunConfig, budgets: Sequence[int] = DEFAULT_BUDGETS) -> li
     subject = find_subject(cfg.subject, cfg.data_root, progress=cfg.progress)
     train = subject_to_clip(subject, subject.train_ids, progress=cfg.progress)
     test = subject_to_clip(subject, subject.test_ids, progress=cfg.progress)
-    driving = driving_from_subject(subject, subject.test_ids, test)
+    driving = driving_from_clip(test)
     area = face_area_px(train)
     points = budget_overrides(cfg, subject, area, budgets)
     records, trained = [], []
     for n, over in points.items():
         for seed in cfg.seeds:
             method = build_method(cfg, "lmgs", subject, overrides=over)
-            info = method.describe()
-            clip = f"budget-{n}"
+            run = RunId(subject, method.describe(), seed, "capacity", f"budget-{n}")
             trained.append((n, seed, method))
-            if not cfg.force and stored(cfg.results, subject, info.name, "capacity", clip, seed, info.config_hash, finished=True):
+            if not cfg.force and stored(cfg.results, run, finished=True):
                 log(f"budget {n} seed {seed}: already in {cfg.results}; skipped")
                 continue
             try:
-                records.append(fit_render_score(cfg, method, subject, seed, train, driving, test.frames,
-                                                f"renders/{subject.name}/capacity/{render_stem(info, seed)}-{clip}.mp4", "capacity", clip))
+                records.append(fit_render_score(cfg, method, run, train, driving, test.frames,
+                                                f"{run.renders}/capacity/{run.stem}-{run.clip}.mp4"))
             except TrainingDiverged as exc:  # recorded as failed; the other budgets go on
                 log(f"budget {n} seed {seed}: FAILED: {exc}")
-                records.append(_failed_record(cfg, info, subject, clip, seed, f"training diverged: {exc}"))
+                records.append(_failed_record(cfg, run, f"training diverged: {exc}"))
     retime_side_by_side(cfg, subject, train, driving, trained)
     return records
 
@@ -99,11 +97,11 @@ def retime_side_by_side(cfg: RunConfig, subject, train, driving, trained: Sequen
     n = clip.n_frames
     recorded, away = [], set()
     for budget, seed, method in trained:
-        info = method.describe()
-        rec = stored(cfg.results, subject, info.name, "capacity", f"budget-{budget}", seed, info.config_hash, finished=True)
+        run = RunId(subject, method.describe(), seed, "capacity", f"budget-{budget}")
+        rec = stored(cfg.results, run, finished=True)
         if rec is not None:
-            recorded.append((budget, seed, method, rec))
-            if not (model_dir(subject, info.name, info.config_hash, seed) / "model.pt").exists():
+            recorded.append((budget, run, method, rec))
+            if not (run.model_dir / "model.pt").exists():
                 away.add(budget)
     if away:
         # Records copied from another machine (tables/records): their models are not here, and
@@ -112,10 +110,10 @@ def retime_side_by_side(cfg: RunConfig, subject, train, driving, trained: Sequen
             "this machine (records made elsewhere); each record keeps the FPS it was made with")
         return {}
     loaded = []
-    for budget, seed, method, rec in recorded:
-        fit_method(method, train, subject, seed, False)  # reloads the checkpoint
+    for budget, run, method, rec in recorded:
+        fit_method(method, train, run, False)  # reloads the checkpoint
         method.render(clip)  # warm-up
-        loaded.append((budget, seed, method, rec))
+        loaded.append((budget, run.seed, method, rec))
     if not loaded:
         return {}
     log(f"capacity: timing {len(loaded)} models side by side ({rounds} rounds of {n} frames, interleaved)")

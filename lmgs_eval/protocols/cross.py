@@ -13,6 +13,7 @@ never passes for the bundled clip. The record keeps the file's absolute path and
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,8 +27,8 @@ from lmgs_eval.data.audio import load_audio
 from lmgs_eval.data.images import read_rgb_u8
 from lmgs_eval.data.registry import find_subject
 from lmgs_eval.errors import UserError
-from lmgs_eval.results.records import build_record, metrics_block, stored
-from lmgs_eval.runner import RunConfig, build_method, cost_block, cycle, fit_method, log, render_stem, timed_render, write_render
+from lmgs_eval.results.records import RunId, build_record, metrics_block, stored
+from lmgs_eval.runner import RunConfig, build_method, cost_block, cycle, fit_method, log, timed_render, write_render
 
 
 @dataclass(frozen=True)
@@ -111,7 +112,6 @@ def run_cross(cfg: RunConfig, audio_paths: list[str] | None = None) -> tuple[lis
         return [], errors
     train = None
     test = subject_to_clip(subject, subject.test_ids)
-    renders_dir = f"renders/{subject.name}"
     records = []
     for name in cfg.methods:
         if name.startswith("external:"):
@@ -120,13 +120,14 @@ def run_cross(cfg: RunConfig, audio_paths: list[str] | None = None) -> tuple[lis
         for seed in cfg.seeds:
             method = build_method(cfg, name, subject)
             info = method.describe()
-            todo = [c for c in clips if cfg.force or not _done(cfg, subject, info, c.name, seed, renders_dir)]
+            run = RunId(subject, info, seed, "cross")
+            todo = [c for c in clips if cfg.force or not _done(cfg, dataclasses.replace(run, clip=c.name))]
             if not todo:
-                log(f"{info.name} seed {seed}: cross clips already in {cfg.results}; skipped")
+                log(f"{run.label}: cross clips already in {cfg.results}; skipped")
                 continue
             if train is None:
                 train = subject_to_clip(subject, subject.train_ids, progress=cfg.progress)
-            fit_cost = fit_method(method, train, subject, seed, cfg.progress)
+            fit_cost = fit_method(method, train, run, cfg.progress)
             for c in todo:
                 n = len(c.audio) // 640
                 w2c = c.w2c[:n] if c.w2c is not None and len(c.w2c) >= n else cycle(test.w2c, n)
@@ -136,10 +137,10 @@ def run_cross(cfg: RunConfig, audio_paths: list[str] | None = None) -> tuple[lis
                 log(f"{info.name} on clip {c.name}: {n} frames at {rc['fps']:.1f} FPS; scoring")
                 gt = c.gt_frames[:n] if c.gt_frames is not None and len(c.gt_frames) >= n else None
                 res = cfg.suite.score(frames, gt, driving.audio, reference=False, lmd=gt is not None)
-                art = {"render": write_render(cfg.results, _render_rel(renders_dir, info, seed, c.name), frames, driving.audio)}
+                art = {"render": write_render(cfg.results, _render_rel(run, c.name), frames, driving.audio)}
                 if c.audio_file is not None:
                     art["driving_audio"] = dict(c.audio_file)
-                rec = build_record(info=info, subject=subject, protocol="cross", clip=c.name, split=c.source, n_frames=n, seed=seed,
+                rec = build_record(dataclasses.replace(run, clip=c.name), split=c.source, n_frames=n,
                                    metrics=metrics_block(res), cost=cost_block(method, fit_cost, rc), artefacts=art,
                                    notes=list(c.notes))
                 store.write_record(cfg.results, rec)
@@ -147,18 +148,18 @@ def run_cross(cfg: RunConfig, audio_paths: list[str] | None = None) -> tuple[lis
     return records, errors
 
 
-def _render_rel(renders_dir: str, info, seed: int, clip: str) -> str:
-    return f"{renders_dir}/{render_stem(info, seed)}-cross-{clip}.mp4"
+def _render_rel(run: RunId, clip: str) -> str:
+    return f"{run.renders}/{run.stem}-cross-{clip}.mp4"
 
 
-def _done(cfg: RunConfig, subject, info, clip: str, seed: int, renders_dir: str) -> bool:
-    """A clip is done when its record is in the store and the render it points to is still there."""
-    rec = stored(cfg.results, subject, info.name, "cross", clip, seed, info.config_hash)
+def _done(cfg: RunConfig, run: RunId) -> bool:
+    """A clip (``run.clip``) is done when its record is in the store and the render it points to is still there."""
+    rec = stored(cfg.results, run)
     if rec is None:
         return False
     render = rec.artefacts.get("render")
-    rel = render.path if render is not None else _render_rel(renders_dir, info, seed, clip)
+    rel = render.path if render is not None else _render_rel(run, run.clip)
     if not (Path(cfg.results) / rel).is_file():
-        log(f"{info.name} seed {seed}: the render of clip {clip} is missing ({Path(cfg.results) / rel}); made again")
+        log(f"{run.label}: the render of clip {run.clip} is missing ({Path(cfg.results) / rel}); made again")
         return False
     return True

@@ -35,7 +35,7 @@ from tqdm import tqdm
 from baselines import protocol as methods
 from lmgs.types import DrivingAudio
 from lmgs_eval import results as store
-from lmgs_eval.convert import driving_from_subject, subject_to_clip
+from lmgs_eval.convert import driving_from_clip, subject_to_clip
 from lmgs_eval.data.audio import to_mono_16k
 from lmgs_eval.data.registry import find_subject
 from lmgs_eval.errors import UserError
@@ -45,9 +45,8 @@ from lmgs_eval.metrics.metric_suite import MetricSuite
 from lmgs_eval.protocols.cross import bundled_cross_clips
 from lmgs_eval.protocols.perturb import VERSION as PERTURB_VERSION
 from lmgs_eval.protocols.perturb import SR, Condition, make_conditions
-from lmgs_eval.results.records import build_record, metrics_block, stored
-from lmgs_eval.runner import (REPEATS, RunConfig, build_method, cost_block, cycle, fit_method, log, render_stem, timed_render,
-                              write_render)
+from lmgs_eval.results.records import RunId, build_record, metrics_block, stored
+from lmgs_eval.runner import REPEATS, RunConfig, build_method, cost_block, cycle, fit_method, log, timed_render, write_render
 
 MOUTH = slice(48, 68)
 JITTER_SPEC = MetricSpec(
@@ -307,14 +306,14 @@ def _stress_one(cfg: RunConfig, ctx: dict, conds, name: str, seed: int, max_minu
     messages, records = [], []
     method = build_method(cfg, name, subject)
     info = method.describe()
-    ch = f"{info.config_hash}-stress{PERTURB_VERSION}"
-    todo = [c for c in conds if cfg.force or not _done(cfg.results, info.name, subject, c.name, seed, ch)]
+    run = RunId(subject, info, seed, "stress", config_hash=f"{info.config_hash}-stress{PERTURB_VERSION}")
+    todo = [c for c in conds if cfg.force or not _done(cfg.results, dataclasses.replace(run, clip=c.name))]
     if not todo:
-        log(f"{info.name} seed {seed}: stress conditions already in {cfg.results}; skipped")
+        log(f"{run.label}: stress conditions already in {cfg.results}; skipped")
         return records, messages
     if ctx["train"] is None:  # loaded only if a method trains (or reads it): a cached model does not
         ctx["train"] = _Lazy(lambda: subject_to_clip(subject, subject.train_ids, progress=cfg.progress))
-    fit_cost = fit_method(method, ctx["train"], subject, seed, cfg.progress)
+    fit_cost = fit_method(method, ctx["train"], run, cfg.progress)
     clean_fps = None
     for cond in sorted(todo, key=lambda c: c.name != "clean"):
         t0 = time.perf_counter()
@@ -333,7 +332,7 @@ def _stress_one(cfg: RunConfig, ctx: dict, conds, name: str, seed: int, max_minu
         status, metrics, art, rc = None, {}, {}, {}
         try:
             if cond.name == "clean":
-                driving = driving_from_subject(subject, subject.test_ids, test)
+                driving = driving_from_clip(test)
             # the clean clip is timed like the self protocol (median of repeats); a perturbed
             # clip once: its FPS is a cost column, and the repeats would double the suite's time
             frames, rc = timed_render(method, driving, repeats=REPEATS if cond.name == "clean" else 1)
@@ -368,8 +367,7 @@ def _stress_one(cfg: RunConfig, ctx: dict, conds, name: str, seed: int, max_minu
             if why is not None:
                 status = {"state": "failed", "reason": why}
             if n <= LONG_CLIP_FRAMES:
-                art = {"render": write_render(cfg.results, f"renders/{subject.name}/stress/{render_stem(info, seed)}-{cond.name}.mp4",
-                                               frames, audio)}
+                art = {"render": write_render(cfg.results, f"{run.renders}/stress/{run.stem}-{cond.name}.mp4", frames, audio)}
         except Exception as exc:  # a crash on one condition is a recorded failure, the suite goes on
             if isinstance(exc, KeyboardInterrupt):
                 raise
@@ -377,10 +375,9 @@ def _stress_one(cfg: RunConfig, ctx: dict, conds, name: str, seed: int, max_minu
             notes = list(notes) + ["traceback: " + traceback.format_exc(limit=3).replace("\n", " | ")[-600:]]
         cost = cost_block(method, fit_cost, rc) if rc else {}
         cost["wall_seconds"] = time.perf_counter() - t0
-        rec = build_record(info=info, subject=subject, protocol="stress", clip=cond.name, split=cond.description,
-                           n_frames=n, seed=seed, metrics=metrics, cost=cost, artefacts=art,
-                           notes=list(notes) + [f"perturbation set v{PERTURB_VERSION}: {cond.description}"],
-                           status=status, config_hash=ch)
+        rec = build_record(dataclasses.replace(run, clip=cond.name), split=cond.description, n_frames=n, metrics=metrics,
+                           cost=cost, artefacts=art, notes=list(notes) + [f"perturbation set v{PERTURB_VERSION}: {cond.description}"],
+                           status=status)
         store.write_record(cfg.results, rec)
         records.append(rec)
         state = "FAILED: " + status["reason"] if status else "ok"
@@ -388,6 +385,6 @@ def _stress_one(cfg: RunConfig, ctx: dict, conds, name: str, seed: int, max_minu
     return records, messages
 
 
-def _done(root, method: str, subject, clip: str, seed: int, ch: str) -> bool:
+def _done(root, run: RunId) -> bool:
     """A finished record (a failed run is retried: the failure may have been fixed)."""
-    return stored(root, subject, method, "stress", clip, seed, ch, finished=True) is not None
+    return stored(root, run, finished=True) is not None

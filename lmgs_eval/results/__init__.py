@@ -7,7 +7,8 @@ functions of these files; ``lmgs-eval verify`` re-hashes the artefacts they refe
 
 Schema version ``2`` (``SCHEMA_VERSION``; version 1 records are migrated on read,
 :mod:`~lmgs_eval.results.migrate`). The typed form is :class:`~lmgs_eval.results.types.Record`,
-which :func:`validate` checks every record against on write and on read; the store hands out
+each part of which checks its fields when it is made (a record read, or built by the runner, is
+checked once, there; :func:`validate` lists what does not fit in a JSON form); the store hands out
 typed records (:func:`load_records`, :func:`iter_store`, :func:`find_record`), the runner writes
 them, and tables and report read their attributes. :func:`frame` gives a store as a pandas
 DataFrame. ``?`` marks an optional field; ``|null`` a field that may be null.

@@ -1,24 +1,29 @@
 """A run's record assembled from what the protocols hand over: method, subject, metrics, cost, artefacts.
 
-The sections follow the schema (:mod:`lmgs_eval.results.schema`); here are the toolkit's
-sources of each: the subject's identity (its manifest's sha256), the inputs a number depends on
-(ground truth and metric weights, re-hashed by ``lmgs-eval verify``), and the store look-up
-that makes a run resumable.
+A run is named once, by a :class:`RunId` (the method's info on a subject, under a protocol and
+clip, with a seed), and handed down: the store key of its record, where its model is cached and
+its renders go come from it. The sections follow the schema (:mod:`lmgs_eval.results.schema`);
+here are the toolkit's sources of each: the subject's identity (its manifest's sha256), the
+inputs a number depends on (ground truth and metric weights, re-hashed by ``lmgs-eval verify``),
+and the store look-up that makes a run resumable.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from lmgs.presets import TrainConfig
 from lmgs.fileio import sha256_file
 from lmgs_eval.metrics import lpips as L
 from lmgs_eval.metrics.sync.scorers import weights_file as sync_weights_file
 from lmgs_eval.metrics.landmarks import dlib_model_path
-from lmgs_eval.results.provenance import make_record, metric_entries
-from lmgs_eval.results.notes import budget_note
+from lmgs_eval.paths import cache_root
+from lmgs_eval.results.provenance import EMPTY_COST, git_info, machine_info, metric_entries, now_iso
+from lmgs_eval.results.notes import budget_note, se_note
 from lmgs_eval.results.store import find_finished, find_record, to_record
-from lmgs_eval.results.types import Record
+from lmgs_eval.results.types import SCHEMA_VERSION, Record
 
 PROTOCOL_VERSIONS = {"self": "1", "cross": "1", "stress": "1", "calibration": "1", "capacity": "1"}
 
@@ -43,41 +48,62 @@ def _config_value(config, key: str):
     return None
 
 
-def subject_budget(info, subject) -> dict | None:
-    """``run.budget`` of a method sized by the subject's own knee density (None when it was not)."""
-    d = getattr(subject, "budget_density", None)
-    if d is None or _config_value(info.config, "budget_density") != d:
-        return None
-    return {"density": float(d), "preset_density": float(TrainConfig.budget_density)}
+@dataclass(frozen=True)
+class RunId:
+    """What one record is of: a method (its info) on a subject, under a protocol and clip, with a seed.
+
+    Made once per run and handed down; the store key of its record, its model's folder and its
+    render's name all come from it. ``config_hash``: in place of the method's in the store key (a
+    protocol that adds to the identity of a run, e.g. the stress suite's perturbation set); the
+    model's folder keeps the method's own.
+    """
+
+    subject: Any  # lmgs_eval.data.Subject
+    info: Any  # baselines.protocol.MethodInfo
+    seed: int = 0
+    protocol: str = "self"
+    clip: str = "test"
+    config_hash: str | None = None
+
+    @property
+    def label(self) -> str:
+        """``<method> seed <N>``, as the log names the run."""
+        return f"{self.info.name} seed {self.seed}"
+
+    @property
+    def model_dir(self) -> Path:
+        """The model cache's folder of this method, config and seed on this subject."""
+        return cache_root() / "models" / self.subject.name / self.info.name / f"{self.info.config_hash}-seed{self.seed}"
+
+    @property
+    def renders(self) -> str:
+        """The store's folder (relative) of the subject's renders."""
+        return f"renders/{self.subject.name}"
+
+    @property
+    def stem(self) -> str:
+        """``<method>-<config hash[:8]>-seed<N>``: the file name of the run's render, distinct per config.
+
+        Without the hash a re-run under a changed config overwrote the render an older record
+        still points to (and hashes); the record then failed ``lmgs-eval verify``.
+        """
+        return f"{self.info.name.replace(':', '_')}-{self.info.config_hash[:8]}-seed{self.seed}"
 
 
-def subject_block(subject) -> dict:
-    return {
-        "name": subject.name,
-        "bundled": subject.bundled,
-        "standin": subject.meta.get("standin") if subject.bundled else None,
-        "frames": subject.n_frames,
-        "width": subject.width,
-        "height": subject.height,
-        "path": str(subject.root),
-        "sha256": subject_sha(subject),
-    }
-
-
-def stored(root, subject, method: str, protocol: str, clip: str, seed: int, config_hash: str, *,
-           finished: bool = False) -> Record | None:
-    """The store's record of this run on this subject's data, or None.
+def stored(root, run: RunId, *, finished: bool = False) -> Record | None:
+    """The store's record of ``run`` on its subject's data, or None.
 
     ``finished``: a failed run counts as not done (it is retried). A record made on other data
     of a subject of the same name is a UserError (:func:`lmgs_eval.results.find_record`).
     """
     find = find_finished if finished else find_record
-    return find(root, method, subject.name, protocol, clip, seed, config_hash, subject_sha(subject))
+    return find(root, run.info.name, run.subject.name, run.protocol, run.clip, run.seed,
+                run.config_hash or run.info.config_hash, manifest_sha(run.subject.root))
 
 
-def subject_sha(subject) -> str | None:
-    """sha256 of the subject's ``manifest.json`` (None without one): which data a record was made on."""
-    p = subject.root / "manifest.json"
+def manifest_sha(folder) -> str | None:
+    """sha256 of a subject folder's ``manifest.json`` (None without one): which data a record was made on."""
+    p = Path(folder) / "manifest.json"
     return _sha_cached(p) if p.exists() else None
 
 
@@ -92,11 +118,11 @@ def _sha_cached(path: Path) -> str:
     return _SHA_CACHE[key]
 
 
-def input_artefacts(metrics: dict, subject) -> dict:
-    """The inputs a record's numbers depend on, for ``lmgs-eval verify``: the subject's ground
-    truth (its manifest, or its transforms files) and the weights files of the metrics used."""
+def input_artefacts(metrics: dict, folder) -> dict:
+    """The inputs a record's numbers depend on, for ``lmgs-eval verify``: the ground truth of the
+    subject in ``folder`` (its manifest, or its transforms files) and the weights files of the metrics used."""
     files: dict[str, Path | None] = {}
-    root = Path(subject.root)
+    root = Path(folder)
     if (root / "manifest.json").is_file():
         files["ground_truth"] = root / "manifest.json"
     else:
@@ -119,15 +145,18 @@ def input_artefacts(metrics: dict, subject) -> dict:
     return {k: {"path": str(p.resolve()), "sha256": _sha_cached(p)} for k, p in files.items() if p is not None and p.is_file()}
 
 
-def build_record(*, info, subject, protocol: str, clip: str, split: str, n_frames: int, seed: int, metrics: dict,
-                 cost: dict, artefacts: dict, notes: list[str], control: dict | None = None,
-                 run: dict | None = None, status: dict | None = None, config_hash: str | None = None) -> Record:
-    """One run's typed record (schema in :mod:`lmgs_eval.results`); ``run``: its structured facts.
+def build_record(run: RunId, *, split: str, n_frames: int, metrics: dict, cost: dict, artefacts: dict,
+                 notes: list[str] | None = None, control: dict | None = None, se_fraction: float | None = None,
+                 status: dict | None = None) -> Record:
+    """The typed record of ``run`` (schema in :mod:`lmgs_eval.results`).
 
-    ``status``: ``{state, reason}`` of a failed run; ``config_hash``: in place of the method's (a
-    protocol that adds to the identity of a run, e.g. the stress suite's perturbation set). A record
-    that does not validate is a :class:`~lmgs_eval.errors.UserError` naming the fields.
+    ``notes``: default the subject's (what reading it repaired). The run's facts come with a note
+    each: ``se_fraction`` (the share of face points Spatial Enhancement selected, as measured) and
+    the subject's own Gaussian budget, when the method was sized by it. ``status``: ``{state,
+    reason}`` of a failed run. A record that does not validate is a
+    :class:`~lmgs_eval.errors.UserError` naming the fields.
     """
+    info, subject = run.info, run.subject
     method = {"name": info.name, "display_name": info.display_name, "family": info.family,
               "description": info.description, "standins": list(info.standins)}
     if control is not None:
@@ -136,15 +165,27 @@ def build_record(*, info, subject, protocol: str, clip: str, split: str, n_frame
         method["variant"] = info.variant
     if getattr(info, "components", None):
         method["components"] = dict(info.components)
-    run = dict(run or {})
-    budget = subject_budget(info, subject)
-    if budget is not None:
-        run["budget"] = budget
-        notes = [*notes, budget_note(budget["density"], budget["preset_density"])]
-    return to_record(make_record(run=run or None,
-        method=method,
-        subject=subject_block(subject),
-        protocol={"name": protocol, "version": PROTOCOL_VERSIONS[protocol], "clip": clip, "split": split, "n_frames": int(n_frames)},
-        metrics=metrics, seed=seed, config=info.config, config_hash_=config_hash or info.config_hash, cost=cost,
-        artefacts={**input_artefacts(metrics, subject), **artefacts}, notes=notes, status=status,
-    ))
+    facts, notes = {}, list(subject.notes if notes is None else notes)
+    if se_fraction is not None:
+        facts["se_fraction"] = float(se_fraction)
+        notes.append(se_note(facts["se_fraction"], (info.components or {}).get("theta")))
+    density = getattr(subject, "budget_density", None)  # the subject's own knee, where the method took it
+    if density is not None and _config_value(info.config, "budget_density") == density:
+        facts["budget"] = {"density": float(density), "preset_density": float(TrainConfig.budget_density)}
+        notes.append(budget_note(facts["budget"]["density"], facts["budget"]["preset_density"]))
+    rec = {"schema_version": SCHEMA_VERSION, "method": method,
+           "subject": {"name": subject.name, "bundled": subject.bundled, "frames": subject.n_frames,
+                       "width": subject.width, "height": subject.height, "path": str(subject.root),
+                       "standin": subject.meta.get("standin") if subject.bundled else None,
+                       "sha256": manifest_sha(subject.root)},
+           "protocol": {"name": run.protocol, "version": PROTOCOL_VERSIONS[run.protocol], "clip": run.clip, "split": split,
+                        "n_frames": int(n_frames)},
+           "metrics": metrics, "cost": {**EMPTY_COST, **cost}, "config": dict(info.config),
+           "config_hash": run.config_hash or info.config_hash, "seed": int(run.seed), "code": git_info(),
+           "machine": machine_info(), "artefacts": {**input_artefacts(metrics, subject.root), **artefacts},
+           "created": now_iso(), "notes": notes}
+    if status is not None:
+        rec["status"] = status
+    if facts:
+        rec["run"] = facts
+    return to_record(rec)

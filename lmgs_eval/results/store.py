@@ -14,12 +14,12 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
-from lmgs.fileio import sha256_file
+from lmgs.fileio import atomic_write, sha256_file
 from lmgs_eval.errors import UserError
-from lmgs_eval.paths import atomic_dir, atomic_write_text
+from lmgs_eval.paths import atomic_dir
 from lmgs_eval.results.migrate import migrate
 from lmgs_eval.results.schema import READ_VERSIONS, check
-from lmgs_eval.results.types import Record
+from lmgs_eval.results.types import Record, json_object
 
 
 def _slug(s: str) -> str:
@@ -36,15 +36,15 @@ def subject_dir(root: str | os.PathLike, subject: str) -> Path:
 
 def run_path(root: str | os.PathLike, subject: str, protocol: str, method: str, clip: str, seed: int,
              config_hash: str) -> Path:
-    """Stable file of a run: ``root/<subject>/<protocol>/<method>--<clip>--seed<N>--<config_hash>.json``."""
+    """Stable file of a run: ``root/<subject>/<protocol>/<method>--<clip>--seed<N>--<config_hash>.json``
+    (the subject's folder is :func:`subject_dir`)."""
     name = f"{_slug(method)}--{_slug(clip)}--seed{int(seed)}--{_slug(config_hash)}.json"
-    return subject_dir(root, subject) / _slug(protocol) / name
+    return Path(root) / _slug(subject) / _slug(protocol) / name
 
 
 def record_path(root: str | os.PathLike, record: Record) -> Path:
-    """The file of ``record`` in store ``root`` (:func:`run_path`)."""
-    return run_path(root, record.subject.name, record.protocol.name, record.method.name, record.protocol.clip,
-                    record.seed, record.config_hash)
+    """The file of ``record`` in store ``root`` (:func:`run_path` of its :attr:`~Record.key`)."""
+    return run_path(root, *record.key)
 
 
 def to_record(data: Mapping[str, Any]) -> Record:
@@ -59,17 +59,17 @@ def to_record(data: Mapping[str, Any]) -> Record:
 
 
 def write_record(root: str | os.PathLike, record: Record | Mapping[str, Any]) -> Path:
-    """Validate and write a record (typed, or its JSON form) atomically (temp file + rename); returns its path.
+    """Write a record (typed, or its JSON form) atomically (temp file + rename); returns its path.
 
-    A record that does not validate writes nothing and raises :class:`UserError`. Two
-    writers at once never leave a partial file: each writes its own temporary file and
-    the rename is atomic (the last one wins for the same record).
+    A typed record was checked when it was made; a JSON form is checked here, and one that does
+    not validate writes nothing and raises :class:`UserError`. Two writers at once never leave a
+    partial file: each writes its own temporary file and the rename is atomic (the last one wins
+    for the same record).
     """
-    data = record.to_dict() if isinstance(record, Record) else record
-    rec = to_record(data)
-    text = json.dumps(data, indent=1, sort_keys=True, allow_nan=False, ensure_ascii=False) + "\n"
+    rec = record if isinstance(record, Record) else to_record(record)
     path = record_path(root, rec)
-    atomic_write_text(path, text)
+    atomic_write(path, json.dumps(record, default=json_object, indent=1, sort_keys=True, allow_nan=False,
+                                  ensure_ascii=False) + "\n")
     return path
 
 
@@ -132,7 +132,7 @@ def copy_records(src: str | os.PathLike, dst: str | os.PathLike) -> tuple[int, l
         if not record_path(dst, rec).is_file():
             copied.append(write_record(dst, rec).relative_to(dst).as_posix())
     if copied:
-        atomic_write_text(Path(dst) / IMPORTED_FILE, json.dumps(
+        atomic_write(Path(dst) / IMPORTED_FILE, json.dumps(
             {"records": sorted(imported_records(dst) | set(copied))}, indent=1) + "\n")
     return len(copied), warnings
 
@@ -197,9 +197,7 @@ def find_record(root: str | os.PathLike, method: str, subject: str, protocol: st
         return None
     if rec is None:
         return None
-    same = (rec.method.name == method and rec.subject.name == subject and rec.protocol.name == protocol
-            and rec.protocol.clip == clip and rec.seed == seed and rec.config_hash == config_hash)
-    if not same:
+    if rec.key != (subject, protocol, method, clip, seed, config_hash):
         return None
     made_on = rec.subject.sha256
     if subject_sha and made_on and made_on != subject_sha:

@@ -1,11 +1,14 @@
-"""The record and its parts as typed values: frozen dataclasses that are the schema.
+"""The record and its parts as typed values: frozen dataclasses that are the schema, each checking itself when made.
 
-A record on disk is JSON; :meth:`Record.from_dict` reads it into these types and
-:func:`decode` says, one line a field, what does not fit (``record.metrics.psnr.value: expected
-number|null, got str 'high'``). The store checks every record through them when it writes and
-when it reads (:func:`lmgs_eval.results.schema.validate`). A field with a default may be absent
-from the JSON; ``X | None`` may be null. Constraints beyond the type (one of a set of values, a
-pattern, a minimum) are in the field's metadata.
+Every block here (a :class:`Record` and each of its parts) checks its own fields when it is made:
+each field's type, the constraints in its metadata (one of a set of values, a pattern, a minimum)
+and the rules that tie its fields together (a metric's ``n_effective`` is at most its
+``n_original``, a failed run says why). A block in hand is therefore a valid one, whether it was
+read from JSON (:meth:`Record.from_dict`), built by the runner or changed with :func:`replace`: it
+is checked once, when it is made, and nowhere after. A block that does not fit is
+:class:`Invalid`, naming each field (``value: expected number|null, got str 'high'``); read from
+JSON, each line names the field from the record down (``record.metrics.psnr.value: ...``). A field
+with a default may be absent from the JSON; ``X | None`` may be null.
 
 The sections (see the field table in :mod:`lmgs_eval.results`): :class:`MethodBlock` (with the
 method's declared ``components``), :class:`SubjectBlock`, :class:`ProtocolBlock`,
@@ -14,23 +17,33 @@ method's declared ``components``), :class:`SubjectBlock`, :class:`ProtocolBlock`
 given that the tables read (the share of points Spatial Enhancement selected, the Gaussian
 budget a subject imposed), as fields rather than prose.
 
-A record read from JSON writes back the same JSON: an optional field the JSON held as ``null`` is
-written as ``null`` again, one it left out stays out (:func:`replace` keeps that for the fields it
-does not change).
+The machinery (checking, reading from JSON, writing back) is :mod:`lmgs_eval.results.blocks`.
+A record read from JSON writes back the same JSON (:func:`~lmgs_eval.results.blocks.json_object`): an optional field the JSON
+held as ``null`` is written as ``null`` again, one it left out stays out (:func:`replace` keeps that
+for the fields it does not change).
 """
 
 from __future__ import annotations
 
-import dataclasses
-import math
-import re
-import types
+import json
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Union, get_args, get_origin, get_type_hints
+from typing import Any
+
+from lmgs_eval.results.blocks import Block, Invalid, decode, json_object, replace
+
+__all__ = ["FAMILIES", "PROTOCOLS", "READ_VERSIONS", "SCHEMA_VERSION", "Invalid", "Record", "decode_record",
+           "json_object", "replace"]
 
 FAMILIES = ("2D", "NeRF", "3DGS", "external", "ground-truth", "reference", "control")
 PROTOCOLS = ("self", "cross", "stress", "calibration", "capacity")
 SHA256 = "^[0-9a-f]{64}$"
+
+SCHEMA_VERSION = "2"
+"""Written by this code. Version 2 added ``method.components`` and ``run`` (structured facts that
+version 1 kept in prose notes or left to be read out of a method's config)."""
+READ_VERSIONS = ("1", SCHEMA_VERSION)
+"""Read by this code; older records are migrated on read (:mod:`lmgs_eval.results.migrate`)."""
 
 
 def _enum(*values: str) -> Any:
@@ -42,14 +55,14 @@ def _nonempty() -> dict:
 
 
 @dataclass(frozen=True)
-class Control:
+class Control(Block):
     kind: str
     targets: tuple[str, ...] = ()
     frames: int | None = None  # audio-shift controls: by how many frames
 
 
 @dataclass(frozen=True)
-class MethodBlock:
+class MethodBlock(Block):
     name: str = field(metadata=_nonempty())
     display_name: str
     family: str = field(metadata=_enum(*FAMILIES))
@@ -62,7 +75,7 @@ class MethodBlock:
 
 
 @dataclass(frozen=True)
-class SubjectBlock:
+class SubjectBlock(Block):
     name: str = field(metadata=_nonempty())
     bundled: bool
     standin: str | None
@@ -74,7 +87,7 @@ class SubjectBlock:
 
 
 @dataclass(frozen=True)
-class ProtocolBlock:
+class ProtocolBlock(Block):
     name: str = field(metadata=_enum(*PROTOCOLS))
     version: str
     clip: str = field(metadata=_nonempty())
@@ -83,7 +96,7 @@ class ProtocolBlock:
 
 
 @dataclass(frozen=True)
-class MetricEntry:
+class MetricEntry(Block):
     value: float | None
     n_original: int = field(metadata={"minimum": 0})
     n_effective: int = field(metadata={"minimum": 0})
@@ -99,9 +112,16 @@ class MetricEntry:
     # each weights file by role (lpips alex: alexnet, lpips_heads) when weights_sha256 is a hash over several
     weights_files: dict[str, Artefact] | None = None
 
+    @classmethod
+    def _tied(cls, values: Mapping[str, Any]) -> list[tuple[str, str]]:
+        ne, no = values.get("n_effective"), values.get("n_original")
+        if type(ne) is int and type(no) is int and ne > no:
+            return [("", f"n_effective {ne} > n_original {no}")]
+        return []
+
 
 @dataclass(frozen=True)
-class MsPerFrame:
+class MsPerFrame(Block):
     audio: float | None = None
     network: float | None = None
     raster: float | None = None
@@ -109,7 +129,7 @@ class MsPerFrame:
 
 
 @dataclass(frozen=True)
-class Cost:
+class Cost(Block):
     train_seconds: float | None
     fps: float | None
     ms_per_frame: MsPerFrame | None
@@ -132,14 +152,14 @@ class Cost:
 
 
 @dataclass(frozen=True)
-class Code:
+class Code(Block):
     version: str
     git_commit: str | None
     dirty: bool | None
 
 
 @dataclass(frozen=True)
-class Machine:
+class Machine(Block):
     cpu: str
     threads: int | None
     torch: str | None
@@ -149,19 +169,23 @@ class Machine:
 
 
 @dataclass(frozen=True)
-class Artefact:
+class Artefact(Block):
     path: str = field(metadata=_nonempty())
     sha256: str = field(metadata={"pattern": SHA256})
 
 
 @dataclass(frozen=True)
-class Status:
+class Status(Block):
     state: str = field(metadata=_enum("ok", "failed"))
     reason: str | None = None
 
+    @classmethod
+    def _tied(cls, values: Mapping[str, Any]) -> list[tuple[str, str]]:
+        return [(".reason", "a failed run must say why")] if values.get("state") == "failed" and not values.get("reason") else []
+
 
 @dataclass(frozen=True)
-class GaussianBudget:
+class GaussianBudget(Block):
     """A subject's own Gaussian density (its capacity knee) that a method sized by face area took."""
 
     density: float
@@ -169,7 +193,7 @@ class GaussianBudget:
 
 
 @dataclass(frozen=True)
-class RunFacts:
+class RunFacts(Block):
     """What a run measured or was given that tables read, beyond metrics and cost."""
 
     se_fraction: float | None = None  # share of face points Spatial Enhancement selected (0..1)
@@ -177,8 +201,8 @@ class RunFacts:
 
 
 @dataclass(frozen=True)
-class Record:
-    schema_version: str
+class Record(Block):
+    schema_version: str = field(metadata=_enum(*READ_VERSIONS))
     method: MethodBlock
     subject: SubjectBlock
     protocol: ProtocolBlock
@@ -198,15 +222,19 @@ class Record:
     @classmethod
     def from_dict(cls, data: Any) -> "Record":
         """The typed record of a decoded JSON object; :class:`ValueError` listing what does not fit."""
-        problems: list[str] = []
-        rec = decode(cls, data, "record", problems)
+        rec, problems = decode_record(data)
         if problems:
             raise ValueError("; ".join(problems))
         return rec
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON form (absent optional sections left out)."""
-        return _encode(self)
+        return json.loads(json.dumps(self, default=json_object))
+
+    @property
+    def key(self) -> tuple[str, str, str, str, int, str]:
+        """What the store tells it by: ``(subject, protocol, method, clip, seed, config_hash)``."""
+        return (self.subject.name, self.protocol.name, self.method.name, self.protocol.clip, self.seed, self.config_hash)
 
     @property
     def failed(self) -> bool:
@@ -219,128 +247,13 @@ class Record:
         return None if m is None else m.value
 
 
-def replace(obj: Any, **changes: Any) -> Any:
-    """:func:`dataclasses.replace` that keeps which untouched optional fields the JSON held as ``null``."""
-    new = dataclasses.replace(obj, **changes)
-    nulls = getattr(obj, _NULLS, frozenset()) - changes.keys()
-    if nulls:
-        object.__setattr__(new, _NULLS, nulls)
-    return new
+def decode_record(data: Any) -> tuple[Record | None, list[str]]:
+    """A decoded JSON object as a typed :class:`Record` (None when it does not fit) and what does not
+    fit, one line a field (``record.metrics.psnr.value: ...``); no lines when it fits."""
+    if not isinstance(data, dict):
+        return None, [f"record: expected object, got {type(data).__name__} {data!r:.60}"]
+    out: list[str] = []
+    rec = decode(Record, data, "record", out)
+    return (None if out else rec), out
 
 
-# ----------------------------------------------------------------------------- decoding
-def _type_label(tp: Any) -> str:
-    origin = get_origin(tp)
-    if origin in (Union, types.UnionType):
-        return "|".join(_type_label(a) for a in get_args(tp))
-    if tp is type(None):
-        return "null"
-    if origin is tuple:
-        return "array"
-    if origin is dict or dataclasses.is_dataclass(tp):
-        return "object"
-    return {int: "integer", float: "number", bool: "boolean", str: "string"}.get(tp, "value")
-
-
-def _fits(value: Any, tp: Any) -> bool:
-    """Whether ``value``'s JSON type is ``tp``'s (not looking inside containers)."""
-    origin = get_origin(tp)
-    if origin in (Union, types.UnionType):
-        return any(_fits(value, a) for a in get_args(tp))
-    if tp is Any:
-        return True
-    if tp is type(None):
-        return value is None
-    if tp is bool:
-        return isinstance(value, bool)
-    if tp is int:
-        return isinstance(value, int) and not isinstance(value, bool)
-    if tp is float:  # JSON has no NaN / inf: a missing number is null
-        return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-    if tp is str:
-        return isinstance(value, str)
-    if origin is tuple:
-        return isinstance(value, list | tuple)
-    if origin is dict or dataclasses.is_dataclass(tp):
-        return isinstance(value, dict)
-    return True
-
-
-def _check_metadata(value: Any, meta: Any, where: str, out: list[str]) -> None:
-    if "enum" in meta and value not in meta["enum"]:
-        out.append(f"{where}: {value!r} is not one of {', '.join(map(str, meta['enum']))}")
-    if isinstance(value, str):
-        if len(value) < meta.get("min_length", 0):
-            out.append(f"{where}: empty string")
-        if "pattern" in meta and not re.search(meta["pattern"], value):
-            out.append(f"{where}: {value!r:.60} does not match {meta['pattern']}")
-    if isinstance(value, (int, float)) and not isinstance(value, bool) and "minimum" in meta and value < meta["minimum"]:
-        out.append(f"{where}: {value} < {meta['minimum']}")
-
-
-def decode(tp: Any, value: Any, where: str, out: list[str]) -> Any:
-    """``value`` (decoded JSON) as type ``tp``; each misfit appended to ``out`` as one line naming the field."""
-    if not _fits(value, tp):
-        out.append(f"{where}: expected {_type_label(tp)}, got {type(value).__name__} {value!r:.60}")
-        return None
-    origin = get_origin(tp)
-    if origin in (Union, types.UnionType):
-        if value is None:
-            return None
-        return decode(next(a for a in get_args(tp) if a is not type(None) and _fits(value, a)), value, where, out)
-    if origin is tuple:
-        item = get_args(tp)[0]
-        return tuple(decode(item, x, f"{where}[{i}]", out) for i, x in enumerate(value))
-    if origin is dict:
-        item = get_args(tp)[1]
-        if item is Any:
-            return dict(value)
-        return {k: decode(item, v, f"{where}.{k}", out) for k, v in value.items()}
-    if dataclasses.is_dataclass(tp):
-        hints = get_type_hints(tp)
-        kwargs = {}
-        for f in dataclasses.fields(tp):
-            if f.name not in value:
-                if not _optional(f):
-                    out.append(f"{where}.{f.name}: missing")
-                continue
-            v = decode(hints[f.name], value[f.name], f"{where}.{f.name}", out)
-            if value[f.name] is not None:
-                _check_metadata(value[f.name], f.metadata, f"{where}.{f.name}", out)
-            kwargs[f.name] = v
-        try:
-            obj = tp(**kwargs)
-        except TypeError:  # a required field was missing (already reported)
-            return None
-        nulls = frozenset(f.name for f in dataclasses.fields(tp) if _optional(f) and value.get(f.name, 0) is None)
-        if nulls:
-            object.__setattr__(obj, _NULLS, nulls)  # written back as null (not a field: equality ignores it)
-        return obj
-    if tp is float and isinstance(value, int):
-        return value  # an integer-valued number stays as it was written
-    return value
-
-
-_NULLS = "_json_nulls"
-"""The attribute that lists the optional fields a decoded object's JSON held as ``null``."""
-
-
-def _optional(f: dataclasses.Field) -> bool:
-    return f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING
-
-
-def _encode(obj: Any) -> Any:
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        out = {}
-        nulls = getattr(obj, _NULLS, frozenset())
-        for f in dataclasses.fields(obj):
-            v = getattr(obj, f.name)
-            if v is None and _optional(f) and f.name not in nulls:
-                continue
-            out[f.name] = _encode(v)
-        return out
-    if isinstance(obj, tuple):
-        return [_encode(x) for x in obj]
-    if isinstance(obj, dict):
-        return {k: _encode(v) for k, v in obj.items()}
-    return obj

@@ -94,9 +94,9 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _write(out: str, entries: dict, source: str) -> int:
-    from lmgs.fileio import atomic_write_bytes
+    from lmgs.fileio import atomic_write
 
-    atomic_write_bytes(Path(out), sp.encode_frozen(entries, source))
+    atomic_write(Path(out), sp.encode_frozen(entries, source))
     print(f"{out}: {len(entries)} sentences ({source})", file=sys.stderr)
     return 0
 

@@ -177,7 +177,7 @@ def export(net, out_dir: Path, meta: dict) -> dict:
 
     from lmgs.fileio import sha256_file
     from lmgs_eval.metrics.ort import export_onnx
-    from lmgs_eval.paths import atomic_write_text
+    from lmgs.fileio import atomic_write
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -188,7 +188,7 @@ def export(net, out_dir: Path, meta: dict) -> dict:
     m = {"name": "landmark-sync", "context": c, "highpass": int(meta.get("highpass", 0)),
          "input": f"mouth_features windows [N,40,{c}] + audio_features windows [N,13,{4 * c}]", **meta,
          "sha256": sha256_file(out_dir / ONNX_NAME)}
-    atomic_write_text(out_dir / JSON_NAME, json.dumps(m, indent=2))
+    atomic_write(out_dir / JSON_NAME, json.dumps(m, indent=2))
     return m
 
 

@@ -114,7 +114,7 @@ def import_syncnet(state_dict_path: Path) -> dict:
 
     from lmgs.fileio import sha256_file
     from lmgs_eval.metrics.ort import load_torch_state, onnx_cache_dir
-    from lmgs_eval.paths import atomic_write_text
+    from lmgs.fileio import atomic_write
 
     src = Path(state_dict_path)
     sd = load_torch_state(src, "SyncNet state dict")
@@ -140,7 +140,7 @@ def import_syncnet(state_dict_path: Path) -> dict:
     manifest = {"name": "syncnet-v2", "source": str(src), "source_sha256": sha, "onnx": str(out),
                 "onnx_sha256": sha256_file(out), "input_hw": [CROP_SIZE, CROP_SIZE], "region": "full",
                 "pixel": "bgr_0_255"}
-    atomic_write_text(scorers.syncnet_manifest_path(), json.dumps(manifest, indent=2))
+    atomic_write(scorers.syncnet_manifest_path(), json.dumps(manifest, indent=2))
     return manifest
 
 
@@ -151,7 +151,7 @@ def export_bundled(net, out_dir: Path, meta: dict) -> dict:
     added. For the engineer training the bundled scorer.
     """
     from lmgs.fileio import sha256_file
-    from lmgs_eval.paths import atomic_write_text
+    from lmgs.fileio import atomic_write
 
     for k in ("recipe", "seed"):
         if k not in meta:
@@ -161,5 +161,5 @@ def export_bundled(net, out_dir: Path, meta: dict) -> dict:
     _export_sync(net, out_dir / scorers.PIXEL_ONNX, hw)
     m = {"name": "bundled-sync", "input_hw": list(hw), "region": meta.get("region", "lower_half"),
          "pixel": meta.get("pixel", "bgr_0_1"), **meta, "sha256": sha256_file(out_dir / scorers.PIXEL_ONNX)}
-    atomic_write_text(out_dir / scorers.PIXEL_JSON, json.dumps(m, indent=2))
+    atomic_write(out_dir / scorers.PIXEL_JSON, json.dumps(m, indent=2))
     return m

@@ -403,9 +403,9 @@ def main(argv=None) -> int:
         held = render_heldout(heldout_specs(args.heldout, sp), root / "heldout")
         scorer, _ = scorers.load_landmark(args.out)
         m["acceptance"] = acceptance(scorer, held, log=tqdm.write)
-        from lmgs_eval.paths import atomic_write_text
+        from lmgs.fileio import atomic_write
 
-        atomic_write_text(args.out / L.JSON_NAME, json.dumps(m, indent=2))
+        atomic_write(args.out / L.JSON_NAME, json.dumps(m, indent=2))
         print(json.dumps({k: v for k, v in m["acceptance"].items() if k != "per_clip"}, indent=2))
     print(f"wrote {args.out / L.ONNX_NAME} sha256 {m['sha256']}")
     return 0

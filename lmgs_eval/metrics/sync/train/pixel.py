@@ -341,7 +341,7 @@ def main(argv=None) -> int:
         "threads": args.threads, "heldout_torch": q,
     }
     from lmgs.fileio import sha256_file
-    from lmgs_eval.paths import atomic_write_text
+    from lmgs.fileio import atomic_write
 
     args.out.mkdir(parents=True, exist_ok=True)
     m = nets.export_bundled(net, args.out, {"recipe": recipe, "seed": args.seed, "input_hw": list(HW),
@@ -352,7 +352,7 @@ def main(argv=None) -> int:
         m["acceptance"] = acc
         m["recipe"]["total_seconds"] = round(time.time() - t_start, 1)
         assert sha256_file(args.out / "bundled_sync.onnx") == m["sha256"]
-        atomic_write_text(args.out / "bundled_sync.json", json.dumps(m, indent=2))
+        atomic_write(args.out / "bundled_sync.json", json.dumps(m, indent=2))
         print(json.dumps({k: v for k, v in acc.items() if k != "per_clip"}, indent=2))
     print(f"wrote {args.out / 'bundled_sync.onnx'} sha256 {m['sha256']}")
     return 0
