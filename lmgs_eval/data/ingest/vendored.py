@@ -13,6 +13,7 @@ FOLDER = Path(__file__).with_name("models")
 MODELS = {
     "face_landmarks_detector.onnx": ("the face mesh model", "017f267ddd81e042224c43f00a3ef6d548a6595fe2a8e2a2ceacd0214269a79c"),
     "canonical_face_model.obj": ("the canonical face model", "8bac80443397e113f41a8b565ea72c59390bc031d9defab289dba7bc0c54e618"),
+    "face_blendshapes.tflite": ("the face blendshape model", "4f36dded049db18d76048567439b2a7f58f1daabc00d78bfe8f3ad396a2d2082"),
 }
 
 
