@@ -156,5 +156,5 @@ class LMGSMethod:
 
 
 for _name in VARIANTS:
-    register(_name, scene_budget=True)(lambda _v=_name, **kw: LMGSMethod(_v, **kw))
+    register(_name, scene_budget=True, ablation=_name != "lmgs")(lambda _v=_name, **kw: LMGSMethod(_v, **kw))
 

@@ -79,14 +79,16 @@ _PREFIXED: dict[str, Callable[..., TalkingHead]] = {}  # prefix -> factory takin
 # Methods whose Gaussian count is ``budget_density`` x face area (the lmgs backbone family):
 # they take a subject's own knee density, all alike, so a comparison between them stays fair.
 _SCENE_BUDGET: set[str] = set()
+_ABLATIONS: set[str] = set()  # a method's ablation rows (lmgs-no-se, ...): not methods of the field of their own
 EXTERNAL_PREFIX = "external:"
 
 
-def register(name: str, *, scene_budget: bool = False) -> Callable:
+def register(name: str, *, scene_budget: bool = False, ablation: bool = False) -> Callable:
     """Decorator registering a method factory under ``name`` (duplicates are rejected).
 
     ``scene_budget``: the factory takes ``budget_density`` (Gaussians per face pixel), which
     :func:`create_method` sets from a subject that has its own (``subject.budget_density``).
+    ``ablation``: an ablation row of another method (left out of :func:`field_methods`).
     """
 
     def deco(factory):
@@ -95,6 +97,8 @@ def register(name: str, *, scene_budget: bool = False) -> Callable:
         _REGISTRY[name] = factory
         if scene_budget:
             _SCENE_BUDGET.add(name)
+        if ablation:
+            _ABLATIONS.add(name)
         return factory
 
     return deco
@@ -131,6 +135,12 @@ def load_adapters() -> None:
 def list_methods() -> list[str]:
     load_adapters()
     return sorted(_REGISTRY) + [f"{prefix}NAME" for prefix in sorted(_PREFIXED)]
+
+
+def field_methods() -> list[str]:
+    """The methods of the field: every registered method but the ablation rows (``--method all``)."""
+    load_adapters()
+    return sorted(n for n in _REGISTRY if n not in _ABLATIONS)
 
 
 def create_method(name: str, subject: Any = None, hooks: dict[str, Callable] | None = None, **options) -> TalkingHead:

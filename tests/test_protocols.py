@@ -256,6 +256,21 @@ def test_unknown_method_and_subject(tmp_path):
     assert rc == 2 and "unknown subject" in err and "astronaut" in err
 
 
+def test_method_all_is_every_method_of_the_field_without_the_ablation_rows():
+    """``--method all`` expands in place to the registered methods of the field (the nine compared and
+    lmgs), not lmgs's ablation variants nor the external prefix; a method also named stays once."""
+    import argparse
+
+    from lmgs_eval.cli import build_parser
+    from lmgs_eval.commands._common import run_config
+
+    args = build_parser().parse_args(["self", "--method", "wav2lip", "--method", "all", "--results", "/tmp/unused"])
+    methods = run_config(args).methods
+    assert isinstance(args, argparse.Namespace) and methods[0] == "wav2lip" and len(methods) == len(set(methods)) == 10
+    assert {"lmgs", "talkinggaussian", "ernerf", "radnerf", "adnerf", "geneface", "gaussiantalker", "degstalk", "ip_lap"} <= set(methods)
+    assert not any(m.startswith("lmgs-") or m.startswith("external:") for m in methods)
+
+
 def test_a_training_that_diverges_is_one_line_and_exit_1(tmp_path, monkeypatch):
     import lmgs_eval.runner as runner
     from lmgs.train import TrainingDiverged

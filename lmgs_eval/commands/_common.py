@@ -10,7 +10,8 @@ from pathlib import Path
 def add_run_arguments(p: argparse.ArgumentParser, default_methods: tuple[str, ...] = ("lmgs",)) -> None:
     p.add_argument("--subject", default="astronaut", help="bundled name, folder name under the data root, or a path (default astronaut)")
     p.add_argument("--method", dest="methods", action="append", metavar="M",
-                   help=f"method to run (repeatable; default {', '.join(default_methods)}; `lmgs-eval methods` lists them)")
+                   help=f"method to run (repeatable; default {', '.join(default_methods)}; `all`: every method of the field, "
+                        "the ablation variants aside; `lmgs-eval methods` lists them)")
     p.add_argument("--preset", default="quick", choices=["quick", "paper"], help="training preset (quick: CPU minutes)")
     p.add_argument("--seed", dest="seeds", type=int, action="append", metavar="N", help="seed (repeatable; default 0)")
     p.add_argument("--results", default="results", help="results store folder (default ./results)")
@@ -29,13 +30,14 @@ def add_run_arguments(p: argparse.ArgumentParser, default_methods: tuple[str, ..
 
 
 def run_config(args: argparse.Namespace):
-    from baselines.protocol import list_methods
+    from baselines.protocol import field_methods, list_methods
     from lmgs.device import choose_device
     from lmgs_eval.commands._sync import suite
     from lmgs_eval.runner import RunConfig
 
-
     methods = tuple(args.methods or args._default_methods)
+    if "all" in methods:  # in place, the rest kept once in order
+        methods = tuple(dict.fromkeys(m for x in methods for m in (field_methods() if x == "all" else [x])))
     known = list_methods()
     for m in methods:
         if not m.startswith("external:") and m not in known:
