@@ -70,9 +70,11 @@ def test_bench_ingested_puts_the_two_folders_side_by_side(tmp_path):
     true = rows["PSNR dB against the generator's frames"]
     assert true["generator"] == pytest.approx(full["generator"], abs=0.01)  # the generator's ground truth is its frames
     assert 20 < true["ingested"] and true["ingested - decoded"] == pytest.approx(true["ingested"] - true["decoded"])
-    # measured: full frame -4.3 dB, away from the outlines -0.4 dB (16 % of the pixels left out):
-    # the ingest's frames and poses train as well as the generator's, the outlines differ
-    assert abs(away["ingested - generator"]) < abs(full["ingested - generator"])
+    # measured: the full frame and away from the outlines (16 % of the pixels left out) each 1.2 dB
+    # from the generator's (with the earlier focal search's 5-width camera the full frame was 4.3 dB
+    # short, 0.4 away from the outlines): at these short schedules the ingest's frames and cameras
+    # train about as well as the generator's
+    assert abs(full["ingested - generator"]) < 2.5 and abs(away["ingested - generator"]) < 2.5
     assert "% of the test pixels left out" in away["note"]
     assert "head IoU" in got["ingest accuracy"]
     assert not Path(got["ingested"].split(" (")[0]).exists()  # the ingest is temporary
@@ -194,7 +196,8 @@ def test_bench_ingest_on_a_lossless_video_scores_the_ingest_alone(tmp_path):
     assert not (tmp_path / "data").exists()  # the copy went with the temporary folder
     assert {r["stage"] for r in got["rows"]} >= {"decode_track", "parsing", "composites"}
     # lossless, the gt_imgs differ from the true frames only where the masks and the plate do
-    # (measured 44.9 dB, person IoU 0.948 at this size; 36.6 dB from the subject's H.264 video)
-    assert got["gt_psnr"] > 41.0 and got["person_iou"] > 0.9
+    # (measured 45.3 dB, person IoU 0.975 at this size, head IoU 0.966; 36.6 dB from the subject's
+    # H.264 video; with GrabCut's person, grown against the plate: 44.9 dB, person IoU 0.948)
+    assert got["gt_psnr"] > 41.0 and got["person_iou"] > 0.95 and got["head_iou"] > 0.94
     rc, _, err = run_cli("bench", "ingest", "--video", str(tmp_path / "x.mp4"), "--lossless")
     assert rc == 2 and "--video" in err and "Traceback" not in err
