@@ -32,11 +32,11 @@ def test_ingest_matches_the_generators_truth(truth, ingested):
     folder, _ = ingested
     got = compare(truth, folder)
     # measured (this fixture): landmarks 1.05 px (mouth 1.47), rotation 0.30 deg (the truth
-    # moves 1.55 deg from its mean on average), distance 0.24 %, head IoU 0.886, plate
+    # moves 1.55 deg from its mean on average), distance 0.24 %, head IoU 0.887, plate
     # 35.2 dB, blink r 0.85, audio (AAC) 40.6 dB. The head IoU was 0.927 (0.925 with the
     # segmenter's person) while the head label stopped at the head outline: this fixture's hair
     # beside the jaw is a still layer its truth labels torso, which the ingest now labels head,
-    # as hair on a camera moves with the head (``--hair head`` truth: 0.97)
+    # as hair on a camera moves with the head (the subject with its hair on the head: 0.972)
     assert got["landmark_px"] < 1.5
     assert got["mouth_landmark_px"] < 2.0
     assert got["rotation_deg"] < 0.8
@@ -106,8 +106,9 @@ def test_ingested_subject_reads_and_is_complete(ingested):
 
 def test_the_per_frame_layers_agree_with_the_parsing(ingested):
     """Read back with OpenCV: a parsing map holds ER-NeRF's four colours only; ``gt_imgs`` is the
-    frame inside the person and the plate (``bc.jpg``) outside it (to JPEG's error); ``torso_imgs``
-    keeps the frame's own neck and torso pixels exactly and opaque; the teeth lie in the head."""
+    frame inside the person and on its soft rim (the person grown against the plate), the plate
+    (``bc.jpg``) beyond (to JPEG's error); ``torso_imgs`` keeps the frame's own neck and torso
+    pixels exactly and opaque; the teeth lie in the head."""
     folder, _ = ingested
 
     def rgb(path, flags=cv2.IMREAD_COLOR):
@@ -128,10 +129,18 @@ def test_the_per_frame_layers_agree_with_the_parsing(ingested):
         person = head | body
         assert 0.02 < head.mean() and 0.02 < body.mean() and person.mean() < 0.9
         frame, gt = rgb(folder / "ori_imgs" / f"{i}.jpg"), rgb(folder / "gt_imgs" / f"{i}.jpg")
-        # measured: 50 dB inside the person, 51 dB outside against the plate, where the frame
-        # itself is 46-47 dB from the plate
-        assert psnr(gt[person], frame[person]) > 40 and psnr(gt[~person], bc[~person]) > 40, i
-        assert psnr(gt[~person], bc[~person]) > psnr(frame[~person], bc[~person]) + 2, i  # the plate, not the frame
+        # the parsing draws the person at half cover; gt_imgs keep its soft rim, up to GROW_REACH
+        # of the side out (frames.composite). Measured: 50-51 dB inside the person, 60 dB beyond
+        # the rim against the plate, where the frame itself is 52-57 dB from the plate; each rim
+        # pixel is the frame's or the plate's (1.4 levels off on average: JPEG)
+        from lmgs_eval.data.ingest.parsing import GROW_REACH
+
+        reach = int(round(GROW_REACH * SIZE))
+        near = cv2.dilate(person.astype(np.uint8), np.ones((2 * reach + 1,) * 2, np.uint8)) > 0
+        rim = near & ~person
+        assert psnr(gt[person], frame[person]) > 40 and psnr(gt[~near], bc[~near]) > 40, i
+        assert psnr(gt[~near], bc[~near]) > psnr(frame[~near], bc[~near]) + 2, i  # the plate, not the frame
+        assert np.minimum(np.abs(gt[rim] - frame[rim]).max(-1), np.abs(gt[rim] - bc[rim]).max(-1)).mean() < 4, i
         torso = rgb(folder / "torso_imgs" / f"{i}.png", cv2.IMREAD_UNCHANGED)
         assert np.array_equal(torso[..., :3][body], frame[body]) and np.all(torso[..., 3][body] == 255), i
         teeth = np.load(folder / "teeth_mask" / f"{i}.npy")

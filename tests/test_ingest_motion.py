@@ -50,7 +50,9 @@ def test_turning_head_against_the_truth(turning):
     # fit turns the head about 3/4 as far as it turns: dlib's nose and mouth points follow
     # 60-70 % of the surface points' motion on this head); landmarks 2.58 px, 1.86 without the
     # jaw contour (silhouette against surface points), mouth 2.43; distance 1.27 %; head IoU
-    # 0.857; focal found 2.47 widths (true 2.5; the search's curve is flat, see design.md)
+    # 0.844 (0.857 while the head label stopped at the head outline: the truth's hair beside the
+    # jaw is a still layer it labels torso, the ingest labels it head); focal found 2.47 widths
+    # (true 2.5; the search's curve is flat, see design.md)
     assert got["rotation_spread_deg"] > 15.0  # the head does turn
     assert got["rotation_deg"] < 9.0
     assert got["rotation_deg"] < 0.5 * got["rotation_spread_deg"]
@@ -83,5 +85,5 @@ def test_zooming_camera_is_flagged_and_read_as_distance(zooming):
     # the whole zoom went into the camera's distance (measured slope -0.98, mean error 5.1 %)
     assert got["distance_zoom_slope"] < -0.8 and got["translation_rel"] > 0.03
     # the head itself is fitted as well as before a still camera (measured: rotation 0.36 deg,
-    # landmarks 1.11 px, head IoU 0.915)
+    # landmarks 1.11 px, head IoU 0.890; 0.915 with the head label at the head outline, as above)
     assert got["rotation_deg"] < 0.8 and got["landmark_px"] < 1.5 and got["head_iou"] > 0.88

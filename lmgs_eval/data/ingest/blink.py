@@ -22,8 +22,6 @@ Landmarker's at r = 0.95.
 from __future__ import annotations
 
 import functools
-import os
-import sys
 import threading
 from pathlib import Path
 
@@ -70,20 +68,6 @@ EYE_BLINK_LEFT, EYE_BLINK_RIGHT = NAMES.index("eyeBlinkLeft"), NAMES.index("eyeB
 AU45_MAX = 5.0  # the top of OpenFace's intensity scale
 
 
-def _allocate_quietly(interpreter) -> None:
-    """``allocate_tensors`` with standard error held back: the runtime announces its XNNPACK delegate
-    there once per process, and the ingest's output is its own."""
-    sys.stderr.flush()
-    saved = os.dup(2)
-    try:
-        with open(os.devnull, "wb") as null:
-            os.dup2(null.fileno(), 2)
-            interpreter.allocate_tensors()
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
-
-
 class Blendshapes:
     """The blendshape model in a LiteRT interpreter: :meth:`__call__` scores one face's 146 points."""
 
@@ -95,7 +79,7 @@ class Blendshapes:
         what, sha = vendored.MODELS[MODEL]
         path = vendored.checked(vendored.FOLDER / MODEL if path is None else path, sha, what)
         self.interpreter = Interpreter(model_path=str(path), num_threads=1)  # a small model: more threads gain nothing
-        _allocate_quietly(self.interpreter)
+        vendored.allocate_quietly(self.interpreter)
         (inp,), (out,) = self.interpreter.get_input_details(), self.interpreter.get_output_details()
         if tuple(inp["shape"]) != (1, len(SUBSET), 2) or tuple(out["shape"]) != (len(NAMES),):
             raise UserError(f"{path}: the face blendshape model takes {tuple(inp['shape'])} and gives "

@@ -2,8 +2,8 @@
 
 Each function handles frames ``[a, b)`` of the subject folder ``sub`` and writes their files;
 nothing depends on another chunk, so :func:`run_chunks` can spread the chunks over processes.
-Parsing chunks start on a GrabCut keyframe (a multiple of :data:`parsing.KEYFRAME`), so the
-colour models, and hence every file, are the same for any number of processes.
+No frame's result depends on another's (the person segmenter has no state; each process loads
+its own), so every file is the same for any number of processes.
 """
 
 from __future__ import annotations
@@ -15,22 +15,25 @@ import numpy as np
 
 from lmgs_eval.data.geometry import DEPTH_SCALE, render_prior
 from lmgs_eval.data.images import read_rgb_u8, write_depth, write_normal, write_png, write_rgb
-from lmgs_eval.data.ingest.parsing import KEYFRAME, Parts, mouth_mask, person_mask, refine_person, split_parts, torso_layer
+from lmgs_eval.data.ingest.parsing import Parts, mouth_mask, person_from, refine_person, split_parts, torso_layer, with_rim
 from lmgs_eval.errors import UserError
 
-CHUNK = 2 * KEYFRAME
+CHUNK = 50  # frames per chunk
 
 
 PNG_COMPRESSION = 1  # zlib level of the masks, parsing, normal and torso PNGs (lossless; 3-4x faster to write)
 
 
 def parse(sub: Path, masks: Path, lms: np.ndarray, a: int, b: int, keep: frozenset) -> list[tuple[int, np.ndarray, np.ndarray]]:
-    """GrabCut's person masks of frames ``[a, b)``, written into ``masks``; returns ``(k, frame,
-    person)`` of the frames in ``keep`` (the plate's samples)."""
-    out, model = [], None
+    """The person masks of frames ``[a, b)`` (the segmenter's, :func:`parsing.person_from`), written
+    into ``masks``; returns ``(k, frame, person)`` of the frames in ``keep`` (the plate's samples)."""
+    from lmgs_eval.data.ingest.segment import segmenter
+
+    seg = segmenter()
+    out = []
     for i in range(a, b):
         img = read_rgb_u8(sub / "ori_imgs" / f"{i}.jpg")
-        person, model = person_mask(img, lms[i], None if i % KEYFRAME == 0 or model is None else model)
+        person = person_from(seg.probability(img), lms[i])
         write_png(masks / f"{i}.png", person.astype(np.uint8) * 255, PNG_COMPRESSION)
         if i in keep:
             out.append((i, img, person))
@@ -38,15 +41,12 @@ def parse(sub: Path, masks: Path, lms: np.ndarray, a: int, b: int, keep: frozens
 
 
 def refine(sub: Path, masks: Path, lms: np.ndarray, a: int, b: int) -> None:
-    """Parsing maps and mouth masks of frames ``[a, b)``: GrabCut's person grown against the
-    plate (``bc.jpg``), then split into head, neck and torso."""
-    bc = read_rgb_u8(sub / "bc.jpg")
+    """Parsing maps and mouth masks of frames ``[a, b)``: the person split into head, neck and torso."""
     for i in range(a, b):
-        img = read_rgb_u8(sub / "ori_imgs" / f"{i}.jpg")
-        person = refine_person(read_rgb_u8(masks / f"{i}.png")[..., 0] > 127, img, bc)
+        person = read_rgb_u8(masks / f"{i}.png")[..., 0] > 127
         parts = split_parts(person, lms[i])
         write_png(sub / "parsing" / f"{i}.png", parts.colour_map(), PNG_COMPRESSION)
-        np.save(sub / "teeth_mask" / f"{i}.npy", mouth_mask(lms[i], img.shape[:2]) & parts.head)
+        np.save(sub / "teeth_mask" / f"{i}.npy", mouth_mask(lms[i], person.shape) & parts.head)
 
 
 def geometry(sub: Path, w2c: np.ndarray, focal: float, centre: np.ndarray, axes: np.ndarray, a: int, b: int) -> None:
@@ -60,13 +60,15 @@ def geometry(sub: Path, w2c: np.ndarray, focal: float, centre: np.ndarray, axes:
 
 
 def composite(sub: Path, a: int, b: int) -> None:
-    """``gt_imgs`` (the frame over the plate outside the person) and ``torso_imgs`` (RGBA)."""
+    """``gt_imgs`` (the frame over the plate outside the person grown against the plate: its soft
+    rim kept) and ``torso_imgs`` (RGBA; the rim beside the neck and torso with them)."""
     bc = read_rgb_u8(sub / "bc.jpg")
     for i in range(a, b):
         img = read_rgb_u8(sub / "ori_imgs" / f"{i}.jpg")
         parts = Parts.from_colour_map(read_rgb_u8(sub / "parsing" / f"{i}.png"))
-        write_rgb(sub / "gt_imgs" / f"{i}.jpg", np.where(parts.person[..., None], img, bc))
-        rgb, alpha = torso_layer(img, parts)
+        grown = refine_person(parts.person, img, bc)
+        write_rgb(sub / "gt_imgs" / f"{i}.jpg", np.where(grown[..., None], img, bc))
+        rgb, alpha = torso_layer(img, with_rim(parts, grown))
         rgba = np.concatenate([rgb, alpha[..., None].astype(np.uint8) * 255], -1)
         write_png(sub / "torso_imgs" / f"{i}.png", rgba, PNG_COMPRESSION)
 

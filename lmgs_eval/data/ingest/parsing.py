@@ -1,26 +1,27 @@
 """Person, head, neck and torso masks per frame; the background plate; the mouth mask.
 
-No learned parser is available offline (ER-NeRF uses BiSeNet), so the person is separated
-from the background by GrabCut on a reduced copy of each frame, seeded by the face geometry
-the landmarks give (the same seeding the bundled generator uses on its photographs):
-certainly person inside the face and below the chin, probably person in a head prior (an
-ellipse over the brows, the jaw below) and the shoulders, certainly background in the upper
-frame corners outside a widened head prior. The person is then split by the head prior:
-head (face and hair) inside it, down to the jaw line itself (what lies below it is neck, which
-does not move with the head), the neck below the chin within the jaw's width, the torso the
-rest. The torso layer (:func:`torso_layer`) continues the neck and torso up behind the head.
+The person comes from a learned segmenter (:mod:`lmgs_eval.data.ingest.segment`: MediaPipe's
+selfie segmentation model): its probability map, at the frame's size, cut at one half, joined
+with the face polygon of the landmarks and made one blob (:func:`person_from`). Half cover is
+where the field's parsers draw the outline; hair, a cap and the shoulders down to the frame's
+edge are person as the model sees them, with no colour model to confuse them with a background
+of like colour.
 
-GrabCut learns its colour models on every ``KEYFRAME``-th frame and only cuts, with the models
-frozen, in between. The core of the head prior is seeded as certain person, so the hair's
-colours belong to the person's model; hair that hangs outside the prior (long hair beside the
-neck) is found only where its colour differs from the background's.
+The person is split by the landmarks: head = the person inside a generous head outline (an
+ellipse over the brows, the jaw landmarks below) and, beside the jaw's upper part, all of the
+person within the head's width (ears and hair move with the head); below the jaw line
+lies neck, which does not move with the head. The neck is what lies below the chin within the
+jaw's width, the torso the rest. The torso layer (:func:`torso_layer`) continues the neck and
+torso up behind the head.
 
 The plate (``bc.jpg``) assumes a static camera: each pixel is the median of the frames where
 it is background (the person dilated away); pixels the person never uncovers are inpainted
 (OpenCV Telea). The residual of the background against the plate is the static-camera check.
-With the plate known, each frame's person is grown at full resolution into the pixels next to
-it that differ from the plate (:func:`refine_person`): GrabCut's reduced copy misses the soft
-rim of the outline, whose pixels would otherwise take the plate's colour in ``gt_imgs``.
+The soft rim of the outline (pixels under half cover that still carry the person's colour)
+is background in the parsing but kept in the frame's images: ``gt_imgs`` take the person grown
+against the plate (:func:`refine_person`), and ``torso_imgs`` the part of that rim that lies
+nearer the neck and torso than the head (:func:`with_rim`), so those pixels do not take the
+plate's colour.
 """
 
 from __future__ import annotations
@@ -30,10 +31,10 @@ from dataclasses import dataclass
 import numpy as np
 
 PARSING_COLOURS = {"background": (255, 255, 255), "head": (255, 0, 0), "neck": (0, 255, 0), "torso": (0, 0, 255)}
-GRABCUT_SIDE = 160  # GrabCut runs at this size (the masks are upsampled with a smooth edge)
-KEYFRAME = 25  # frames between GrabCut's colour-model updates (frozen models in between)
-HAIR_UP = 0.85  # head prior: its top above the brows, in face heights (brow to chin)
+HAIR_UP = 0.85  # head prior (the zoom check's): its top above the brows, in face heights (brow to chin)
 HEAD_WIDE = 1.55  # head prior: half width in jaw half widths
+LABEL_UP, LABEL_WIDE = 1.2, 2.2  # the head label's outline, as above: generous, since the person bounds it
+CUT = 0.5  # the segmenter's probability at which a pixel is person
 PLATE_MARGIN = 0.012  # the person grown by this fraction of the frame before its pixels count as background
 GROW_REACH = 0.025  # against the plate, the person grows by at most this fraction of the frame side...
 DIFF_FLOOR, NOISE_K = 10.0, 5.0  # ...into pixels that differ from it by over max(DIFF_FLOOR, NOISE_K x the background's median difference)
@@ -50,7 +51,7 @@ def _poly(pts: np.ndarray, shape) -> np.ndarray:
 def head_outline(lms: np.ndarray, hair_up: float = HAIR_UP, head_wide: float = HEAD_WIDE, n: int = 72,
                  jaw_out: float = 0.04) -> np.ndarray:
     """A prior outline of the head (face + hair) ``[n, 2]``: the jaw below, an ellipse above
-    (``jaw_out``: the jaw line pushed out by that fraction, as GrabCut's prior; 0 for the label)."""
+    (``jaw_out``: the jaw line pushed out by that fraction; 0: on the jaw landmarks themselves)."""
     from lmgs_eval.data.bundled.photo import PhotoSpec
     from lmgs_eval.data.bundled.photo import head_outline as outline
 
@@ -72,56 +73,15 @@ def one_blob(mask: np.ndarray) -> np.ndarray:
     return (out[1:-1, 1:-1] != 2)
 
 
-def person_mask(img: np.ndarray, lms: np.ndarray, model: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, tuple]:
-    """The person (head, neck, torso) in one frame, bool ``[H, W]``, by seeded GrabCut.
+def face_polygon(lms: np.ndarray, shape) -> np.ndarray:
+    """The face inside the jaw and the brows, bool ``shape``: always person."""
+    return _poly(np.concatenate([lms[:17], lms[26:16:-1]]), shape)
 
-    With ``model`` (the colour models a keyframe learned) one graph cut runs with the models
-    frozen (``GC_EVAL_FREEZE_MODEL``: a fifth of the cost); without, three iterations learn
-    them from the seeds. Returns the mask and the models.
-    """
-    import cv2
 
-    h, w = img.shape[:2]
-    s = min(1.0, GRABCUT_SIDE / max(h, w))
-    sh, sw = max(8, int(round(h * s))), max(8, int(round(w * s)))
-    small = cv2.resize(img, (sw, sh), interpolation=cv2.INTER_AREA)
-    l = lms * [sw / w, sh / h]
-    yy, xx = np.mgrid[0:sh, 0:sw] + 0.5
-    fh = l[8, 1] - l[17:27, 1].mean()
-    jw = l[16, 0] - l[0, 0]
-    jcx = 0.5 * (l[0, 0] + l[16, 0])
-    gc = np.full((sh, sw), cv2.GC_PR_BGD, np.uint8)
-    prior = head_outline(l)
-    gc[_poly(prior, (sh, sw))] = cv2.GC_PR_FGD
-    # the head prior's core (shrunk to 80 % about the face centre) is certainly face or hair:
-    # seeding it makes the hair's colours part of the person's model, not the background's
-    fc = l[:68].mean(0)
-    gc[_poly(fc + 0.8 * (prior - fc), (sh, sw))] = cv2.GC_FGD
-    shoulders = (yy > l[8, 1] + 0.1 * fh) & (np.abs(xx - jcx) < 0.45 * jw + 1.6 * np.maximum(0, yy - l[8, 1]))
-    gc[shoulders] = cv2.GC_PR_FGD
-    gc[(yy > l[8, 1] + 0.35 * fh) & (np.abs(xx - jcx) < 0.3 * jw)] = cv2.GC_FGD
-    face = _poly(np.concatenate([l[:17], l[26:16:-1]]), (sh, sw))
-    gc[cv2.erode(face.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)] = cv2.GC_FGD
-    outside = ~_poly(head_outline(l, HAIR_UP + 0.3, HEAD_WIDE * 1.3), (sh, sw))
-    gc[outside & (yy < l[0, 1])] = cv2.GC_BGD
-    cv2.setRNGSeed(0)
-    bgr = np.ascontiguousarray(small[:, :, ::-1])
-    seeds = gc.copy()
-    try:
-        if model is not None:
-            bgd, fgd = model[0].copy(), model[1].copy()
-            cv2.grabCut(bgr, gc, None, bgd, fgd, 1, cv2.GC_EVAL_FREEZE_MODEL)
-        else:
-            bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
-            cv2.grabCut(bgr, gc, None, bgd, fgd, 3, cv2.GC_INIT_WITH_MASK)
-            model = (bgd, fgd)
-    except cv2.error:  # a degenerate frame (e.g. uniform): keep the seeds
-        gc = seeds
-    fg = ((gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD)).astype(np.uint8)
-    fg = cv2.morphologyEx(fg, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
-    fg = one_blob(fg.astype(bool)).astype(np.float32)
-    big = cv2.resize(cv2.GaussianBlur(fg, (0, 0), 0.7), (w, h), interpolation=cv2.INTER_LINEAR)
-    return (big >= 0.5) | _poly(np.concatenate([lms[:17], lms[26:16:-1]]), (h, w)), model
+def person_from(prob: np.ndarray, lms: np.ndarray) -> np.ndarray:
+    """The person of one frame, bool ``[H, W]``: the segmenter's probability at or above
+    :data:`CUT` with the face polygon, one blob (:func:`one_blob`)."""
+    return one_blob((prob >= CUT) | face_polygon(lms, prob.shape))
 
 
 def plate_difference(img: np.ndarray, plate: np.ndarray) -> np.ndarray:
@@ -131,15 +91,14 @@ def plate_difference(img: np.ndarray, plate: np.ndarray) -> np.ndarray:
 
 
 def refine_person(person: np.ndarray, img: np.ndarray, plate: np.ndarray) -> np.ndarray:
-    """The person of :func:`person_mask` grown, at full resolution, into the pixels next to it
-    that differ from the plate.
+    """The person grown, at full resolution, into the pixels next to it that differ from the plate.
 
-    GrabCut cuts a reduced copy of the frame, so its outline can miss a pixel or two of the
-    person all round, and more where hair or a collar meets a background of like colour; those
-    pixels would take the plate's colour in ``gt_imgs``. Where the camera is still, what differs
-    from the plate is the person: the mask grows one pixel at a time into pixels that differ by
-    more than the noise (the floor or a multiple of the median difference away from the person,
-    whichever is larger), at most :data:`GROW_REACH` of the frame side out.
+    An outline drawn at half cover leaves out the soft rim of the person (hair and a collar's
+    edge over a background of like colour most); in ``gt_imgs`` those pixels would take the
+    plate's colour. Where the camera is still, what differs from the plate is the person: the
+    mask grows one pixel at a time into pixels that differ by more than the noise (the floor or
+    a multiple of the median difference away from the person, whichever is larger), at most
+    :data:`GROW_REACH` of the frame side out.
     """
     import cv2
 
@@ -185,18 +144,49 @@ class Parts:
         return self.head | self.neck | self.torso
 
 
+def head_label(lms: np.ndarray, shape) -> np.ndarray:
+    """Where the head label may lie, bool ``shape``: inside a generous head outline (:data:`LABEL_UP`,
+    :data:`LABEL_WIDE`) on the jaw line itself, and beside the jaw's upper part, from the higher of
+    its ends (landmarks 0 and 16) down to the lower of landmarks 2 and 14, within the outline's
+    width: the ears, and hair that hangs there, move with the head."""
+    h, w = shape
+    zone = _poly(head_outline(lms, LABEL_UP, LABEL_WIDE, jaw_out=0.0), shape)
+    jw = lms[16, 0] - lms[0, 0]
+    jcx = 0.5 * (lms[0, 0] + lms[16, 0])
+    yy, xx = np.ogrid[0:h, 0:w]
+    yy, xx = yy + 0.5, xx + 0.5
+    beside = (yy > min(lms[0, 1], lms[16, 1])) & (yy < max(lms[2, 1], lms[14, 1])) & (np.abs(xx - jcx) < 0.5 * LABEL_WIDE * jw)
+    return zone | beside
+
+
 def split_parts(person: np.ndarray, lms: np.ndarray) -> Parts:
-    """Head = person inside the head prior; neck = the rest below the chin within the jaw's
+    """Head = person inside :func:`head_label`; neck = the rest below the chin within the jaw's
     width, down to 0.7 face heights under the chin; torso = the remainder."""
     h, w = person.shape
-    head = person & _poly(head_outline(lms, jaw_out=0.0), (h, w))
-    yy, xx = np.mgrid[0:h, 0:w] + 0.5
+    head = person & head_label(lms, (h, w))
+    yy, xx = np.ogrid[0:h, 0:w]
+    yy, xx = yy + 0.5, xx + 0.5
     fh = lms[8, 1] - lms[17:27, 1].mean()
     jw = lms[16, 0] - lms[0, 0]
     jcx = 0.5 * (lms[0, 0] + lms[16, 0])
     neck = person & ~head & (np.abs(xx - jcx) < 0.42 * jw) & (yy < lms[8, 1] + 0.7 * fh) & (yy > lms[4, 1])
     torso = person & ~head & ~neck
     return Parts(head, neck, torso)
+
+
+def with_rim(parts: Parts, grown: np.ndarray) -> Parts:
+    """``parts`` with the rim of ``grown`` (the person grown against the plate, :func:`refine_person`)
+    added to the torso where it lies nearer the neck or torso than the head: the parts the torso
+    layer is drawn from. The head's share of the rim is left to the head's renderer."""
+    import cv2
+
+    rim = grown & ~parts.head & ~parts.neck & ~parts.torso
+    body = parts.neck | parts.torso
+    if not rim.any() or not body.any():
+        return parts
+    to_head = cv2.distanceTransform((~parts.head).astype(np.uint8), cv2.DIST_L2, 3)
+    to_body = cv2.distanceTransform((~body).astype(np.uint8), cv2.DIST_L2, 3)
+    return Parts(parts.head, parts.neck, parts.torso | (rim & (to_body < to_head)))
 
 
 # The torso layer continued up behind the head, as the field's processing writes ``torso_imgs``:

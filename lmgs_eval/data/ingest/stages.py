@@ -182,8 +182,8 @@ def pose(ctx, sel) -> None:
 
 
 def parsing(ctx, sel) -> None:
-    """Per-frame person masks (GrabCut); the plate from their background pixels; then the parsing
-    maps and mouth masks, each person grown against the plate where GrabCut's outline fell short."""
+    """Per-frame person masks (the selfie segmenter); the plate from their background pixels; then
+    the parsing maps and mouth masks."""
     t0 = time.perf_counter()
     lms = sel["lms"]
     n, s = len(lms), ctx.cfg.size

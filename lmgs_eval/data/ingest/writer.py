@@ -50,7 +50,7 @@ def tool_versions() -> dict[str, str]:
     import importlib.metadata as md
 
     out = {}
-    for pkg in ("lmgs", "dlib", "opencv-contrib-python-headless", "opencv-python-headless", "opencv-python", "av", "numpy", "scipy", "torch"):
+    for pkg in ("lmgs", "dlib", "opencv-contrib-python-headless", "opencv-python-headless", "opencv-python", "av", "numpy", "scipy", "torch", "onnxruntime", "ai-edge-litert"):
         try:
             out[pkg] = md.version(pkg)
         except md.PackageNotFoundError:
