@@ -266,7 +266,10 @@ def test_method_all_is_every_method_of_the_field_without_the_ablation_rows():
 
     args = build_parser().parse_args(["self", "--method", "wav2lip", "--method", "all", "--results", "/tmp/unused"])
     methods = run_config(args).methods
-    assert isinstance(args, argparse.Namespace) and methods[0] == "wav2lip" and len(methods) == len(set(methods)) == 10
+    from baselines.protocol import field_methods
+
+    # other tests may register methods of their own in this process: compare with the registry's field
+    assert isinstance(args, argparse.Namespace) and methods == ("wav2lip",) + tuple(m for m in field_methods() if m != "wav2lip")
     assert {"lmgs", "talkinggaussian", "ernerf", "radnerf", "adnerf", "geneface", "gaussiantalker", "degstalk", "ip_lap"} <= set(methods)
     assert not any(m.startswith("lmgs-") or m.startswith("external:") for m in methods)
 
