@@ -29,8 +29,7 @@ from lmgs_eval.data.ingest import vendored
 from lmgs_eval.errors import UserError
 
 MODEL = vendored.FOLDER / "selfie_segmentation.tflite"  # shipped (:mod:`vendored`, ``models/README.md``)
-MODEL_SHA256 = "8d13b7fae74af625c641226813616a2117bd6bca19eb3b75574621fc08557f27"
-WHAT = "the person segmentation model"
+WHAT, MODEL_SHA256 = vendored.MODELS[MODEL.name]  # the one list of shipped models and their sha256
 SIDE = 256  # the model's input and output side
 PAD = 0.1  # the frame is continued by this fraction of its side to the left, right and bottom
 
