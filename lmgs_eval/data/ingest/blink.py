@@ -76,8 +76,7 @@ class Blendshapes:
 
         from lmgs_eval.data.ingest import vendored
 
-        what, sha = vendored.MODELS[MODEL]
-        path = vendored.checked(vendored.FOLDER / MODEL if path is None else path, sha, what)
+        path = vendored.model(MODEL, path)
         self.interpreter = Interpreter(model_path=str(path), num_threads=1)  # a small model: more threads gain nothing
         vendored.allocate_quietly(self.interpreter)
         (inp,), (out,) = self.interpreter.get_input_details(), self.interpreter.get_output_details()

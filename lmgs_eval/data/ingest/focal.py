@@ -54,8 +54,7 @@ def canonical_face(path: Path | None = None) -> np.ndarray:
     a camera it faces); default the shipped file; a missing or altered file is a :class:`UserError` naming it."""
     from lmgs_eval.data.ingest import vendored
 
-    what, sha = vendored.MODELS[CANONICAL]
-    path = vendored.checked(vendored.FOLDER / CANONICAL if path is None else path, sha, what)
+    path = vendored.model(CANONICAL, path)
     v = [line.split()[1:4] for line in path.read_text().splitlines() if line.startswith("v ")]
     return np.asarray(v, np.float64) / 100.0 * np.array([1.0, -1.0, -1.0])
 

@@ -35,8 +35,7 @@ def load_session(path: Path | None = None):
 
     from lmgs_eval.data.ingest import vendored
 
-    what, sha = vendored.MODELS[MODEL]
-    path = vendored.checked(vendored.FOLDER / MODEL if path is None else path, sha, what)
+    path = vendored.model(MODEL, path)
     opts = ort.SessionOptions()
     opts.log_severity_level = 3
     return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
