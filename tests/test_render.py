@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 import math
 
 import pytest
@@ -266,16 +267,54 @@ def test_bad_shapes_and_backend():
         rasterize(*p, _camera(), backend="gsplat")
 
 
-def test_backend_follows_the_tensors_device():
-    """CPU tensors take numba; tensors elsewhere take gsplat (CUDA, when installed) or the
-    pure-torch compositor, never the CPU kernels (``meta`` stands for a device without gsplat)."""
-    from lmgs.render.rasterize import _choose_backend
+def test_backend_follows_the_tensors_device(monkeypatch):
+    """CPU tensors take numba; CUDA tensors take gsplat, else Triton, else the numba compositing
+    on the CPU (with one warning, never silently the pure-torch compositor, many times slower
+    on a GPU than that); other devices (``meta`` here) the pure-torch compositor."""
+    r = importlib.import_module("lmgs.render.rasterize")
 
-    assert _choose_backend("auto", torch.device("cpu")) == "numba"
-    assert _choose_backend("auto", torch.device("meta")) == "torch"
-    assert _choose_backend("torch", torch.device("meta")) == "torch"
-    with pytest.raises(InputError, match="backend='numba' needs CPU tensors"):
-        _choose_backend("numba", torch.device("meta"))
+    assert r._choose_backend("auto", torch.device("cpu")) == "numba"
+    assert r._choose_backend("auto", torch.device("meta")) == "torch"
+    assert r._choose_backend("torch", torch.device("meta")) == "torch"
+    with pytest.raises(InputError, match="backend='numba' needs CPU"):
+        r._choose_backend("numba", torch.device("meta"))
+    assert r._choose_backend("numba", torch.device("cuda")) == "numba"
+    for gs, tr, want in ((True, True, "gsplat"), (False, True, "triton"), (False, False, "numba")):
+        monkeypatch.setattr(r, "gsplat_available", lambda gs=gs: gs)
+        monkeypatch.setattr(r, "triton_available", lambda tr=tr: tr)
+        r._warn_cpu_compositing.cache_clear()
+        if want == "numba":
+            with pytest.warns(RuntimeWarning, match="compositing on the CPU"):
+                assert r._choose_backend("auto", torch.device("cuda")) == want
+        else:
+            assert r._choose_backend("auto", torch.device("cuda")) == want
+    with pytest.raises(InputError, match="backend='triton' needs"):
+        r._choose_backend("triton", torch.device("cuda"))
+    with pytest.raises(InputError, match="backend='triton' needs CUDA"):
+        r._choose_backend("triton", torch.device("cpu"))
+
+
+def test_cpu_compositing_of_another_devices_projection_matches_numba():
+    """The split taken for CUDA tensors without a GPU compositor (projection in torch where the
+    tensors are, compositing in numba on the CPU, gradients back through the copies) renders
+    and differentiates as the numba path; run here on CPU tensors through the same function."""
+    from lmgs.render._projection import project
+    from lmgs.render.rasterize import _composite_on_cpu
+
+    p = _scene(200, seed=21)
+    cam = _camera()
+    ref = rasterize(*[t.clone().requires_grad_() for t in p], cam, backend="numba")
+    leaves = [t.clone().requires_grad_() for t in p]
+    proj = project(*leaves, None, cam)
+    feat, alpha = _composite_on_cpu(proj, int(cam.width), int(cam.height))
+    torch.testing.assert_close(feat[..., 0:3], ref.rgb, atol=1e-5, rtol=0)
+    torch.testing.assert_close(alpha, ref.alpha, atol=1e-5, rtol=0)
+    (feat[..., 0:3].sum() + alpha.sum()).backward()
+    ref_leaves = [t.clone().requires_grad_() for t in p]
+    out = rasterize(*ref_leaves, cam, backend="numba")
+    (out.rgb.sum() + out.alpha.sum()).backward()
+    for a, b in zip(leaves, ref_leaves):
+        assert (a.grad - b.grad).norm() <= 1e-4 * b.grad.norm() + 1e-8
 
 
 def test_zero_quaternion_is_identity_and_scales_are_clamped():
@@ -312,7 +351,6 @@ def test_gsplat_without_its_kernels_is_not_used(monkeypatch, kernels):
     """gsplat installed but its CUDA kernels not built (no toolkit: gsplat's ``_C`` is None) is
     not available, with a warning, so ``auto`` takes the torch compositor on CUDA; with the
     kernels it is. (Stand-in modules: the real gsplat needs CUDA.)"""
-    import importlib
     import sys
     import types
 
@@ -350,15 +388,16 @@ def _cotangents(out, seed=0):
 
 @pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-@pytest.mark.parametrize("backend", ["gsplat", "torch"])
+@pytest.mark.parametrize("backend", ["gsplat", "triton", "numba", "torch"])
 @pytest.mark.parametrize("sh", [False, True])
 def test_cuda_paths_match_cpu(backend, sh):  # pragma: no cover - CUDA only
-    """gsplat (and the pure-torch compositor) on CUDA against the numba CPU path, on a 10k
-    head-like scene at 256 px: every output, every parameter's gradient and the 2D positional
-    gradient densification reads. Measured on an H100 (gsplat 1.5.3): outputs within 1e-5,
-    gradients within 1.1e-4 relative (float32 sums in another order)."""
-    if backend == "gsplat":
-        pytest.importorskip("gsplat")
+    """gsplat, the Triton compositor, the numba compositing of a GPU projection and the
+    pure-torch compositor on CUDA against the numba CPU path, on a 10k head-like scene at
+    256 px: every output, every parameter's gradient and the 2D positional gradient
+    densification reads. Measured on an H100 (gsplat 1.5.3): outputs within 1e-5, gradients
+    within 1.1e-4 relative (float32 sums in another order)."""
+    if backend in ("gsplat", "triton"):
+        pytest.importorskip(backend)
     from lmgs.render.bench import head_scene
 
     n = 10_000

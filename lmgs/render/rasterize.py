@@ -13,8 +13,8 @@ from lmgs.errors import InputError
 from lmgs.render._projection import check_inputs, project, view_colors
 from lmgs.types import Camera
 
-Backend = Literal["auto", "numba", "torch", "gsplat"]
-BACKENDS: tuple[str, ...] = ("auto", "numba", "torch", "gsplat")
+Backend = Literal["auto", "numba", "torch", "gsplat", "triton"]
+BACKENDS: tuple[str, ...] = ("auto", "numba", "torch", "gsplat", "triton")
 RenderMode = Literal["RGB+D+N", "RGB"]
 # features composited per pixel in each mode (rgb, depth, normal: see the kernels' row layout)
 _MODE_FEATURES: dict[str, int] = {"RGB+D+N": 7, "RGB": 3}
@@ -97,13 +97,18 @@ def rasterize(
         sh_degree: SH degree to evaluate when ``colors`` is ``[N, K, 3]``
             (default: the largest :math:`d` with :math:`(d+1)^2 = K`); the 3DGS
             convention :math:`c = \\max(0, \\mathrm{SH}(v) + 0.5)`.
-        backend: ``"numba"`` (fast CPU path), ``"torch"`` (pure-torch tiled compositor,
-            slow), ``"gsplat"`` (CUDA, ``pip install .[cuda]``), or ``"auto"``: numba
-            for CPU tensors, gsplat for CUDA tensors when it is installed, else the
-            pure-torch compositor (which runs on any device). The numba path projects in
-            numba too (float64, the formulas of ``project``, with a hand-written backward;
-            tests hold both equal to torch autograd of ``project``), except when the
-            camera's ``world_to_camera`` needs a gradient: then the projection is torch.
+        backend: ``"numba"`` (fast CPU path), ``"gsplat"`` (CUDA, ``pip install .[cuda]``),
+            ``"triton"`` (CUDA: the projection in torch, compositing in Triton kernels, which ship
+            with torch's CUDA builds), ``"torch"`` (pure-torch tiled compositor, slow, any
+            device), or ``"auto"``: numba for CPU tensors; for CUDA tensors gsplat when it is
+            installed, else Triton, else the torch projection on the GPU with the compositing
+            on the CPU's numba kernels (said once in a warning: the pure-torch compositor on a
+            GPU is many times slower than that); the pure-torch compositor on other devices.
+            ``"numba"`` with CUDA tensors asks for that split explicitly. The numba path
+            projects in numba too (float64, the formulas of ``project``, with a hand-written
+            backward; tests hold both equal to torch autograd of ``project``), except when the
+            camera's ``world_to_camera`` needs a gradient (then the projection is torch) and
+            for CUDA tensors.
         render_mode: ``"RGB+D+N"`` (colour, depth and normals, what training needs) or
             ``"RGB"`` (colour and alpha alone, ``depth`` and ``normal`` None). On the no-grad
             numba path ``"RGB"`` composites 3 features per pixel instead of 7 (the same colour
@@ -128,7 +133,8 @@ def rasterize(
             means, quats, log_scales, opacity_logits, colors, degree, camera
         )
         rgb, depth, normal = feat[..., 0:3], feat[..., 3:4], feat[..., 4:7]
-    elif chosen == "numba" and not (torch.is_grad_enabled() and camera.world_to_camera.requires_grad):
+    elif chosen == "numba" and means.device.type == "cpu" and not (
+            torch.is_grad_enabled() and camera.world_to_camera.requires_grad):
         from lmgs.render._cpu import rasterize_numba
 
         rgb, depth, normal, alpha, means2d, radii = rasterize_numba(
@@ -136,11 +142,16 @@ def rasterize(
             _MODE_FEATURES[render_mode])
     else:
         p = project(means, quats, log_scales, opacity_logits, colors, degree, camera)
-        if chosen == "numba":
-            from lmgs.render._cpu import composite
+        if chosen == "numba" and means.device.type != "cpu":
+            feat, alpha = _composite_on_cpu(p, width, height)
         else:
-            from lmgs.render._tiled_torch import composite
-        feat, alpha = composite(p.means2d, p.conics, p.opacities, p.features, p.radii, p.depths, width, height)
+            if chosen == "numba":
+                from lmgs.render._cpu import composite
+            elif chosen == "triton":
+                from lmgs.render._triton import composite
+            else:
+                from lmgs.render._tiled_torch import composite
+            feat, alpha = composite(p.means2d, p.conics, p.opacities, p.features, p.radii, p.depths, width, height)
         rgb, depth, normal = feat[..., 0:3], feat[..., 3:4], feat[..., 4:7]
         means2d, radii = p.means2d, p.radii
     if means2d.requires_grad:
@@ -164,7 +175,8 @@ def gsplat_available() -> bool:
 
     gsplat builds its kernels on first use (a minute or more, once); without a CUDA toolkit it
     imports but leaves them out (``gsplat.cuda._backend._C is None``), and every call would fail:
-    then this is False, with a warning, and ``"auto"`` takes the pure-torch compositor.
+    then this is False, with a warning, and ``"auto"`` takes the next path (Triton, else the
+    numba compositing on the CPU).
     """
     try:
         import gsplat  # noqa: F401
@@ -176,9 +188,54 @@ def gsplat_available() -> bool:
         return True
     if _C is None:
         warnings.warn("gsplat is installed but its CUDA kernels could not be built (no CUDA toolkit found); "
-                      "rasterizing on CUDA with the pure-torch compositor instead", RuntimeWarning, stacklevel=2)
+                      "not using it", RuntimeWarning, stacklevel=2)
         return False
     return True
+
+
+def _composite_on_cpu(p, width: int, height: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Composite a projection made on another device with the numba kernels, and bring the
+    images back (both copies are autograd nodes: the gradients flow back to that device)."""
+    from lmgs.render._cpu import composite
+
+    dev = p.means2d.device
+    feat, alpha = composite(p.means2d.cpu(), p.conics.cpu(), p.opacities.cpu(), p.features.cpu(), p.radii.cpu(),
+                            p.depths.cpu(), width, height)
+    return feat.to(dev), alpha.to(dev)
+
+
+@functools.lru_cache(maxsize=1)
+def triton_available() -> bool:
+    """True when Triton imports, a CUDA device is there and the compositing kernels compile and
+    run (tried once on a one-Gaussian image; a failure is a warning and False)."""
+    if not torch.cuda.is_available():
+        return False
+    try:
+        import triton  # noqa: F401
+    except ImportError:
+        return False
+    try:
+        from lmgs.render._triton import composite
+
+        dev = torch.device("cuda")
+        m2 = torch.tensor([[8.0, 8.0]], device=dev, requires_grad=True)
+        feat, alpha = composite(m2, torch.tensor([[0.1, 0.0, 0.1]], device=dev), torch.tensor([0.5], device=dev),
+                                torch.ones(1, 7, device=dev), torch.tensor([4], device=dev),
+                                torch.tensor([1.0], device=dev), 16, 16)
+        (feat.sum() + alpha.sum()).backward()
+        torch.cuda.synchronize()
+    except Exception as e:  # noqa: BLE001 - any compile or launch failure means: not usable here
+        warnings.warn(f"Triton is installed but its compositing kernels failed here ({type(e).__name__}: "
+                      f"{str(e).splitlines()[0] if str(e) else ''}); not using it", RuntimeWarning, stacklevel=2)
+        return False
+    return True
+
+
+@functools.lru_cache(maxsize=1)
+def _warn_cpu_compositing() -> None:
+    warnings.warn("rasterize: CUDA tensors without gsplat or Triton: projecting on the GPU and compositing on the "
+                  "CPU (numba), which is many times faster than the pure-torch compositor on a GPU; install "
+                  "triton or 'lmgs[cuda]' for a GPU compositor", RuntimeWarning, stacklevel=4)
 
 
 def _choose_backend(backend: str, device: torch.device) -> str:
@@ -187,13 +244,26 @@ def _choose_backend(backend: str, device: torch.device) -> str:
     if backend == "auto":
         if device.type == "cpu":
             return "numba"
-        return "gsplat" if device.type == "cuda" and gsplat_available() else "torch"
-    if backend == "numba" and device.type != "cpu":
-        raise InputError(f"backend='numba' needs CPU tensors, got {device.type}; use 'auto' (gsplat or torch there)")
+        if device.type != "cuda":
+            return "torch"
+        if gsplat_available():
+            return "gsplat"
+        if triton_available():
+            return "triton"
+        _warn_cpu_compositing()
+        return "numba"
+    if backend == "numba" and device.type not in ("cpu", "cuda"):
+        raise InputError(f"backend='numba' needs CPU (or CUDA) tensors, got {device.type}; use 'auto' or 'torch'")
     if backend == "gsplat":
         if device.type != "cuda":
             raise InputError("backend='gsplat' needs CUDA tensors; use 'numba' (or 'auto') on the CPU")
         if not gsplat_available():
             raise InputError("backend='gsplat' needs gsplat with its CUDA kernels: pip install 'lmgs[cuda]', "
                              "and a CUDA toolkit (nvcc) for their build on first use")
+    if backend == "triton":
+        if device.type != "cuda":
+            raise InputError("backend='triton' needs CUDA tensors; use 'numba' (or 'auto') on the CPU")
+        if not triton_available():
+            raise InputError("backend='triton' needs Triton (it ships with torch's CUDA builds: pip install triton) "
+                             "and a CUDA device its kernels compile for")
     return backend
