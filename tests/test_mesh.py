@@ -3,15 +3,13 @@ photograph, against a known rotation of it, on a frame with no face, and with it
 
 from __future__ import annotations
 
-import shutil
 
 import cv2
 import numpy as np
 import pytest
 from skimage import data
 
-from lmgs_eval.data.ingest import mesh, vendored
-from lmgs_eval.errors import UserError
+from lmgs_eval.data.ingest import mesh
 
 # mesh vertex -> dlib-68 index: outer eye corners, mouth corners, chin
 ANCHORS = [(33, 36), (263, 45), (61, 48), (291, 54), (152, 8)]
@@ -65,17 +63,3 @@ def test_a_frame_without_a_face_is_nan_and_detected_again(face_mesh, photo):
     assert np.isnan(pts[0]).all() and np.isnan(pts[2]).all() and np.isfinite(pts[[1, 3]]).all()
     assert presence[0] == -np.inf and presence[1] > 10
     assert detected.tolist() == [True, True, True, True]  # the frame after a lost face is detected afresh
-
-
-def test_a_missing_or_altered_model_stops_with_one_line_naming_it(tmp_path):
-    with pytest.raises(UserError, match="missing") as e:
-        mesh.load_session(tmp_path / "gone.onnx")
-    assert str(tmp_path / "gone.onnx") in str(e.value) and "\n" not in str(e.value)
-    bad = tmp_path / "face.onnx"
-    shutil.copyfile(vendored.FOLDER / mesh.MODEL, bad)
-    raw = bytearray(bad.read_bytes())
-    raw[len(raw) // 2] ^= 0xFF
-    bad.write_bytes(bytes(raw))
-    with pytest.raises(UserError, match="altered") as e:
-        mesh.load_session(bad)
-    assert str(bad) in str(e.value) and "\n" not in str(e.value)
