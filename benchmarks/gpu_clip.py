@@ -137,12 +137,25 @@ def train(args) -> None:
             sets[key] = value
     cfg = override(cfg, sets)
     dev = torch.device(args.device)
+    prof = None
+    if args.profile:
+        from torch.profiler import ProfilerActivity, profile
+
+        acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if dev.type == "cuda" else [])
+        prof = profile(activities=acts)
+        prof.__enter__()
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as work:
         model, report = fit(train_clip, cfg, seed=args.seed, workdir=Path(work), progress=False, device=args.device)
     if dev.type == "cuda":
         torch.cuda.synchronize()
     fit_s = time.perf_counter() - t0
+    if prof is not None:
+        prof.__exit__(None, None, None)
+        ka = prof.key_averages()
+        tables = [ka.table(sort_by=key, row_limit=40) for key in
+                  (("self_cuda_time_total", "self_cpu_time_total") if dev.type == "cuda" else ("self_cpu_time_total",))]
+        Path(args.profile).write_text("\n\n".join(tables) + "\n")
     driving = DrivingAudio(audio=test_clip.audio, w2c=test_clip.w2c, backgrounds=test_clip.backgrounds,
                            blink=test_clip.blink, audio_features=test_clip.audio_features)
     model.render(driving)  # warm-up
@@ -160,6 +173,7 @@ def train(args) -> None:
         "render_s": render_s, "render_fps": len(frames) / render_s,
         "psnr_mean_of_frames": float(np.mean([_psnr(f, g) for f, g in zip(frames, test_clip.frames)])),
         "n_gaussians": int(getattr(report, "n_gaussians", 0) or 0), "set": sets,
+        "curve_seconds": [(row["step"], row["stage"], round(row["seconds"], 2)) for row in report.curve],
     }
     text = json.dumps(res, indent=1)
     print(text)
@@ -185,6 +199,7 @@ def main(argv=None) -> None:
     b.add_argument("--set", action="append", default=[], help="config override KEY=VALUE (repeatable)")
     b.add_argument("--backend-note", default="auto", help="what rasterized, for the JSON")
     b.add_argument("--json")
+    b.add_argument("--profile", help="profile the training with torch.profiler; its per-operator tables to this file")
     args = p.parse_args(argv)
     pack(args) if args.cmd == "pack" else train(args)
 
