@@ -146,7 +146,8 @@ def train(args) -> None:
         prof.__enter__()
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as work:
-        model, report = fit(train_clip, cfg, seed=args.seed, workdir=Path(work), progress=False, device=args.device)
+        model, report = fit(train_clip, cfg, seed=args.seed, workdir=Path(work), progress=args.progress,
+                            device=args.device)
     if dev.type == "cuda":
         torch.cuda.synchronize()
     fit_s = time.perf_counter() - t0
@@ -199,6 +200,7 @@ def main(argv=None) -> None:
     b.add_argument("--set", action="append", default=[], help="config override KEY=VALUE (repeatable)")
     b.add_argument("--backend-note", default="auto", help="what rasterized, for the JSON")
     b.add_argument("--json")
+    b.add_argument("--progress", action="store_true", help="the training's progress bar on standard error")
     b.add_argument("--profile", help="profile the training with torch.profiler; its per-operator tables to this file")
     args = p.parse_args(argv)
     pack(args) if args.cmd == "pack" else train(args)
