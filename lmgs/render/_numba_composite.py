@@ -21,6 +21,7 @@ order, so the results are bitwise deterministic whatever the thread count.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -37,9 +38,15 @@ GROW = 6 + NF  # gradient row: mx, my, a, b, c, opacity, features
 _ZERO, _ONE, _HALF, _AMAX, _AMIN, _TMIN, _SMAX = range(7)
 
 
-def consts(dtype) -> np.ndarray:
-    """The kernels' constants in ``dtype`` (index with the ``_ZERO`` ... ``_SMAX`` names)."""
+@functools.lru_cache(maxsize=None)
+def _consts(dtype: np.dtype) -> np.ndarray:
     return np.array([0.0, 1.0, 0.5, ALPHA_MAX, ALPHA_MIN, T_MIN, 6.0], dtype=dtype)
+
+
+def consts(dtype) -> np.ndarray:
+    """The kernels' constants in ``dtype`` (index with the ``_ZERO`` ... ``_SMAX`` names); one
+    array per dtype, made once (the kernels only read it)."""
+    return _consts(np.dtype(dtype))
 
 
 # exp(-s) for 0 <= s <= 6: s = n ln2 + r with n = round(s / ln2), |r| <= ln2 / 2, then
@@ -95,9 +102,15 @@ def _exp_neg_overload(s):  # pragma: no cover - compiled
     return None
 
 
+@functools.lru_cache(maxsize=64)
+def _pixel_centres(n: int, dtype: np.dtype) -> np.ndarray:
+    return (np.arange(n, dtype=np.float64) + 0.5).astype(dtype)
+
+
 def pixel_centres(width: int, height: int, dtype) -> np.ndarray:
-    """``i + 0.5`` for every pixel index of the image's larger side (at least a tile), in ``dtype``."""
-    return (np.arange(max(width, height, TILE), dtype=np.float64) + 0.5).astype(dtype)
+    """``i + 0.5`` for every pixel index of the image's larger side (at least a tile), in ``dtype``;
+    one array per length and dtype, made once (the kernels only read it)."""
+    return _pixel_centres(max(int(width), int(height), TILE), np.dtype(dtype))
 
 
 @njit(inline="always")
@@ -223,12 +236,14 @@ def forward(rows, ids, offsets, tile_order, tiles_w, width, height, nf, cst, cen
     ``centres[i] = i + 0.5`` and ``cst`` (:func:`consts`) are in the dtype of ``rows``;
     ``nf`` is 7 or 3.
 
-    Returns ``out [H, W, nf]``, ``t_final [H, W]`` and ``last [H, W]`` (one past the
-    intersection index of the last composited Gaussian, the backward's start).
+    Returns ``out [H, W, nf]``, ``t_final [H, W]``, ``alpha [H, W]`` (``1 - t_final``) and
+    ``last [H, W]`` (one past the intersection index of the last composited Gaussian, the
+    backward's start).
     """
     zero, one, half, amax, amin, tmin, smax = cst[0], cst[1], cst[2], cst[3], cst[4], cst[5], cst[6]
     out = np.zeros((height, width, nf), rows.dtype)
     t_final = np.ones((height, width), rows.dtype)
+    alpha = np.zeros((height, width), rows.dtype)
     last = np.zeros((height, width), np.int64)
     for chunk in prange(tile_order.shape[0]):
         st = np.empty(4 * PIX + nf * PIX, rows.dtype)
@@ -283,14 +298,19 @@ def forward(rows, ids, offsets, tile_order, tiles_w, width, height, nf, cst, cen
                     for f in range(nf):
                         out[y_lo + j, x_lo + i, f] = st[F_ACC + _U(f * PIX) + u]
                     t_final[y_lo + j, x_lo + i] = abs(st[F_T + u])
+                    alpha[y_lo + j, x_lo + i] = one - abs(st[F_T + u])
                     last[y_lo + j, x_lo + i] = int(st[F_STOP + u])
-    return out, t_final, last
+    return out, t_final, alpha, last
 
 
 @njit(parallel=True, cache=True, fastmath={"reassoc", "contract"}, error_model="numpy")
-def backward(rows, ids, offsets, tile_order, tiles_w, width, height, t_final, last, g_out, g_alpha, cst,
-             centres):  # pragma: no cover - compiled
-    """Per-intersection gradients ``[n_isect, 13]``, back to front per pixel.
+def backward(rows, ids, offsets, tile_order, tiles_w, width, height, t_final, last, g_rgb, g_depth, g_normal, g_alpha,
+             cst, centres, grad):  # pragma: no cover - compiled
+    """Per-intersection gradients into ``grad [n_isect, 13]`` (in the dtype of ``rows``; every row is
+    written, zero where a Gaussian adds nothing, so it may be a reused buffer), back to front per
+    pixel, from the gradients of the feature images ``g_rgb [H, W, 3]``, ``g_depth [H, W, 1]``,
+    ``g_normal [H, W, 3]`` and of the alpha image ``g_alpha [H, W]`` (each C-contiguous in the
+    dtype of ``rows``). ``tile_order`` must deal every tile that has intersections.
 
     With :math:`T_{i-1} = T_i / (1-\\alpha_i)` recovered from the final transmittance and
     :math:`S_i = \\sum_{j>i} f_j \\alpha_j T_{j-1}`:
@@ -306,7 +326,6 @@ def backward(rows, ids, offsets, tile_order, tiles_w, width, height, t_final, la
     tile go to its own intersection row.
     """
     zero, one, half, amax, amin, smax = cst[0], cst[1], cst[2], cst[3], cst[4], cst[6]
-    grad = np.zeros((ids.shape[0], GROW), rows.dtype)
     for chunk in prange(tile_order.shape[0]):
         st = np.empty(B_SIZE, rows.dtype)
         kbuf = np.empty(1, rows.dtype)
@@ -333,15 +352,23 @@ def backward(rows, ids, offsets, tile_order, tiles_w, width, height, t_final, la
                     kbuf[0] = last[py, px] if inside else start
                     st[B_LST + u] = kbuf[0]
                     kmax = max(kmax, last[py, px] if inside else start)
+                    for f in range(3):
+                        st[B_G + _U(f * PIX) + u] = g_rgb[py, px, f] if inside else zero
+                        st[B_G + _U((f + 4) * PIX) + u] = g_normal[py, px, f] if inside else zero
+                    st[B_G + _U(3 * PIX) + u] = g_depth[py, px, 0] if inside else zero
                     for f in range(NF):
-                        st[B_G + _U(f * PIX) + u] = g_out[py, px, f] if inside else zero
                         st[B_S + _U(f * PIX) + u] = zero
                     st[B_G + _U(NF * PIX) + u] = g_alpha[py, px] * t_final[py, px] if inside else zero
+            for k in range(kmax, offsets[t + 1]):  # behind every pixel's last Gaussian
+                for c in range(GROW):
+                    grad[k, c] = zero
             for k in range(kmax - 1, start - 1, -1):
                 g = ids[k]  # (no row view: views refcount the parent atomically, which threads contend on)
                 j0, j1 = _span(rows[g, 1], rows[g, 15], y_lo, ph)
                 i0, i1 = _span(rows[g, 0], rows[g, 14], x_lo, pw)
                 if j0 == j1 or i0 == i1:
+                    for c in range(GROW):
+                        grad[k, c] = zero
                     continue
                 fv = (rows[g, 7], rows[g, 8], rows[g, 9], rows[g, 10], rows[g, 11], rows[g, 12], rows[g, 13])
                 kbuf[0] = k

@@ -86,10 +86,10 @@ def _axes(g, quats, log_scales, view, ls_min, ls_max):  # pragma: no cover - com
     the scales ``s0, s1, s2`` and ``rot_cw @ R`` row by row (``c00 .. c22``; its columns are the axes)."""
     w00, w01, w02, _, w10, w11, w12, _, w20, w21, w22 = view[:11]
     ok_q, qn, qw, qx, qy, qz, r00, r01, r02, r10, r11, r12, r20, r21, r22 = _rotation(
-        quats[g, 0], quats[g, 1], quats[g, 2], quats[g, 3])
-    l0 = _clamp(log_scales[g, 0], ls_min, ls_max)
-    l1 = _clamp(log_scales[g, 1], ls_min, ls_max)
-    l2 = _clamp(log_scales[g, 2], ls_min, ls_max)
+        np.float64(quats[g, 0]), np.float64(quats[g, 1]), np.float64(quats[g, 2]), np.float64(quats[g, 3]))
+    l0 = _clamp(np.float64(log_scales[g, 0]), ls_min, ls_max)
+    l1 = _clamp(np.float64(log_scales[g, 1]), ls_min, ls_max)
+    l2 = _clamp(np.float64(log_scales[g, 2]), ls_min, ls_max)
     k = 0
     if l1 < l0:
         k = 1
@@ -103,7 +103,7 @@ def _axes(g, quats, log_scales, view, ls_min, ls_max):  # pragma: no cover - com
 def _centre(g, means, view, near):  # pragma: no cover - compiled
     """``(x, y, z_raw, in_front, z)``: the camera-space mean; ``z`` is 1 behind the near plane."""
     w00, w01, w02, w03, w10, w11, w12, w13, w20, w21, w22, w23 = view[:12]
-    px, py, pz = means[g, 0], means[g, 1], means[g, 2]
+    px, py, pz = np.float64(means[g, 0]), np.float64(means[g, 1]), np.float64(means[g, 2])
     x = w00 * px + w01 * py + w02 * pz + w03
     y = w10 * px + w11 * py + w12 * pz + w13
     z_raw = w20 * px + w21 * py + w22 * pz + w23
@@ -165,9 +165,9 @@ def _normal(axes, centre):  # pragma: no cover - compiled
 @njit(inline="always")
 def _put_features(out, g, j, colors, z, nx, ny, nz):  # pragma: no cover - compiled
     """``out[g, j:j + 7]``: the features rgb, camera z and normal (their order in rows and props)."""
-    out[g, j] = colors[g, 0]
-    out[g, j + 1] = colors[g, 1]
-    out[g, j + 2] = colors[g, 2]
+    out[g, j] = np.float64(colors[g, 0])
+    out[g, j + 1] = np.float64(colors[g, 1])
+    out[g, j + 2] = np.float64(colors[g, 2])
     out[g, j + 3] = z
     out[g, j + 4] = nx
     out[g, j + 5] = ny
@@ -181,7 +181,10 @@ def project_forward(means, quats, log_scales, opacity_logits, colors, w2c, fx, f
     dtype, see :mod:`lmgs.render._numba_kernels`), ``means2d [N, 2]`` and ``props [N, NPROP]``
     (in theirs; ``props`` may have zero rows: then it is not written).
 
-    Inputs are float64: ``colors [N, 3]`` rgb, ``w2c [4, 4]`` world to camera (OpenCV).
+    The Gaussian parameters (``colors [N, 3]`` rgb) share one dtype, float32 or float64: each
+    value is read as a float64 and the arithmetic is float64 whatever it is (float32 inputs give
+    the results of their float64 copies, bit for bit). ``w2c [4, 4]`` is float64, world to camera
+    (OpenCV).
 
     Returns ``depths [N]`` float64 (camera z; 1 behind the near plane), ``radii [N]`` int32
     (0 = culled) and ``rects [N, 4]`` int64 half-open tile ranges (zero when culled).
@@ -215,7 +218,7 @@ def project_forward(means, quats, log_scales, opacity_logits, colors, w2c, fx, f
             rects[g, 3] = np.int64(min(max(math.ceil((my + radius) / TILE), 0.0), th))
         nx, ny, nz, _ = _normal(axes, centre)
         ca, cb, cc = c / det_s, -b / det_s, a / det_s
-        op = 1.0 / (1.0 + math.exp(-opacity_logits[g]))
+        op = 1.0 / (1.0 + math.exp(-np.float64(opacity_logits[g])))
         _put_features(rows, g, 7, colors, z, nx, ny, nz)
         _fill_row(rows, g, mx, my, ca, cb, cc, op)
         means2d[g, 0] = mx
@@ -232,21 +235,25 @@ def project_forward(means, quats, log_scales, opacity_logits, colors, w2c, fx, f
 
 @njit(parallel=True, cache=True)
 def project_backward(means, quats, log_scales, opacity_logits, w2c, fx, fy, cx, cy, width, height,
-                     near, eps2d, ls_min, ls_max, g_means2d, g_props):  # pragma: no cover - compiled
-    """Gradients of the projection from those of ``means2d [N, 2]`` and ``props [N, NPROP]``.
+                     near, eps2d, ls_min, ls_max, g_rows):  # pragma: no cover - compiled
+    """Gradients of the projection from ``g_rows [N, 2 + NPROP]``: those of ``means2d`` (columns
+    0, 1) and of ``props`` (the rest).
 
     Recomputes each Gaussian's forward quantities (cheaper than storing them) with the steps
-    :func:`project_forward` takes, and applies the chain rule backwards through them.
+    :func:`project_forward` takes, and applies the chain rule backwards through them, in
+    float64 (the inputs and ``g_rows`` read as float64, as in the forward).
 
-    Returns float64 ``g_means [N, 3]``, ``g_quats [N, 4]``, ``g_log_scales [N, 3]``,
-    ``g_opacity_logits [N]`` and ``g_colors [N, 3]``.
+    Returns ``g_means [N, 3]``, ``g_quats [N, 4]``, ``g_log_scales [N, 3]``,
+    ``g_opacity_logits [N]`` and ``g_colors [N, 3]`` in the dtype of ``means`` (float64 sums
+    rounded once).
     """
     n = means.shape[0]
-    g_means = np.zeros((n, 3), np.float64)
-    g_quats = np.zeros((n, 4), np.float64)
-    g_ls = np.zeros((n, 3), np.float64)
-    g_logit = np.zeros(n, np.float64)
-    g_col = np.zeros((n, 3), np.float64)
+    dt = means.dtype
+    g_means = np.zeros((n, 3), dt)
+    g_quats = np.zeros((n, 4), dt)
+    g_ls = np.zeros((n, 3), dt)
+    g_logit = np.zeros(n, dt)
+    g_col = np.zeros((n, 3), dt)
     view = _view(w2c, fx, fy, cx, cy, width, height)
     w00, w01, w02, _, w10, w11, w12, _, w20, w21, w22, _, lim_xp, lim_xn, lim_yp, lim_yn = view
     for g in prange(n):
@@ -261,19 +268,19 @@ def project_backward(means, quats, log_scales, opacity_logits, w2c, fx, fy, cx, 
             axes, jac, eps2d)
         ok = in_front and det > 0
         sgn = _normal(axes, centre)[3]
-        lr0, lr1, lr2 = log_scales[g, 0], log_scales[g, 1], log_scales[g, 2]
+        lr0, lr1, lr2 = np.float64(log_scales[g, 0]), np.float64(log_scales[g, 1]), np.float64(log_scales[g, 2])
         # ---- backward ----
-        gmx, gmy = g_means2d[g, 0], g_means2d[g, 1]
-        gc0, gc1, gc2 = g_props[g, 0], g_props[g, 1], g_props[g, 2]
-        op = 1.0 / (1.0 + math.exp(-opacity_logits[g]))
-        g_logit[g] = g_props[g, 3] * op * (1.0 - op)
-        g_col[g, 0] = g_props[g, 4]
-        g_col[g, 1] = g_props[g, 5]
-        g_col[g, 2] = g_props[g, 6]
+        gmx, gmy = np.float64(g_rows[g, 0]), np.float64(g_rows[g, 1])
+        gc0, gc1, gc2 = np.float64(g_rows[g, 2]), np.float64(g_rows[g, 3]), np.float64(g_rows[g, 4])
+        op = 1.0 / (1.0 + math.exp(-np.float64(opacity_logits[g])))
+        g_logit[g] = np.float64(g_rows[g, 5]) * op * (1.0 - op)
+        g_col[g, 0] = g_rows[g, 6]
+        g_col[g, 1] = g_rows[g, 7]
+        g_col[g, 2] = g_rows[g, 8]
         # means2d = (fx x / z + cx, fy y / z + cy); the feature z
         gx = gmx * fx / z
         gy = gmy * fy / z
-        gz = g_props[g, 7] - gmx * fx * x / z2 - gmy * fy * y / z2
+        gz = np.float64(g_rows[g, 9]) - gmx * fx * x / z2 - gmy * fy * y / z2
         # conic = (c, -b, a) / det_s
         if ok:
             inv = 1.0 / det
@@ -310,7 +317,9 @@ def project_backward(means, quats, log_scales, opacity_logits, w2c, fx, fy, cx, 
         g_ls[g, 1] = gs1 * s1 if ls_min <= lr1 <= ls_max else 0.0
         g_ls[g, 2] = gs2 * s2 if ls_min <= lr2 <= ls_max else 0.0
         # the normal: column k of rot_c, flipped to face the camera
-        gn0, gn1, gn2 = sgn * g_props[g, 8], sgn * g_props[g, 9], sgn * g_props[g, 10]
+        gn0 = sgn * np.float64(g_rows[g, 10])
+        gn1 = sgn * np.float64(g_rows[g, 11])
+        gn2 = sgn * np.float64(g_rows[g, 12])
         if k == 0:
             gc00 += gn0
             gc10 += gn1
