@@ -165,7 +165,10 @@ def train(args) -> None:
     if dev.type == "cuda":
         torch.cuda.synchronize()
     render_s = time.perf_counter() - t0
+    from lmgs.render.rasterize import _choose_backend
+
     res = {
+        "backend_auto": _choose_backend("auto", dev),
         "device": dev.type, "gpu": torch.cuda.get_device_name() if dev.type == "cuda" else platform.processor(),
         "torch": torch.__version__, "threads": torch.get_num_threads(),
         "rasterizer": args.backend_note, "train_frames": len(train_clip.frames), "test_frames": len(frames),

@@ -218,12 +218,15 @@ def triton_available() -> bool:
         from lmgs.render._triton import composite
 
         dev = torch.device("cuda")
-        m2 = torch.tensor([[8.0, 8.0]], device=dev, requires_grad=True)
-        feat, alpha = composite(m2, torch.tensor([[0.1, 0.0, 0.1]], device=dev), torch.tensor([0.5], device=dev),
-                                torch.ones(1, 7, device=dev), torch.tensor([4], device=dev),
-                                torch.tensor([1.0], device=dev), 16, 16)
-        (feat.sum() + alpha.sum()).backward()
+        with torch.enable_grad():  # the first call may come under no_grad: the backward kernel is tried too
+            m2 = torch.tensor([[8.0, 8.0]], device=dev, requires_grad=True)
+            feat, alpha = composite(m2, torch.tensor([[0.1, 0.0, 0.1]], device=dev), torch.tensor([0.5], device=dev),
+                                    torch.ones(1, 7, device=dev), torch.tensor([4], device=dev),
+                                    torch.tensor([1.0], device=dev), 16, 16)
+            (feat.sum() + alpha.sum()).backward()
         torch.cuda.synchronize()
+        if m2.grad is None or not torch.isfinite(m2.grad).all() or not 0.4 < float(alpha[8, 8, 0]) < 0.6:
+            raise RuntimeError(f"one Gaussian of opacity 0.5 composited to alpha {float(alpha[8, 8, 0]):.3f}")
     except Exception as e:  # noqa: BLE001 - any compile or launch failure means: not usable here
         warnings.warn(f"Triton is installed but its compositing kernels failed here ({type(e).__name__}: "
                       f"{str(e).splitlines()[0] if str(e) else ''}); not using it", RuntimeWarning, stacklevel=2)
