@@ -128,6 +128,9 @@ class LMGSMethod:
                          else "SE by theta alone (no cap on the points selected)")
         if (g.se or g.lc) and t.landmark_folds:
             parts.append(f"out-of-fold training landmarks ({t.landmark_folds} folds)")
+        if (g.se or g.lc) and t.landmark_source != "subject":
+            parts.append("mouth landmarks from the generic lip model" + (", fine-tuned on the subject"
+                                                                          if t.landmark_source == "generic-tuned" else ""))
         return MethodInfo(
             name=self.variant,
             display_name="Ours (lmgs)" if self.variant == "lmgs" else f"lmgs ({', '.join(parts)})",

@@ -55,6 +55,7 @@ def _model_blob(model: LMGSModel, extra: dict | None = None) -> dict:
         "build": model._build_args,
         "state": model.state_dict(),
         "predictor_args": None if model.predictor is None else _predictor_args(model.predictor),
+        **({"lips": model.lips.to_state()} if getattr(model, "lips", None) is not None else {}),
         **(extra or {}),
     }
 
@@ -76,6 +77,10 @@ def load_model(path: Path, cfg=None, device: torch.device | str = "cpu") -> LMGS
         from lmgs.landmarks import LandmarkPredictor
 
         model.predictor = LandmarkPredictor(**blob["predictor_args"]).to(device)
+    if blob.get("lips"):
+        from lmgs.lips import RetargetedLips
+
+        model.lips = RetargetedLips.from_state(blob["lips"])
     try:
         model.load_state_dict(blob["state"])
     except RuntimeError as exc:

@@ -129,6 +129,7 @@ class LMGSModel(nn.Module):
         no_guidance = GuidanceConfig(se=False, lc=False, theta=cfg.guidance.theta)
         self.mouth_deform = DeformNet(self.audio_net.out_dim, cfg.deform_mouth, cfg.triplane, no_guidance, box_min, box_max)
         self.predictor = None  # LandmarkPredictor, fitted per subject when SE or LC is on
+        self.lips = None  # lmgs.lips.RetargetedLips: the mouth landmarks under train.landmark_source = generic*
         self.intrinsics = tuple(float(v) for v in intrinsics)
         self.register_buffer("train_w2c", torch.zeros(0, 4, 4))
         self.register_buffer("default_background", torch.zeros(1, 1, 3))
@@ -191,6 +192,8 @@ class LMGSModel(nn.Module):
         feats = self.audio_windows(driving.audio, n, driving.audio_features).to(dev)
         fa = self.audio_net(feats)
         lms = self.predictor.predict(feats).to(dev) if (self.uses_landmarks and self.predictor is not None) else None
+        if lms is not None and self.lips is not None:
+            lms = self.lips.replace_mouth(lms, driving.audio, n)
         t_audio = time.perf_counter() - t0
         face_prep = self.face_deform.prepare(self.face.means)
         mouth_prep = self.mouth_deform.prepare(self.mouth.means)

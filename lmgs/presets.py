@@ -23,6 +23,9 @@ from lmgs.config import (
 from lmgs.errors import InputError
 
 
+LANDMARK_SOURCES = ("subject", "generic", "generic-tuned")
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     """Schedule and optimisation.
@@ -66,6 +69,12 @@ class TrainConfig:
             whose capacity knee lies elsewhere carries its own, which the evaluation toolkit
             passes in (hopper: 0.548559, a 10,000-Gaussian face).
         mouth_fraction: mouth-branch budget as a fraction of the face budget.
+        landmark_source: where the mouth landmarks (48-67) guiding SE and LC come from: ``subject``
+            (default) the per-subject predictor, like the other 48 points; ``generic`` the generic
+            audio-to-lip model (:mod:`lmgs.lips`, pretrained on generated speech and adapted on real
+            speakers) retargeted to the subject's neutral mouth, width and pose; ``generic-tuned``
+            the same, fine-tuned on the subject's training split first. The other 48 points stay
+            the per-subject predictor's. An :func:`~lmgs.config.added_option`.
         checkpoint_every: steps between checkpoints.
     """
 
@@ -95,6 +104,7 @@ class TrainConfig:
     normal_reduce: str = added_option("sum")
     gr_warmup: int = added_option(0, default=400)
     landmark_folds: int = added_option(0)
+    landmark_source: str = added_option("subject")
 
     def __post_init__(self) -> None:
         if self.normal_reduce not in ("sum", "mean"):
@@ -103,6 +113,8 @@ class TrainConfig:
             raise ValueError(f"train.gr_warmup must be >= 0 steps, not {self.gr_warmup!r}")
         if self.landmark_folds < 0 or self.landmark_folds == 1:
             raise ValueError(f"train.landmark_folds must be 0 (off) or at least 2, not {self.landmark_folds!r}")
+        if self.landmark_source not in LANDMARK_SOURCES:
+            raise ValueError(f"train.landmark_source must be one of {', '.join(LANDMARK_SOURCES)}, not {self.landmark_source!r}")
 
 
 @dataclass(frozen=True)
@@ -125,6 +137,7 @@ class LMGSConfig:
             # without SE and LC nothing reads the landmarks: the folds change no weight, so
             # they do not change the hash either (TalkingGaussian's records stay valid)
             d["train"].pop("landmark_folds", None)
+            d["train"].pop("landmark_source", None)
         if not self.guidance.se:
             # the cap only bounds what SE selects: without SE it changes no weight (lmgs-no-se's and
             # TalkingGaussian's hashes stay those of their records)

@@ -242,8 +242,17 @@ def _fit_landmarks(run: _Run, seed: int) -> None:
         run.lms_pred = cross_fit_landmarks(feats, targets, folds=folds, steps=t.landmark_steps, seed=seed).to(run.dev)
     else:
         run.lms_pred = model.predictor.predict(feats).to(run.dev)
+    if t.landmark_source != "subject":  # the mouth from the generic lip model, retargeted to this subject
+        from lmgs.lips import TUNE_STEPS, RetargetedLips, logmel
+
+        mel = logmel(clip.audio, n)
+        model.lips = RetargetedLips.fit(mel, targets.numpy(), tune_steps=TUNE_STEPS if t.landmark_source == "generic-tuned" else 0,
+                                        seed=seed)
+        run.lms_pred = model.lips.replace_mouth(run.lms_pred, clip.audio, n)
     run.t_lms = time.perf_counter() - a
     how = f"{folds}-fold out-of-fold" if folds >= 2 else "in-sample"
+    if model.lips is not None:
+        how += f"; mouth (48-67) from the generic lip model ({t.landmark_source})"
     if t.landmark_folds and folds < 2:
         how += f" ({n} frames are too few for {t.landmark_folds} folds)"
     run.say(f"landmark predictor fitted in {run.t_lms:.1f} s; training landmarks {how}")

@@ -23,6 +23,7 @@ TARGETS: dict[str, str] = {
     "stripped": "lmgs_eval.commands._bench_stripped",
     "ingested": "lmgs_eval.commands._bench_ingested",
     "score-memory": "lmgs_eval.commands._bench_score_memory",
+    "lips": "lmgs_eval.commands._bench_lips",
 }
 
 
