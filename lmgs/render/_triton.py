@@ -234,16 +234,9 @@ class _Composite(torch.autograd.Function):
                 g_feats[:, :N_FEATURES].to(dtype), None, None, None, None)
 
 
-def composite(
-    means2d: torch.Tensor,  # [N, 2]
-    conics: torch.Tensor,  # [N, 3]
-    opacities: torch.Tensor,  # [N]
-    features: torch.Tensor,  # [N, 7]
-    radii: torch.Tensor,  # [N] int
-    depths: torch.Tensor,  # [N] sort keys
-    width: int,
-    height: int,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Composite to ``features [H, W, 7]`` and ``alpha [H, W, 1]`` on the tensors' device (float32
-    kernels; the outputs and gradients come back in the dtype of ``means2d``)."""
+def composite(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor, features: torch.Tensor,
+              radii: torch.Tensor, depths: torch.Tensor, width: int, height: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Composite to ``features [H, W, 7]`` and ``alpha [H, W, 1]`` on the tensors' device (the arguments and
+    their shapes are those of :func:`lmgs.render._cpu.composite`; float32 kernels, the outputs and gradients
+    come back in the dtype of ``means2d``)."""
     return _Composite.apply(means2d, conics, opacities, features, radii, depths, int(width), int(height))
