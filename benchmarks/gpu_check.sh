@@ -3,8 +3,10 @@
 # budget (BUDGET_S, default 585 s), each result written under $OUT as soon as it exists:
 #   env.txt          the GPU, core count, torch / triton / numba versions
 #   parity.txt       tests/test_render.py -k cuda_paths (Triton, numba-split, torch; gsplat where installed)
-#   raster_cuda.json benchmarks/gpu_raster.py: Triton configurations, the split and the torch compositor
-#                    against numba on every core of the same machine
+#   raster_cuda.json benchmarks/gpu_raster.py: first the Triton path's cost per call split into projection,
+#                    compositor and binning (tiny scene and both sizes; syncs, kernel launches, GPU time),
+#                    then Triton configurations, the split and the torch compositor against numba on every
+#                    core of the same machine (the JSON is rewritten after each row: a timeout keeps those done)
 #   lmgs_512.json    lmgs, quick preset, a packed 512 px clip (benchmarks/gpu_clip.py) trained and rendered on CUDA
 #   s256.json, s512.json  the numba rasterizer by thread count (python -m lmgs.render.bench --threads ...)
 # Run from the repository root with a python3 that has torch (CUDA), triton and numba:
@@ -22,7 +24,7 @@ left() { local l=$(( BUDGET_S - ($(date +%s) - t0) )); (( l < 1 )) && l=1; (( l 
 stamp "env: $(tail -1 "$OUT/env.txt")"
 timeout "$(left 150)" python3 -m pytest -q -p no:cacheprovider tests/test_render.py -k cuda_paths > "$OUT/parity.txt" 2>&1
 stamp "parity rc=$? $(tail -1 "$OUT/parity.txt")"
-timeout "$(left 100)" python3 benchmarks/gpu_raster.py --json "$OUT/raster_cuda.json" > "$OUT/raster_cuda.log" 2>&1
+timeout "$(left 130)" python3 benchmarks/gpu_raster.py --json "$OUT/raster_cuda.json" > "$OUT/raster_cuda.log" 2>&1
 stamp "raster rc=$?"
 timeout "$(left 240)" python3 benchmarks/gpu_clip.py train "$CLIP" --device cuda --set train.budget_density=0.107531 \
   --backend-note auto --progress --json "$OUT/lmgs_512.json" > "$OUT/train.log" 2>&1

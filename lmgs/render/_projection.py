@@ -117,7 +117,11 @@ def check_inputs(
     for name, t in tensors.items():
         if not t.is_floating_point():
             raise InputError(f"{name} must be a floating-point tensor, got {t.dtype}")
-        if math.isfinite(float(t.detach().sum())):  # one reduction: a NaN or inf makes the sum non-finite
+    # one reduction per tensor and one read-back for all of them (a single host sync on a GPU): a NaN or
+    # inf makes a sum non-finite
+    sums = torch.stack([t.detach().sum().to(device=means.device, dtype=torch.float64) for t in tensors.values()])
+    for (name, t), total in zip(tensors.items(), sums.tolist()):
+        if math.isfinite(total):
             continue
         bad = ~torch.isfinite(t.detach())  # (or finite values summed past the float range: no error then)
         n_bad = int(bad.sum())

@@ -98,8 +98,8 @@ def rasterize(
             (default: the largest :math:`d` with :math:`(d+1)^2 = K`); the 3DGS
             convention :math:`c = \\max(0, \\mathrm{SH}(v) + 0.5)`.
         backend: ``"numba"`` (fast CPU path), ``"gsplat"`` (CUDA, ``pip install .[cuda]``),
-            ``"triton"`` (CUDA: the projection in torch, compositing in Triton kernels, which ship
-            with torch's CUDA builds), ``"torch"`` (pure-torch tiled compositor, slow, any
+            ``"triton"`` (CUDA: projection, binning and compositing in Triton kernels, which ship
+            with torch's CUDA builds; the projection in torch when the camera pose needs a gradient), ``"torch"`` (pure-torch tiled compositor, slow, any
             device), or ``"auto"``: numba for CPU tensors; for CUDA tensors gsplat when it is
             installed, else Triton, else the torch projection on the GPU with the compositing
             on the CPU's numba kernels (said once in a warning: the pure-torch compositor on a
@@ -140,6 +140,11 @@ def rasterize(
         rgb, depth, normal, alpha, means2d, radii = rasterize_numba(
             means, quats, log_scales, opacity_logits, view_colors(means, colors, degree, camera), camera,
             _MODE_FEATURES[render_mode])
+    elif chosen == "triton" and not (torch.is_grad_enabled() and camera.world_to_camera.requires_grad):
+        from lmgs.render._triton import rasterize_triton
+
+        rgb, depth, normal, alpha, means2d, radii = rasterize_triton(
+            means, quats, log_scales, opacity_logits, view_colors(means, colors, degree, camera), camera)
     else:
         p = project(means, quats, log_scales, opacity_logits, colors, degree, camera)
         if chosen == "numba" and means.device.type != "cpu":
@@ -206,8 +211,9 @@ def _composite_on_cpu(p, width: int, height: int) -> tuple[torch.Tensor, torch.T
 
 @functools.lru_cache(maxsize=1)
 def triton_available() -> bool:
-    """True when Triton imports, a CUDA device is there and the compositing kernels compile and
-    run (tried once on a one-Gaussian image; a failure is a warning and False)."""
+    """True when Triton imports, a CUDA device is there and the kernels compile and run: the
+    compositor alone, then projection and compositing together, forward and backward, each tried
+    once on a one-Gaussian image (a failure is a warning and False)."""
     if not torch.cuda.is_available():
         return False
     try:
@@ -227,6 +233,18 @@ def triton_available() -> bool:
         torch.cuda.synchronize()
         if m2.grad is None or not torch.isfinite(m2.grad).all() or not 0.4 < float(alpha[8, 8, 0]) < 0.6:
             raise RuntimeError(f"one Gaussian of opacity 0.5 composited to alpha {float(alpha[8, 8, 0]):.3f}")
+        from lmgs.render._triton import rasterize_triton
+
+        with torch.enable_grad():  # one Gaussian 1 m ahead of a 16x16 camera, opacity 0.5, radius ~1 px * 3
+            mean = torch.tensor([[0.0, 0.0, 1.0]], device=dev, requires_grad=True)
+            cam = Camera(torch.eye(4, device=dev), 16.0, 16.0, 8.0, 8.0, 16, 16)
+            rgb, _, _, alpha, _, _ = rasterize_triton(mean, torch.tensor([[1.0, 0.0, 0.0, 0.0]], device=dev),
+                                                      torch.full((1, 3), -2.0, device=dev), torch.zeros(1, device=dev),
+                                                      torch.ones(1, 3, device=dev), cam)
+            (rgb.sum() + alpha.sum()).backward()
+        torch.cuda.synchronize()
+        if mean.grad is None or not torch.isfinite(mean.grad).all() or not 0.4 < float(alpha[8, 8, 0]) < 0.6:
+            raise RuntimeError(f"one projected Gaussian of opacity 0.5 composited to alpha {float(alpha[8, 8, 0]):.3f}")
     except Exception as e:  # noqa: BLE001 - any compile or launch failure means: not usable here
         warnings.warn(f"Triton is installed but its compositing kernels failed here ({type(e).__name__}: "
                       f"{str(e).splitlines()[0] if str(e) else ''}); not using it", RuntimeWarning, stacklevel=2)
