@@ -5,14 +5,16 @@ from __future__ import annotations
 import argparse
 import sys
 
-SYNC_CHOICES = ("auto", "landmark", "pixel", "syncnet-v2")  # metrics.config.SYNC_CHOICES, without importing the metrics
+SYNC_CHOICES = ("auto", "mesh", "landmark", "pixel", "syncnet-v2")  # metrics.config.SYNC_CHOICES, without importing the metrics
 
 
 def add_sync_argument(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sync", choices=SYNC_CHOICES, default="auto",
-                   help="LSE scorer: syncnet-v2 (official weights, once imported), landmark (bundled, mouth "
-                        "landmarks vs audio), pixel (bundled, mouth crops); auto: official when imported, else the "
-                        "bundled scorer that passes its self-check on the clip (default)")
+                   help="LSE scorer: syncnet-v2 (official weights, once imported), mesh (bundled, the dense face "
+                        "mesh's mouth vs audio, adapted on real speakers), landmark (bundled, mouth landmarks vs "
+                        "audio), pixel (bundled, mouth crops); auto: official when imported, else the bundled scorer "
+                        "that passes its self-check on the clip (default; `lmgs-eval metrics` says which is tried "
+                        "first)")
 
 
 def suite(args: argparse.Namespace):

@@ -24,6 +24,7 @@ TARGETS: dict[str, str] = {
     "ingested": "lmgs_eval.commands._bench_ingested",
     "score-memory": "lmgs_eval.commands._bench_score_memory",
     "lips": "lmgs_eval.commands._bench_lips",
+    "sync": "lmgs_eval.commands._bench_sync",
 }
 
 

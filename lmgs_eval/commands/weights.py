@@ -25,6 +25,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     from lmgs_eval.metrics.ort import onnx_cache_dir
     from lmgs_eval.metrics.sync.landmark import JSON_NAME, ONNX_NAME
+    from lmgs_eval.metrics.sync.mesh import JSON_NAME as MESH_JSON, ONNX_NAME as MESH_ONNX
     from lmgs_eval.metrics.sync.scorers import PIXEL_JSON, PIXEL_ONNX, WEIGHTS, syncnet_manifest_path
     from lmgs_eval.metrics.sync.select import status
 
@@ -32,6 +33,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"weights cache: {mp.parent}  (imported weights' manifests; ONNX graphs in {onnx_cache_dir()})")
     print(f"  syncnet-v2: {'imported, ' + str(mp) if mp.is_file() else 'not imported (lmgs-eval weights import-syncnet syncnet_v2.model)'}")
     print(f"bundled weights: {WEIGHTS}")
+    print(f"  mesh-sync: {WEIGHTS / MESH_ONNX} {'(present)' if (WEIGHTS / MESH_JSON).is_file() else '(missing)'}")
     print(f"  landmark-sync: {WEIGHTS / ONNX_NAME} {'(present)' if (WEIGHTS / JSON_NAME).is_file() else '(missing)'}")
     print(f"  bundled-sync (pixel): {WEIGHTS / PIXEL_ONNX} {'(present)' if (WEIGHTS / PIXEL_JSON).is_file() else '(missing)'}")
     print(f"sync scorer here: {status()[1]}")

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-SYNC_CHOICES = ("auto", "landmark", "pixel", "syncnet-v2")
+SYNC_CHOICES = ("auto", "mesh", "landmark", "pixel", "syncnet-v2")
 
 
 @dataclass(frozen=True)
@@ -16,7 +16,7 @@ class SuiteConfig:
     """The scoring choices of one run.
 
     Attributes:
-        sync: the LSE scorer (``--sync``): ``auto``, ``landmark``, ``pixel`` or ``syncnet-v2``
+        sync: the LSE scorer (``--sync``): ``auto``, ``mesh``, ``landmark``, ``pixel`` or ``syncnet-v2``
             (:mod:`lmgs_eval.metrics.sync.select`).
         lpips: force one LPIPS network (``--lpips``: ``lpips-alex`` or ``stlpips-alex``); None: ``lpips-alex``
             when an AlexNet trunk is found, else ``stlpips-alex`` (a stand-in, labelled).

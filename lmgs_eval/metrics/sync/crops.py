@@ -105,6 +105,8 @@ class FaceClip:
 
     * :meth:`landmarks`: dlib's 68 landmarks, tracked (``DlibBackend(redetect=10)``, the landmark
       scorer's input);
+    * :meth:`mesh_landmarks`: the dense face mesh tracked (:class:`~lmgs_eval.data.ingest.mesh.FaceMesh`),
+      its 68 points in the canonical face frame (the mesh scorer's input);
     * :meth:`crops`: face boxes (:func:`face_boxes`) and then the 224x224 BGR uint8 crops of the
       pixel scorers (:func:`crop_face`), a second pass over the frames.
 
@@ -119,6 +121,7 @@ class FaceClip:
     def __init__(self, frames, lms: np.ndarray | None = None):
         self._src = frames
         self._lms = None if lms is None else np.asarray(lms, np.float64)
+        self._mesh: np.ndarray | None = None
         self._crops: dict[int, tuple[np.ndarray, int]] = {}
         self._n: int | None = len(frames) if isinstance(frames, np.ndarray) else None
         if self._lms is not None:
@@ -169,6 +172,28 @@ class FaceClip:
             b._lms = lms
         return self._part(b._lms)
 
+    def mesh_landmarks(self) -> np.ndarray:
+        """``[T, 68, 3]``: the face mesh's 68 points of this clip in the canonical face frame (metres; NaN where
+        no face).
+
+        The mesh is tracked over the clip's frames in order, once per clip
+        (:meth:`~lmgs_eval.data.ingest.mesh.FaceMesh.step`: a detector seeds it and takes over again where
+        the face is lost), and each frame brought into the canonical face frame by
+        :func:`~lmgs_eval.data.ingest.lips.to_canonical`.
+        """
+        b = self._base
+        if b._mesh is None:
+            from lmgs_eval.data.images import to_u8
+            from lmgs_eval.data.ingest.lips import to_canonical
+            from lmgs_eval.data.ingest.mesh import FaceMesh
+
+            fm = FaceMesh(session=_mesh_session())
+            pts = [fm.step(np.ascontiguousarray(to_u8(frame)))[0] for frame in self._frames()]
+            mesh = np.stack(pts) if pts else np.zeros((0, 478, 3), np.float32)
+            b._set_n(len(mesh))
+            b._mesh = to_canonical(mesh)[0]
+        return self._part(b._mesh)
+
     def crops(self, detect_every: int = 1) -> tuple[np.ndarray, int]:
         """``[T, 224, 224, 3]`` BGR uint8 face crops of this clip and the count of detections without a face.
 
@@ -183,3 +208,14 @@ class FaceClip:
         crops, n_missing = b._crops[detect_every]
         return self._part(crops), n_missing
 
+
+_MESH_SESSION: list = []
+
+
+def _mesh_session():
+    """The face mesh model's ONNX Runtime session, loaded (and its sha256 checked) once per process."""
+    if not _MESH_SESSION:
+        from lmgs_eval.data.ingest.mesh import load_session
+
+        _MESH_SESSION.append(load_session())
+    return _MESH_SESSION[0]

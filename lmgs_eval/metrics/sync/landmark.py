@@ -48,8 +48,10 @@ ONNX_NAME, JSON_NAME = "landmark_sync.onnx", "landmark_sync.json"
 
 
 # ----------------------------------------------------------------------------- features
-def fill_missing(lms: np.ndarray) -> tuple[np.ndarray, int]:
+def fill_missing(lms: np.ndarray, tracker: str = "dlib 68 landmarks") -> tuple[np.ndarray, int]:
     """Frames without landmarks (NaN) filled by linear interpolation over time; the count filled.
+
+    ``tracker`` names what found the landmarks in the error.
 
     Raises:
         UserError: no frame has landmarks.
@@ -57,7 +59,7 @@ def fill_missing(lms: np.ndarray) -> tuple[np.ndarray, int]:
     lms = np.asarray(lms, np.float64)
     ok = np.isfinite(lms).all(axis=(1, 2))
     if not ok.any():
-        raise UserError("sync: no face found in any frame (dlib 68 landmarks)")
+        raise UserError(f"sync: no face found in any frame ({tracker})")
     n_missing = int((~ok).sum())
     if n_missing:
         t = np.arange(len(lms))

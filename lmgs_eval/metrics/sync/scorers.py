@@ -1,9 +1,11 @@
 """The sync scorers and their weights: where each one's files are, loading them, checking their sha256.
 
-Three scorers, by their ``--sync`` names (their records name them by the scorer's own name):
+Four scorers, by their ``--sync`` names (their records name them by the scorer's own name):
 
 * ``syncnet-v2`` (``syncnet-v2``): the official SyncNet, imported by ``lmgs-eval weights
   import-syncnet`` into the cache (:func:`syncnet_manifest_path`, the ONNX graph and its sha256);
+* ``mesh`` (``mesh-sync``): the bundled mesh scorer (:mod:`~lmgs_eval.metrics.sync.mesh`: the dense face
+  mesh's mouth against MFCC, adapted on real speakers), ``weights/mesh_sync.{onnx,json}``;
 * ``landmark`` (``landmark-sync``): the bundled landmark scorer, ``weights/landmark_sync.{onnx,json}``;
 * ``pixel`` (``bundled-sync``): the bundled pixel scorer, ``weights/bundled_sync.{onnx,json}``.
 
@@ -19,6 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from lmgs_eval.errors import UserError
+from lmgs_eval.metrics.sync import mesh
 from lmgs_eval.metrics.sync.landmark import JSON_NAME, ONNX_NAME, LandmarkScorer
 from lmgs_eval.metrics.sync.pixel import SyncScorer
 
@@ -101,6 +104,33 @@ def load_landmark(folder: Path | None = None) -> tuple[LandmarkScorer | None, st
     return LandmarkScorer(load_session(p), sha, int(m.get("context", 5)), int(m.get("highpass", 0))), ""
 
 
+def load_mesh(folder: Path | None = None) -> tuple[mesh.MeshScorer | None, str]:
+    """The mesh scorer of ``folder`` (default the shipped one), or ``(None, reason)``.
+
+    Raises:
+        UserError: the ONNX file does not match the sha256 in its manifest.
+    """
+    from lmgs_eval.metrics.ort import load_session
+
+    folder = Path(folder if folder is not None else WEIGHTS)
+    p, j = folder / mesh.ONNX_NAME, folder / mesh.JSON_NAME
+    if not (p.is_file() and j.is_file()):
+        return None, f"mesh-sync weights not present ({mesh.ONNX_NAME} + {mesh.JSON_NAME} in {folder})"
+    m = json.loads(j.read_text())
+    sha = _check_sha(p, j, m.get("sha256"))
+    return mesh.MeshScorer(load_session(p), sha, int(m.get("context", 15)), int(m.get("highpass", 0))), ""
+
+
+def mesh_manifest(folder: Path | None = None) -> dict | None:
+    """The mesh scorer's manifest (``mesh_sync.json``), or None when it is not here or not readable JSON."""
+    j = Path(folder if folder is not None else WEIGHTS) / mesh.JSON_NAME
+    try:
+        m = json.loads(j.read_text())
+    except (OSError, ValueError):
+        return None
+    return m if isinstance(m, dict) else None
+
+
 @dataclass(frozen=True)
 class Entry:
     """One scorer of the ``--sync`` choices: its record name, its weights files, its loader."""
@@ -118,6 +148,8 @@ def _syncnet_graph() -> Path | None:
 
 SCORERS: dict[str, Entry] = {
     "syncnet-v2": Entry("syncnet-v2", lambda: (syncnet_manifest_path(),), _syncnet_graph, lambda: find_scorer("syncnet-v2")),
+    "mesh": Entry("mesh-sync", lambda: (WEIGHTS / mesh.ONNX_NAME, WEIGHTS / mesh.JSON_NAME),
+                  lambda: WEIGHTS / mesh.ONNX_NAME, load_mesh),
     "landmark": Entry("landmark-sync", lambda: (WEIGHTS / ONNX_NAME, WEIGHTS / JSON_NAME), lambda: WEIGHTS / ONNX_NAME,
                       load_landmark),
     "pixel": Entry("bundled-sync", lambda: (WEIGHTS / PIXEL_ONNX, WEIGHTS / PIXEL_JSON), lambda: WEIGHTS / PIXEL_ONNX,
@@ -139,7 +171,7 @@ def present(name: str) -> bool:
 
 
 def load(name: str) -> tuple[object | None, str]:
-    """``(scorer, "")`` for ``landmark``, ``pixel`` or ``syncnet-v2``, or ``(None, reason)``.
+    """``(scorer, "")`` for ``mesh``, ``landmark``, ``pixel`` or ``syncnet-v2``, or ``(None, reason)``.
 
     A loaded scorer is kept for the process under its file's path and modification time (so a
     later import or retraining is seen); a missing one is looked for again next time.

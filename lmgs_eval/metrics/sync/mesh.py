@@ -1,0 +1,96 @@
+"""The mesh sync scorer: the mouth of the dense face mesh against MFCC windows, adapted on real speakers.
+
+The landmark scorer (:mod:`~lmgs_eval.metrics.sync.landmark`) reads dlib's 68 points, and on a real face
+dlib's mouth jitters and lags more than speech moves it. This scorer reads the same 20 mouth points from
+the dense face mesh (MediaPipe's 478-point model, :mod:`lmgs_eval.data.ingest.mesh`), each frame brought
+into the canonical face frame by the similarity of its skull-fixed vertices
+(:func:`lmgs_eval.data.ingest.lips.to_canonical`): head pose, scale and distance are gone before the
+features are made. From there on everything is the landmark scorer's: the features
+(:func:`~lmgs_eval.metrics.sync.landmark.mouth_features` of the points' x and y), the windows, the network,
+LSE-D / LSE-C and the offset search over +-15 frames.
+
+Its weights start from the landmark scorer's (trained on generated clips) and are adapted on real
+talking-head recordings with their own speech (:mod:`~lmgs_eval.metrics.sync.train.mesh`, which also
+measures it leave-one-speaker-out; the figures are in ``mesh_sync.json``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from lmgs_eval.errors import UserError
+from lmgs_eval.metrics.sync.landmark import N_FEAT, LandmarkScorer, audio_features, fill_missing, mouth_features
+from lmgs_eval.metrics.sync.landmark import audio_windows, video_windows
+
+ONNX_NAME, JSON_NAME = "mesh_sync.onnx", "mesh_sync.json"
+STANDIN = ("mesh-sync is trained by this project (generated clips, then real speakers' recordings; mouth points of the "
+           "dense face mesh vs MFCC); its LSE values are not comparable with SyncNet LSE in papers")
+
+
+def mouth_points(lms68: np.ndarray) -> np.ndarray:
+    """``[T, 68, 2]``: the x and y of the 68 points in the canonical face frame (``[T, 68, 3]``, or already 2-D)."""
+    x = np.asarray(lms68, np.float64)
+    return x[..., :2]
+
+
+@dataclass
+class MeshScorer(LandmarkScorer):
+    """A loaded mesh scorer (the interface LSE calls is :meth:`embed_clip`)."""
+
+    name: str = "mesh-sync"
+    standin: str = STANDIN
+
+    def embed_clip(self, frames, crops, audio16k, mfcc, last, detect_every=1, lms=None):
+        """Audio and video embeddings of windows ``0 .. last-1``, the still-face embedding, flags and notes.
+
+        The mouth comes from the dense mesh tracked on ``frames`` (a
+        :class:`~lmgs_eval.metrics.sync.crops.FaceClip` tracks it once per clip), or from ``lms`` when they are
+        already the mesh's 68 points in the canonical face frame (``[T, 68, 3]``); 2-D landmarks (dlib's) are
+        not what this scorer reads and are ignored when frames are given.
+        """
+        flags, notes = [], []
+        canon = lms is not None and np.asarray(lms).ndim == 3 and np.asarray(lms).shape[-1] == 3
+        if not canon:
+            if frames is None:
+                raise UserError("mesh-sync needs the frames (or the face mesh's canonical 68 points), not 2-D landmarks "
+                                "or face crops")
+            from lmgs_eval.metrics.sync.crops import FaceClip
+
+            clip = frames if getattr(frames, "is_face_clip", False) else FaceClip(frames)
+            lms = clip.mesh_landmarks()
+        notes.append("video: the dense face mesh (MediaPipe face landmarker, 478 points) tracked per frame, each "
+                     "frame brought to the canonical face frame by its skull points; the 20 mouth points of the 68 "
+                     "(x, y), pose-normalised on eye corners and nose, clip mean removed, RMS-scaled")
+        pts, n_missing = fill_missing(mouth_points(lms)[:last + 4], "the dense face mesh")
+        if n_missing:
+            flags.append(f"no_face: {n_missing} frame(s) without a face mesh, interpolated from their neighbours")
+        feat = mouth_features(pts, self.highpass)
+        aw = audio_windows(audio_features(mfcc), last, self.context)
+        a_emb, v_emb = self.embed(aw, video_windows(feat, last, self.context))
+        _, still = self.embed(aw[:1], np.zeros((1, N_FEAT, self.context), np.float32))
+        return a_emb, v_emb, still[0], flags, notes
+
+
+def export(net, out_dir, meta: dict) -> dict:
+    """Write the adapted network as ``mesh_sync.onnx`` and its manifest (recipe, figures, sha256)."""
+    import json
+    from pathlib import Path
+
+    import torch
+
+    from lmgs.fileio import atomic_write, sha256_file
+    from lmgs_eval.metrics.ort import export_onnx
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    c = int(meta.get("context", 15))
+    export_onnx(net.eval(), (torch.randn(2, 13, 4 * c), torch.randn(2, N_FEAT, c)), out_dir / ONNX_NAME,
+                ["audio", "video"], ["a_emb", "v_emb"],
+                {"audio": {0: "n"}, "video": {0: "n"}, "a_emb": {0: "n"}, "v_emb": {0: "n"}})
+    m = {"name": "mesh-sync", "context": c, "highpass": int(meta.get("highpass", 0)),
+         "input": f"mouth_features of the mesh's canonical 68 points, windows [N,40,{c}] + audio_features windows "
+                  f"[N,13,{4 * c}]", **meta, "sha256": sha256_file(out_dir / ONNX_NAME)}
+    atomic_write(out_dir / JSON_NAME, json.dumps(m, indent=2))
+    return m
