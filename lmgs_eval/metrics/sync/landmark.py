@@ -231,18 +231,28 @@ class LandmarkScorer:
 
                 # uint8 frames are read as they are (the tracker converts one frame at a time)
                 lms = cached_landmarks(DlibBackend(redetect=10), frames[:last + 4])
-            notes.append("video: dlib 68 landmarks (HOG, tracked, re-detected every 10 frames), mouth points 48-67 "
-                         "pose-normalised on eye corners and nose, clip mean removed, RMS-scaled")
+            notes.append("video: dlib 68 landmarks (HOG, tracked, re-detected every 10 frames), " + self.feature_note())
         else:
             notes.append("video: the 68 landmarks given with the clip (the metric suite passes LMD's, found by the "
-                         "same dlib tracker), mouth points 48-67 pose-normalised on eye corners and nose, clip mean "
-                         "removed, RMS-scaled")
-        lms, n_missing = fill_missing(np.asarray(lms)[:last + 4])
+                         "same dlib tracker), " + self.feature_note())
+        return (*self.embed_points(lms, mfcc, last, flags, "dlib 68 landmarks"), flags, notes)
+
+    def feature_note(self) -> str:
+        """How the mouth points become features (for the result's notes)."""
+        drift = (f"their {self.highpass}-frame moving average removed" if self.highpass > 1 else "clip mean removed")
+        return f"mouth points 48-67 pose-normalised on eye corners and nose, {drift}, RMS-scaled"
+
+    def embed_points(self, lms: np.ndarray, mfcc: np.ndarray, last: int, flags: list[str],
+                     tracker: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Audio and video embeddings of windows ``0 .. last-1`` and the still-face embedding from ``[T, 68, 2]``
+        landmarks (frames without a face filled in and counted in ``flags``)."""
+        lms, n_missing = fill_missing(np.asarray(lms)[:last + 4], tracker)
         if n_missing:
-            flags.append(f"no_face: {n_missing} frame(s) without landmarks, interpolated from their neighbours")
+            flags.append(f"no_face: {n_missing} frame(s) without landmarks ({tracker}), interpolated from their "
+                         "neighbours")
         feat = mouth_features(lms, self.highpass)
         aw = audio_windows(audio_features(mfcc), last, self.context)
         a_emb, v_emb = self.embed(aw, video_windows(feat, last, self.context))
         _, still = self.embed(aw[:1], np.zeros((1, N_FEAT, self.context), np.float32))
-        return a_emb, v_emb, still[0], flags, notes
+        return a_emb, v_emb, still[0]
 

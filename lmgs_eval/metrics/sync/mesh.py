@@ -21,8 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lmgs_eval.errors import UserError
-from lmgs_eval.metrics.sync.landmark import N_FEAT, LandmarkScorer, audio_features, fill_missing, mouth_features
-from lmgs_eval.metrics.sync.landmark import audio_windows, video_windows
+from lmgs_eval.metrics.sync.landmark import N_FEAT, LandmarkScorer
 
 ONNX_NAME, JSON_NAME = "mesh_sync.onnx", "mesh_sync.json"
 STANDIN = ("mesh-sync is trained by this project (generated clips, then real speakers' recordings; mouth points of the "
@@ -61,16 +60,9 @@ class MeshScorer(LandmarkScorer):
             clip = frames if getattr(frames, "is_face_clip", False) else FaceClip(frames)
             lms = clip.mesh_landmarks()
         notes.append("video: the dense face mesh (MediaPipe face landmarker, 478 points) tracked per frame, each "
-                     "frame brought to the canonical face frame by its skull points; the 20 mouth points of the 68 "
-                     "(x, y), pose-normalised on eye corners and nose, clip mean removed, RMS-scaled")
-        pts, n_missing = fill_missing(mouth_points(lms)[:last + 4], "the dense face mesh")
-        if n_missing:
-            flags.append(f"no_face: {n_missing} frame(s) without a face mesh, interpolated from their neighbours")
-        feat = mouth_features(pts, self.highpass)
-        aw = audio_windows(audio_features(mfcc), last, self.context)
-        a_emb, v_emb = self.embed(aw, video_windows(feat, last, self.context))
-        _, still = self.embed(aw[:1], np.zeros((1, N_FEAT, self.context), np.float32))
-        return a_emb, v_emb, still[0], flags, notes
+                     "frame brought to the canonical face frame by its skull points; its 68 points' "
+                     + self.feature_note().replace("mouth points 48-67", "mouth points 48-67 (x, y)"))
+        return (*self.embed_points(mouth_points(lms), mfcc, last, flags, "the dense face mesh"), flags, notes)
 
 
 def export(net, out_dir, meta: dict) -> dict:
