@@ -585,7 +585,8 @@ def _geometry(means_ptr, quats_ptr, ls_ptr, i, m, w00, w01, w02, w03, w10, w11, 
     ``ok_q, qn, qw, qx, qy, qz`` (the unit quaternion; the identity where ``qn <= 1e-12``),
     ``k`` (the argmin of the clamped log-scales), ``s0, s1, s2``, ``c00 .. c22`` (``W R``),
     ``x, y, z_raw, in_front, z``, ``ux, uy, cux, cuy, tx, ty, z2, j00, j02, j11, j12``,
-    ``rs00 .. rs22``, ``m00 .. m12``, ``a, b, c, det`` and ``sgn`` (the normal's flip).
+    ``rs00 .. rs22``, ``m00 .. m12``, ``a, b, c, det``, ``sgn`` (the normal's flip) and the
+    camera-space normal ``nx, ny, nz`` (flipped by ``sgn``).
     ``lxp .. lyn`` are the field-of-view limits as float64 blocks.
     """
     qw0 = _ld(quats_ptr, i, m, 4, 0)
@@ -673,7 +674,8 @@ def _geometry(means_ptr, quats_ptr, ls_ptr, i, m, w00, w01, w02, w03, w10, w11, 
     sgn = tl.where(nx * x + ny * y + nz * z_raw > 0, -1.0, 1.0)
     return (ok_q, qn, qw, qx, qy, qz, k, s0, s1, s2, c00, c01, c02, c10, c11, c12, c20, c21, c22,
             x, y, z_raw, in_front, z, ux, uy, cux, cuy, tx, ty, z2, j00, j02, j11, j12,
-            rs00, rs01, rs02, rs10, rs11, rs12, rs20, rs21, rs22, m00, m01, m02, m10, m11, m12, a, b, c, det, sgn)
+            rs00, rs01, rs02, rs10, rs11, rs12, rs20, rs21, rs22, m00, m01, m02, m10, m11, m12, a, b, c, det, sgn,
+            sgn * nx, sgn * ny, sgn * nz)
 
 
 @triton.jit
@@ -697,8 +699,8 @@ def _project_kernel(means_ptr, quats_ptr, ls_ptr, logit_ptr, rgb_ptr, w2c_ptr, m
     (ok_q, qn, qw, qx, qy, qz, k, s0, s1, s2, c00, c01, c02, c10, c11, c12, c20, c21, c22,
      x, y, z_raw, in_front, z, ux, uy, cux, cuy, tx, ty, z2, j00, j02, j11, j12,
      rs00, rs01, rs02, rs10, rs11, rs12, rs20, rs21, rs22, m00, m01, m02, m10, m11, m12, a, b, c, det,
-     sgn) = _geometry(means_ptr, quats_ptr, ls_ptr, i, m, w00, w01, w02, w03, w10, w11, w12, w13, w20, w21, w22,
-                      w23, fx, fy, z64 + lim_xp, z64 + lim_xn, z64 + lim_yp, z64 + lim_yn)
+     sgn, nx, ny, nz) = _geometry(means_ptr, quats_ptr, ls_ptr, i, m, w00, w01, w02, w03, w10, w11, w12, w13,
+                                  w20, w21, w22, w23, fx, fy, z64 + lim_xp, z64 + lim_xn, z64 + lim_yp, z64 + lim_yn)
     ok = in_front & (det > 0)
     det_s = tl.where(ok, det, 1.0)
     mx = fx * x / z + cx
@@ -717,9 +719,6 @@ def _project_kernel(means_ptr, quats_ptr, ls_ptr, logit_ptr, rgb_ptr, w2c_ptr, m
     red = _ld(rgb_ptr, i, m, 3, 0)
     green = _ld(rgb_ptr, i, m, 3, 1)
     blue = _ld(rgb_ptr, i, m, 3, 2)
-    nx = sgn * tl.where(k == 0, c00, tl.where(k == 1, c01, c02))
-    ny = sgn * tl.where(k == 0, c10, tl.where(k == 1, c11, c12))
-    nz = sgn * tl.where(k == 0, c20, tl.where(k == 1, c21, c22))
 
     tl.store(m2_ptr + 2 * i, mx, mask=m)
     tl.store(m2_ptr + 2 * i + 1, my, mask=m)
@@ -785,8 +784,8 @@ def _project_grad_kernel(means_ptr, quats_ptr, ls_ptr, logit_ptr, w2c_ptr, gm2_p
     (ok_q, qn, qw, qx, qy, qz, k, s0, s1, s2, c00, c01, c02, c10, c11, c12, c20, c21, c22,
      x, y, z_raw, in_front, z, ux, uy, cux, cuy, tx, ty, z2, j00, j02, j11, j12,
      rs00, rs01, rs02, rs10, rs11, rs12, rs20, rs21, rs22, m00, m01, m02, m10, m11, m12, a, b, c, det,
-     sgn) = _geometry(means_ptr, quats_ptr, ls_ptr, i, m, w00, w01, w02, w03, w10, w11, w12, w13, w20, w21, w22,
-                      w23, fx, fy, lxp, lxn, lyp, lyn)
+     sgn, nx, ny, nz) = _geometry(means_ptr, quats_ptr, ls_ptr, i, m, w00, w01, w02, w03, w10, w11, w12, w13,
+                                  w20, w21, w22, w23, fx, fy, lxp, lxn, lyp, lyn)
     ok = in_front & (det > 0)
     lr0 = _ld(ls_ptr, i, m, 3, 0)
     lr1 = _ld(ls_ptr, i, m, 3, 1)
