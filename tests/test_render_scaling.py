@@ -149,7 +149,7 @@ def test_projection_gradients_read_the_compositor_rows_in_place():
 
 
 def test_bench_scaling_rows(capsys):
-    from lmgs.render import bench
+    from lmgs.render import bench_scaling as bench
 
     cpus = bench.os.cpu_count() or 1
     out = bench.scaling([48], [300], [1, cpus + 1], repeats=1, wait_too=True)
@@ -164,5 +164,5 @@ def test_bench_scaling_rows(capsys):
     table = bench.scaling_text(rows)
     assert table.splitlines()[0].startswith("scene") and "0k@48" in table
     with pytest.raises(Exception):
-        bench._thread_counts("1,two")
-    assert bench._thread_counts("16,1,2,2") == [1, 2, 16]
+        bench.thread_counts("1,two")
+    assert bench.thread_counts("16,1,2,2") == [1, 2, 16]
