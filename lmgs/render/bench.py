@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import platform
 import resource
@@ -27,10 +26,10 @@ import sys
 import time
 
 from lmgs.render.bench_scaling import SHORT_SPIN, measure_scaling, scaling, scaling_text, thread_counts
+from lmgs.render.bench_scene import FAST, head_scene, worker_row
 
 HELP = "Gaussian rasterizer: numba fast path vs the pure-torch tiled anchor (fwd, fwd+bwd, peak memory)"
 
-FAST = "numba"
 ANCHOR = "torch"
 
 
@@ -48,37 +47,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --threads: the largest count twice more, with the OpenMP pool spinning between parallel "
                         "regions (OMP_WAIT_POLICY=ACTIVE) and spinning about 0.2 ms before it sleeps "
                         f"(GOMP_SPINCOUNT={SHORT_SPIN}), against lmgs's default of sleeping at once (PASSIVE)")
-
-
-def head_scene(n: int, res: int, seed: int = 0, requires_grad: bool = True):
-    """A head-sized blob of ``n`` Gaussians 0.6 m in front of a camera, ``res x res`` image.
-
-    Centres lie near the surface of an ellipsoid of semi-axes 9 x 12 x 10 cm (a head) and
-    inside it; the focal length is 1.5 x ``res``, so the head spans about 60 % of the
-    image height; scales are log-normal around 1.5 pixels at 256 px (a 3-sigma radius of
-    a few pixels), anisotropic, random rotations, opacities mostly 0.3-0.9.
-
-    Returns ``(params, camera)`` with params ``(means, quats, log_scales, opacity_logits, colors)``.
-    """
-    import torch
-
-    from lmgs.types import Camera
-
-    g = torch.Generator().manual_seed(seed)
-    d = torch.randn(n, 3, generator=g)
-    d = d / d.norm(dim=1, keepdim=True)
-    shell = 1.0 - 0.15 * torch.rand(n, 1, generator=g) ** 2
-    means = d * shell * torch.tensor([0.09, 0.12, 0.10]) + torch.tensor([0.0, 0.0, 0.6])
-    quats = torch.randn(n, 4, generator=g)
-    sigma_world = 1.5 * 0.6 / (1.5 * 256)  # 1.5 px at 256 px
-    log_scales = math.log(sigma_world) + 0.4 * torch.randn(n, 3, generator=g)
-    opacity_logits = 0.5 + torch.randn(n, generator=g)
-    colors = torch.rand(n, 3, generator=g)
-    cam = Camera(torch.eye(4), 1.5 * res, 1.5 * res, res / 2, res / 2, res, res)
-    params = [means, quats, log_scales, opacity_logits, colors]
-    for t in params:
-        t.requires_grad_(requires_grad)
-    return params, cam
 
 
 def _on(params, cam, device: str):
@@ -223,27 +191,10 @@ def kernel_profile(params, cam, repeats: int) -> dict:
     }
 
 
-def _worker_row(backend: str, res: int, n: int, repeats: int, device: str = "cpu", threads: int | None = None,
-                omp_env: dict | None = None) -> dict:
-    """One row measured in a fresh worker process; with ``threads``, a scaling row (:func:`~lmgs.render.bench_scaling.measure_scaling`)
-    in a worker whose numba, OpenMP and MKL thread counts are ``threads`` from its start (and ``omp_env``
-    in its environment)."""
-    env = dict(os.environ)
-    if threads is not None:
-        env.update(NUMBA_NUM_THREADS=str(threads), OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads))
-    env.update(omp_env or {})
-    cmd = [sys.executable, "-m", "lmgs.render.bench", "--worker",
-           json.dumps([backend, res, n, repeats, device, threads])]
-    proc = subprocess.run(cmd, capture_output=True, text=True, check=False, env=env)
-    if proc.returncode != 0:
-        raise RuntimeError(f"benchmark worker {backend} {res} {n} (threads {threads}) failed:\n{proc.stderr[-2000:]}")
-    return json.loads(proc.stdout.strip().splitlines()[-1])
-
-
 def first_call_seconds() -> dict:
     """Seconds of the first render in a fresh process (numba cache load, or compile if cold)."""
     code = (
-        "import time; t=time.perf_counter(); import torch; from lmgs.render.bench import head_scene;"
+        "import time; t=time.perf_counter(); import torch; from lmgs.render.bench_scene import head_scene;"
         "from lmgs.render import rasterize; p,c=head_scene(64,32); t0=time.perf_counter();"
         "r=rasterize(*p,c,backend='numba'); r.rgb.sum().backward(); print(time.perf_counter()-t0)"
     )
@@ -276,13 +227,13 @@ def run(args: argparse.Namespace) -> dict:
     rows, gpu_rows = [], []
     for res in sizes:
         for n in counts:
-            fast = _worker_row(FAST, res, n, repeats)
+            fast = worker_row(FAST, res, n, repeats)
             for backend in gpu:
-                row = _worker_row(backend, res, n, max(repeats, 20), "cuda")
+                row = worker_row(backend, res, n, max(repeats, 20), "cuda")
                 row["fwd_ratio_vs_numba"] = fast["fwd_ms"] / row["fwd_ms"]
                 row["fwd_bwd_ratio_vs_numba"] = fast["fwd_bwd_ms"] / row["fwd_bwd_ms"]
                 gpu_rows.append(row)
-            anchor = None if args.no_anchor else _worker_row(ANCHOR, res, n, 2 if not args.quick else 1)
+            anchor = None if args.no_anchor else worker_row(ANCHOR, res, n, 2 if not args.quick else 1)
             for row in (fast, anchor):
                 if row is None:
                     continue

@@ -14,6 +14,8 @@ import argparse
 import os
 import time
 
+from lmgs.render.bench_scene import FAST, head_scene, worker_row
+
 SHORT_SPIN = 20_000  # GOMP_SPINCOUNT of the short-spin row (libgomp counts about 100,000 spins a millisecond)
 
 
@@ -77,7 +79,6 @@ def measure_scaling(res: int, n: int, repeats: int, threads: int) -> dict:
     import torch
 
     from lmgs.render import rasterize
-    from lmgs.render.bench import FAST, head_scene
 
     torch.set_num_threads(threads)
     numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
@@ -169,16 +170,14 @@ def _omp_libraries() -> list[str]:
 
 def scaling(sizes: list[int], counts: list[int], threads: list[int], repeats: int, wait_too: bool = False) -> dict:
     """The thread scaling table (see the module docstring): one fresh worker per scene and thread count."""
-    from lmgs.render.bench import FAST, _worker_row
-
     cpus = os.cpu_count() or 1
     rows = []
     for res in sizes:
         for n in counts:
-            scene = [_worker_row(FAST, res, n, repeats, threads=t) for t in threads]
+            scene = [worker_row(FAST, res, n, repeats, threads=t) for t in threads]
             if wait_too:
                 for env in ({"OMP_WAIT_POLICY": "ACTIVE"}, {"GOMP_SPINCOUNT": str(SHORT_SPIN)}):
-                    scene.append(_worker_row(FAST, res, n, repeats, threads=threads[-1], omp_env=env))
+                    scene.append(worker_row(FAST, res, n, repeats, threads=threads[-1], omp_env=env))
             base = scene[0]
             for row in scene:
                 t = row["threads"]
