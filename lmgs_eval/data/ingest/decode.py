@@ -98,9 +98,11 @@ def _rotation_of(frame, stream) -> int:
     return int(round(-float(rot) / 90.0)) % 4 * 90
 
 
-def _timed_frames(path: Path, max_side: int, counts: dict | None = None) -> Iterator[tuple[float, np.ndarray, int, float]]:
+def _timed_frames(path: Path, max_side: int, counts: dict | None = None,
+                  images: bool = True) -> Iterator[tuple[float, np.ndarray | None, int, float]]:
     """Decoded frames as ``(time, rgb uint8, clockwise rotation, scale)`` in presentation order
-    (``counts["corrupt"]``, when given, counts the frames the decoder marked corrupt)."""
+    (``counts["corrupt"]``, when given, counts the frames the decoder marked corrupt; ``images``
+    False: every frame is decoded but only the first converted to RGB, the others' image None)."""
     import av
 
     c = _open(path)
@@ -115,6 +117,10 @@ def _timed_frames(path: Path, max_side: int, counts: dict | None = None) -> Iter
             if counts is not None and getattr(fr, "is_corrupt", False):
                 counts["corrupt"] = counts.get("corrupt", 0) + 1
             rot = _rotation_of(fr, vs)
+            if not images and k > 0:
+                yield t, None, rot, 1.0
+                k += 1
+                continue
             w, h = fr.width, fr.height
             s = min(1.0, max_side / max(w, h))
             if s < 1.0:
@@ -147,7 +153,7 @@ def probe(path: str | Path, max_side: int = MAX_SIDE) -> VideoInfo:
     c.close()
     times, first, rot, scale = [], None, 0, 1.0
     counts: dict = {}
-    for t, img, r, s in _timed_frames(path, max_side, counts):
+    for t, img, r, s in _timed_frames(path, max_side, counts, images=False):  # the first frame's image alone
         if first is None:
             first, rot, scale = img, r, s
         times.append(t)

@@ -141,9 +141,10 @@ def _profile_point(prior: np.ndarray, obs: np.ndarray, f: float, w: int, h: int)
     return float((res[: 2 * n_f * n_p] ** 2).sum()), float((res[2 * n_f * n_p:] ** 2).sum())
 
 
-def fit_focal(mesh: np.ndarray, w: int, h: int, frames: int = FRAMES, progress=None) -> FocalFit:
+def fit_focal(mesh: np.ndarray, w: int, h: int, frames: int = FRAMES, progress=None, mapper=None) -> FocalFit:
     """The focal length (pixels) of a clip from its tracked mesh ``[N, 478, 2+]`` (frame pixels,
-    NaN where no face), with its interval and profile."""
+    NaN where no face), with its interval and profile. ``mapper``: a ``map`` that may spread the
+    grid's fits (each on its own) over processes, ``Executor.map``; default the built-in one."""
     face = canonical_face()
     idx = rigid_points(face)
     good = np.nonzero(np.isfinite(mesh[:, 0, 0]))[0]
@@ -153,8 +154,8 @@ def fit_focal(mesh: np.ndarray, w: int, h: int, frames: int = FRAMES, progress=N
     obs = np.ascontiguousarray(mesh[pick][:, idx, :2], np.float64)
     prior = face[idx]
     pix, pri = [], []
-    for fw in GRID:
-        a, b = _profile_point(prior, obs, fw * w, w, h)
+    n = len(GRID)
+    for a, b in (mapper or map)(_profile_point, [prior] * n, [obs] * n, [fw * w for fw in GRID], [w] * n, [h] * n):
         pix.append(a)
         pri.append(b)
         if progress is not None:

@@ -86,8 +86,29 @@ def person_from(prob: np.ndarray, lms: np.ndarray) -> np.ndarray:
 
 def plate_difference(img: np.ndarray, plate: np.ndarray) -> np.ndarray:
     """Per pixel, the largest channel difference (grey levels) between the frame and the plate,
-    float32 ``[H, W]``."""
-    return np.abs(img.astype(np.float32) - plate.astype(np.float32)).max(-1)
+    uint8 ``[H, W]`` (exact: the difference of two uint8 values)."""
+    import cv2
+
+    d = cv2.absdiff(np.ascontiguousarray(img), np.ascontiguousarray(plate))
+    if d.ndim == 2:
+        return d
+    c = cv2.split(d)
+    out = c[0]
+    for ch in c[1:]:
+        out = cv2.max(out, ch)
+    return out
+
+
+def _median_u8(values: np.ndarray, where: np.ndarray) -> float:
+    """``np.median(values[where])`` of a uint8 image, from its histogram (exact; the mean of the two
+    middle values for an even count)."""
+    import cv2
+
+    hist = cv2.calcHist([values], [0], where.astype(np.uint8), [256], [0, 256]).ravel()
+    cum = np.cumsum(hist.astype(np.int64))
+    n = int(cum[-1])
+    lo, hi = (int(np.searchsorted(cum, k, side="right")) for k in ((n - 1) // 2, n // 2))
+    return 0.5 * (lo + hi)
 
 
 def refine_person(person: np.ndarray, img: np.ndarray, plate: np.ndarray) -> np.ndarray:
@@ -98,23 +119,26 @@ def refine_person(person: np.ndarray, img: np.ndarray, plate: np.ndarray) -> np.
     plate's colour. Where the camera is still, what differs from the plate is the person: the
     mask grows one pixel at a time into pixels that differ by more than the noise (the floor or
     a multiple of the median difference away from the person, whichever is larger), at most
-    :data:`GROW_REACH` of the frame side out.
+    :data:`GROW_REACH` of the frame side out. (Any channel order: the channels are treated alike.)
     """
     import cv2
 
     h, w = person.shape
     reach = max(1, int(round(GROW_REACH * max(h, w))))
     d = plate_difference(img, plate)
-    away = ~cv2.dilate(person.astype(np.uint8), np.ones((2 * reach + 1, 2 * reach + 1), np.uint8)).astype(bool)
-    tau = max(DIFF_FLOOR, NOISE_K * float(np.median(d[away]))) if away.any() else DIFF_FLOOR
-    differs = (d > tau).astype(np.uint8)
     m = person.astype(np.uint8)
+    away = cv2.dilate(m, np.ones((2 * reach + 1, 2 * reach + 1), np.uint8)) == 0
+    tau = max(DIFF_FLOOR, NOISE_K * _median_u8(d, away)) if away.any() else DIFF_FLOOR
+    # a grown pixel is person or differs, so the mask may take what differs or was person at the start
+    allowed = ((d > tau) | person).astype(np.uint8)
     step = np.ones((3, 3), np.uint8)
+    count = cv2.countNonZero(m)
     for _ in range(reach):
-        grown = cv2.dilate(m, step) & (differs | m)
-        if np.array_equal(grown, m):
+        grown = cv2.bitwise_and(cv2.dilate(m, step), allowed)
+        now = cv2.countNonZero(grown)  # the mask only grows: the same count is the same mask
+        if now == count:
             break
-        m = grown
+        m, count = grown, now
     return m.astype(bool)
 
 
@@ -127,17 +151,30 @@ class Parts:
     torso: np.ndarray
 
     @classmethod
-    def from_colour_map(cls, p: np.ndarray) -> "Parts":
-        """The parts of a parsing image (uint8 RGB ``[H, W, 3]`` in ER-NeRF's colours)."""
-        return cls(*(np.all(p == PARSING_COLOURS[k], axis=-1) for k in ("head", "neck", "torso")))
+    def from_colour_map(cls, p: np.ndarray, bgr: bool = False) -> "Parts":
+        """The parts of a parsing image (uint8 RGB ``[H, W, 3]`` in ER-NeRF's colours; ``bgr``: the
+        channels in OpenCV's order)."""
+        import cv2
 
-    def colour_map(self) -> np.ndarray:
-        """The parsing image, uint8 RGB ``[H, W, 3]`` in ER-NeRF's colours."""
-        out = np.full(self.head.shape + (3,), 255, np.uint8)
-        out[self.torso] = PARSING_COLOURS["torso"]
-        out[self.neck] = PARSING_COLOURS["neck"]
-        out[self.head] = PARSING_COLOURS["head"]
-        return out
+        p = np.ascontiguousarray(p)
+
+        def where(c):
+            c = c[::-1] if bgr else c
+            return cv2.inRange(p, c, c) > 0
+
+        return cls(*(where(PARSING_COLOURS[k]) for k in ("head", "neck", "torso")))
+
+    def colour_map(self, bgr: bool = False) -> np.ndarray:
+        """The parsing image, uint8 RGB ``[H, W, 3]`` in ER-NeRF's colours (``bgr``: OpenCV's order);
+        head over neck over torso where they overlap."""
+        import cv2
+
+        u8 = np.uint8
+        label = np.maximum(np.maximum(self.torso.view(u8), self.neck.view(u8) * u8(2)), self.head.view(u8) * u8(3))
+        lut = np.zeros((256, 1, 3), u8)
+        for i, k in enumerate(("background", "torso", "neck", "head")):
+            lut[i, 0] = PARSING_COLOURS[k][::-1] if bgr else PARSING_COLOURS[k]
+        return cv2.LUT(cv2.merge([label, label, label]), lut)
 
     @property
     def person(self) -> np.ndarray:
@@ -254,6 +291,32 @@ def mouth_mask(lms: np.ndarray, shape) -> np.ndarray:
     return _poly(lms[60:68], shape)
 
 
+def masked_median(stack: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """Per pixel and channel, the median over the frames where ``keep`` holds, float32 ``[H, W, C]``
+    of uint8 ``stack`` ``[K, H, W, C]`` and bool ``keep`` ``[K, H, W]`` (the mean of the two middle
+    values for an even count; NaN's ``np.nanmedian`` with the others NaN gives the same numbers).
+    Undefined where no frame is kept.
+
+    One partial sort of the K values at two fixed ranks instead of a sort per pixel: of a pixel's
+    ``K - k`` left-out values, ``(K - k) // 2`` are set below every value and the rest above, which
+    puts its own median at ranks ``lo + (k - 1) // 2`` and ``lo + k // 2`` (``lo`` the number
+    below): the same one or two ranks for every pixel whose ``k`` has the same parity."""
+    K = len(stack)
+    k = keep.sum(0, dtype=np.int32)
+    lo = (K - k) // 2
+    out = ~keep
+    fill = np.where(np.cumsum(out, axis=0, dtype=np.int32) <= lo[None], np.int16(-1), np.int16(256))  # below / above 0-255
+    x = np.where(out[..., None], fill[..., None], stack.astype(np.int16))
+    flat = np.ascontiguousarray(x.reshape(K, -1).T)  # [H * W * C, K]
+    c = stack.shape[-1]
+    r1, r2 = (np.repeat(np.clip(lo + (k - j) // 2, 0, K - 1).ravel(), c) for j in (1, 0))
+    ranks = np.unique(np.concatenate([r1, r2]))
+    part = np.partition(flat, ranks, axis=1)
+    a = np.take_along_axis(part, r1[:, None], 1)[:, 0].astype(np.float32)
+    b = np.take_along_axis(part, r2[:, None], 1)[:, 0].astype(np.float32)
+    return ((a + b) / np.float32(2)).reshape(stack.shape[1:])
+
+
 class PlateBuilder:
     """Accumulates background pixels over frames; :meth:`plate` gives ``bc.jpg``."""
 
@@ -279,17 +342,11 @@ class PlateBuilder:
         median absolute difference (grey levels) of the background against it."""
         import cv2
 
-        imgs = np.stack(self.stack).astype(np.float32)
+        imgs = np.stack(self.stack)
         bg = ~np.stack(self.masks)
         seen = bg.any(0)
-        data = np.where(bg[..., None], imgs, np.nan)
-        with np.errstate(all="ignore"):
-            import warnings
-
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)
-                med = np.nanmedian(data, axis=0)
-        med = np.where(seen[..., None], med, 0.0)
+        med = np.where(seen[..., None], masked_median(imgs, bg), 0.0)
+        imgs = imgs.astype(np.float32)
         plate = np.clip(np.rint(med), 0, 255).astype(np.uint8)
         if not seen.all():
             h, w = self.shape

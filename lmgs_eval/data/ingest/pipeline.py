@@ -67,6 +67,7 @@ class _Ctx:
     log: list[str]
     flags: dict
     timings: dict
+    workers: object = None  # frames.Workers: the worker processes of the per-frame stages (jobs > 1)
 
     def bar(self, total: int, desc: str):
         if not self.progress:
@@ -238,15 +239,24 @@ def _run(ctx: _Ctx, key: dict, info: decode.VideoInfo, sound: tuple, cut_short: 
     if "track" not in done:
         stages.track(ctx, info)
         _done(ctx, "track")
-    tr = np.load(ctx.work / "track.npz")
-    if "frames" not in done:
-        stages.frames(ctx, info, tr, audio)
-        _done(ctx, "frames")
-    sel = np.load(ctx.work / "frames.npz")
-    for name in ("pose", "parsing", "geometry", "composites"):  # the stages that work on the selected frames
-        if name not in done:
-            getattr(stages, name)(ctx, sel)
-            _done(ctx, name)
+    from lmgs_eval.data.ingest.frames import Workers
+
+    pooled = ("parsing", "geometry", "composites")  # the stages whose frames the worker processes share
+    with Workers(ctx.jobs) as workers:
+        if ctx.jobs > 1 and not done.issuperset(pooled):
+            ctx.workers = workers.start()  # they start up (imports, seconds each) while this process cuts the frames
+        try:
+            tr = np.load(ctx.work / "track.npz")
+            if "frames" not in done:
+                stages.frames(ctx, info, tr, audio)
+                _done(ctx, "frames")
+            sel = np.load(ctx.work / "frames.npz")
+            for name in ("pose", *pooled):  # the stages that work on the selected frames
+                if name not in done:
+                    getattr(stages, name)(ctx, sel)
+                    _done(ctx, name)
+        finally:
+            ctx.workers = None
     stages.finish(ctx, info, sel, audio, source, key)
 
 

@@ -144,7 +144,7 @@ def pose(ctx, sel) -> None:
     if focal is None:
         from lmgs_eval.data.ingest.focal import fit_focal
 
-        ff = fit_focal(sel["mesh"], s, s)
+        ff = fit_focal(sel["mesh"], s, s, mapper=ctx.workers.executor().map if ctx.workers is not None else None)
         focal = ff.focal
         rng = f"{ff.lo / s:.2f}-{ff.hi / s:.2f}"
         ctx.log.append(f"focal length {ff.focal / s:.2f} frame widths (interval {rng}) from the dense mesh of {ff.frames} frames; "
@@ -193,7 +193,8 @@ def parsing(ctx, sel) -> None:
     masks = ctx.work / "person"
     masks.mkdir(exist_ok=True)
     bar = ctx.bar(n, "parsing")
-    for chunk in frames_mod.run_chunks(frames_mod.parse, n, ((ctx.sub, masks, lms), (frozenset(plate.keep),)), ctx.jobs, bar):
+    for chunk in frames_mod.run_chunks(frames_mod.parse, n, ((ctx.sub, masks, lms), (frozenset(plate.keep),)), ctx.jobs, bar,
+                                         workers=ctx.workers):
         for k, img, person in chunk:
             plate.add(k, img, person)
     if bar is not None:
@@ -201,7 +202,7 @@ def parsing(ctx, sel) -> None:
     bc, seen, resid = plate.plate()
     write_rgb(ctx.sub / "bc.jpg", bc)
     bar = ctx.bar(n, "parsing against the plate")
-    frames_mod.run_chunks(frames_mod.refine, n, ((ctx.sub, masks, lms), ()), ctx.jobs, bar)
+    frames_mod.run_chunks(frames_mod.refine, n, ((ctx.sub, masks, lms), ()), ctx.jobs, bar, workers=ctx.workers)
     if bar is not None:
         bar.close()
     ctx.log.append(f"plate: {100 * seen.mean():.1f} % of its pixels seen behind the person, the rest inpainted; the background "
@@ -226,7 +227,8 @@ def geometry(ctx, sel) -> None:
     for d in ("depth", "normal"):
         (ctx.sub / d).mkdir(exist_ok=True)
     bar = ctx.bar(n, "depth + normal priors")
-    frames_mod.run_chunks(frames_mod.geometry, n, ((ctx.sub, pz["w2c"], float(pz["focal"]), centre, axes), ()), ctx.jobs, bar)
+    frames_mod.run_chunks(frames_mod.geometry, n, ((ctx.sub, pz["w2c"], float(pz["focal"]), centre, axes), ()), ctx.jobs, bar,
+                          workers=ctx.workers)
     if bar is not None:
         bar.close()
     ctx.timed("geometry", t0, n)
@@ -239,7 +241,7 @@ def composites(ctx, sel) -> None:
     for d in ("gt_imgs", "torso_imgs"):
         (ctx.sub / d).mkdir(exist_ok=True)
     bar = ctx.bar(n, "composites")
-    frames_mod.run_chunks(frames_mod.composite, n, ((ctx.sub,), ()), ctx.jobs, bar)
+    frames_mod.run_chunks(frames_mod.composite, n, ((ctx.sub,), ()), ctx.jobs, bar, workers=ctx.workers)
     if bar is not None:
         bar.close()
     ctx.timed("composites", t0, n)
