@@ -173,24 +173,26 @@ def build_net(dim: int = 128, width: int = 128, context: int = 5):
     return LandmarkSyncNet()
 
 
-def export(net, out_dir: Path, meta: dict) -> dict:
-    """Write the trained network as ``landmark_sync.onnx`` and its manifest (recipe, seed, sha256)."""
+def export(net, out_dir: Path, meta: dict, name: str = "landmark-sync", files: tuple[str, str] = (ONNX_NAME, JSON_NAME),
+           points: str = "mouth_features") -> dict:
+    """Write the trained network as ``files[0]`` (ONNX) and its manifest ``files[1]`` (recipe, seed, sha256, and
+    what ``meta`` adds) into ``out_dir``; ``points`` says where the mouth features come from."""
     import torch
 
-    from lmgs.fileio import sha256_file
+    from lmgs.fileio import atomic_write, sha256_file
     from lmgs_eval.metrics.ort import export_onnx
-    from lmgs.fileio import atomic_write
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    onnx_name, json_name = files
     c = int(meta.get("context", 5))
-    export_onnx(net.eval(), (torch.randn(2, 13, 4 * c), torch.randn(2, N_FEAT, c)), out_dir / ONNX_NAME,
+    export_onnx(net.eval(), (torch.randn(2, 13, 4 * c), torch.randn(2, N_FEAT, c)), out_dir / onnx_name,
                 ["audio", "video"], ["a_emb", "v_emb"],
                 {"audio": {0: "n"}, "video": {0: "n"}, "a_emb": {0: "n"}, "v_emb": {0: "n"}})
-    m = {"name": "landmark-sync", "context": c, "highpass": int(meta.get("highpass", 0)),
-         "input": f"mouth_features windows [N,40,{c}] + audio_features windows [N,13,{4 * c}]", **meta,
-         "sha256": sha256_file(out_dir / ONNX_NAME)}
-    atomic_write(out_dir / JSON_NAME, json.dumps(m, indent=2))
+    m = {"name": name, "context": c, "highpass": int(meta.get("highpass", 0)),
+         "input": f"{points} windows [N,40,{c}] + audio_features windows [N,13,{4 * c}]", **meta,
+         "sha256": sha256_file(out_dir / onnx_name)}
+    atomic_write(out_dir / json_name, json.dumps(m, indent=2))
     return m
 
 

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lmgs_eval.errors import UserError
-from lmgs_eval.metrics.sync.landmark import N_FEAT, LandmarkScorer
+from lmgs_eval.metrics.sync.landmark import LandmarkScorer
 
 ONNX_NAME, JSON_NAME = "mesh_sync.onnx", "mesh_sync.json"
 STANDIN = ("mesh-sync is trained by this project (generated clips, then real speakers' recordings; mouth points of the "
@@ -67,22 +67,7 @@ class MeshScorer(LandmarkScorer):
 
 def export(net, out_dir, meta: dict) -> dict:
     """Write the adapted network as ``mesh_sync.onnx`` and its manifest (recipe, figures, sha256)."""
-    import json
-    from pathlib import Path
+    from lmgs_eval.metrics.sync import landmark
 
-    import torch
-
-    from lmgs.fileio import atomic_write, sha256_file
-    from lmgs_eval.metrics.ort import export_onnx
-
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    c = int(meta.get("context", 15))
-    export_onnx(net.eval(), (torch.randn(2, 13, 4 * c), torch.randn(2, N_FEAT, c)), out_dir / ONNX_NAME,
-                ["audio", "video"], ["a_emb", "v_emb"],
-                {"audio": {0: "n"}, "video": {0: "n"}, "a_emb": {0: "n"}, "v_emb": {0: "n"}})
-    m = {"name": "mesh-sync", "context": c, "highpass": int(meta.get("highpass", 0)),
-         "input": f"mouth_features of the mesh's canonical 68 points, windows [N,40,{c}] + audio_features windows "
-                  f"[N,13,{4 * c}]", **meta, "sha256": sha256_file(out_dir / ONNX_NAME)}
-    atomic_write(out_dir / JSON_NAME, json.dumps(m, indent=2))
-    return m
+    return landmark.export(net, out_dir, {"context": 15, **meta}, name="mesh-sync", files=(ONNX_NAME, JSON_NAME),
+                           points="mouth_features of the mesh's canonical 68 points,")
