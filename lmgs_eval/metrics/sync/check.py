@@ -37,7 +37,8 @@ STILL_RATIO = 2.0
 UNTRUSTED_HINT = ("the sync scorer does not separate this clip's own audio from audio taken elsewhere in the clip: "
                   "its LSE-D/LSE-C/offset are not evidence of lip sync here (the clip is out of sync, or the scorer "
                   "cannot read this face); for LSE comparable with papers import the official SyncNet weights: "
-                  "lmgs-eval weights import-syncnet syncnet_v2.model")
+                  "lmgs-eval weights import-syncnet syncnet_v2.model; on a real face, --sync mesh reads the dense face "
+                  "mesh and was adapted on real speakers (a stand-in too; its figures: docs/metrics.md)")
 
 
 def rolls(n: int) -> list[int]:
