@@ -254,3 +254,28 @@ def test_a_held_out_speaker_is_found_in_sync_by_a_fold_that_never_saw_them():
     rows = T.fold_rows(recs, ["anchor_de_20s"])
     assert [r["clip"] for r in rows] == ["anchor_de_20s"] and "anchor_de_20s" not in rows[0]["trained_on"]
     assert rows[0]["passes"], rows[0]
+
+
+def test_the_dlib_comparison_reads_a_footage_folder_as_the_bench_does(clip, tmp_path, monkeypatch):
+    """``bench sync``'s comparison row: a folder of in-sync videos (two generated ones here) tracked by the lip
+    tracker and by dlib at 25 fps (both cached outside the repository), scored by the shipped landmark scorer
+    with the other video's speech as the other speaker's: the clip in sync is found at 0 +- 1 and its figures
+    carry every key of the table."""
+    from lmgs_eval.data.lip_corpus import real_recordings
+    from lmgs_eval.data.video import write_video
+    from lmgs_eval.metrics.sync.train import mesh as T
+
+    monkeypatch.setenv("LMGS_LIPS_CACHE", str(tmp_path / "cache"))
+    frames, audio = clip
+    footage = tmp_path / "footage"
+    footage.mkdir()
+    write_video(footage / "a.mp4", frames, 25, audio)
+    other = np.roll(audio, len(audio) // 2)  # the same voice elsewhere in its text: out of sync with the frames
+    write_video(footage / "b.mp4", frames, 25, other)
+    recs = real_recordings(footage)
+    assert [r.name for r in recs] == ["a", "b"] and T.folds(recs) == ["a", "b"]
+    rows = T.landmark_rows(recs, footage)
+    a = rows[0]
+    assert a["clip"] == "a" and abs(a["offset"]) <= 1, a
+    assert set(a) >= {"offset", "shifts", "lse_c", "other_lse_c_max", "separation", "trusted", "passes", "confident_wrong"}
+    assert len(list((tmp_path / "cache").glob("a-*-dlib-v1.npy"))) == 1  # cached by content
