@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 sys.path.insert(0, sys.argv[1])
 import lmgs
-skip = {"lmgs.render._gsplat", "lmgs.render._triton"}  # CUDA only: gsplat (lmgs[cuda]) and Triton (torch's CUDA builds)
+skip = {"lmgs.render._gsplat", "lmgs.render._triton", "lmgs.render._triton_projection"}  # CUDA only: gsplat (lmgs[cuda]) and Triton (torch's CUDA builds)
 mods = [m.name for m in pkgutil.walk_packages(lmgs.__path__, "lmgs.") if m.name not in skip]
 for m in mods:
     importlib.import_module(m)

@@ -142,7 +142,7 @@ def test_triton_binning_kernels_match_the_torch_binning_in_the_interpreter():
 
 _PROJ_SCRIPT = r"""
 import json, math, torch
-from lmgs.render import _cpu, _triton
+from lmgs.render import _cpu, _triton, _triton_projection
 from lmgs.types import Camera
 def gaussians(n, seed, dtype):  # every branch: behind, too near, off-screen, zero quaternions, clamps, ties
     g = torch.Generator().manual_seed(seed)
@@ -175,7 +175,7 @@ for dtype in (torch.float64, torch.float32):
         a = [t.clone().requires_grad_() for t in params]
         b = [t.clone().requires_grad_() for t in params]
         box = []
-        m2, props = _triton._Project.apply(*a, cam, box, True)
+        m2, props = _triton_projection._Project.apply(*a, cam, box, True)
         m2_ref, props_ref = _cpu.project_autograd(*b, cam)
         _, _, prep = _cpu.project_numba(*params, cam)
         pk = box[0]
@@ -194,7 +194,7 @@ for dtype in (torch.float64, torch.float32):
         gb = torch.autograd.grad((m2_ref * gm).sum() + (props_ref * gp).sum(), b)
         # cotangents as column views of one buffer (how the compositor's backward gives them)
         rows = torch.cat([gm, gp], 1)
-        ctx_like = _triton._Project.apply(*a, cam, [], True)
+        ctx_like = _triton_projection._Project.apply(*a, cam, [], True)
         gc = torch.autograd.grad(ctx_like, a, (rows[:, :2], rows[:, 2:]))
         out[f"{dtype} rotated={rotated}"] = {
             "culled": int((pk.radii == 0).sum()), "n": len(pk.radii),

@@ -141,7 +141,7 @@ def rasterize(
             means, quats, log_scales, opacity_logits, view_colors(means, colors, degree, camera), camera,
             _MODE_FEATURES[render_mode])
     elif chosen == "triton" and not (torch.is_grad_enabled() and camera.world_to_camera.requires_grad):
-        from lmgs.render._triton import rasterize_triton
+        from lmgs.render._triton_projection import rasterize_triton
 
         rgb, depth, normal, alpha, means2d, radii = rasterize_triton(
             means, quats, log_scales, opacity_logits, view_colors(means, colors, degree, camera), camera)
@@ -233,7 +233,7 @@ def triton_available() -> bool:
         torch.cuda.synchronize()
         if m2.grad is None or not torch.isfinite(m2.grad).all() or not 0.4 < float(alpha[8, 8, 0]) < 0.6:
             raise RuntimeError(f"one Gaussian of opacity 0.5 composited to alpha {float(alpha[8, 8, 0]):.3f}")
-        from lmgs.render._triton import rasterize_triton
+        from lmgs.render._triton_projection import rasterize_triton
 
         with torch.enable_grad():  # one Gaussian 1 m ahead of a 16x16 camera, opacity 0.5, radius ~1 px * 3
             mean = torch.tensor([[0.0, 0.0, 1.0]], device=dev, requires_grad=True)
