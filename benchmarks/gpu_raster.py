@@ -57,9 +57,9 @@ def _row(params, cam, backend: str, repeats: int, device: str) -> dict:
     import torch
 
     from lmgs.render import rasterize
+    from lmgs.render.bench_scene import on_device
 
-    ps = [t.detach().to(device).requires_grad_() for t in params]
-    c = cam.to(device) if device != "cpu" else cam
+    ps, c = on_device(params, cam, device)
 
     def fwd():
         with torch.no_grad():
@@ -130,17 +130,15 @@ def _measure(fn, repeats: int) -> dict:
     return r
 
 
-def _fixed_cost(n: int, res: int, repeats: int):
+def _fixed_cost(n: int, res: int, repeats: int, device: str):
     """Yield the ``fixed_cost`` rows of one scene (see the module docstring)."""
     import torch
 
     from lmgs.render import _triton, rasterize
     from lmgs.render._projection import project
-    from lmgs.render.bench import head_scene
+    from lmgs.render.bench_scene import head_scene, on_device
 
-    params, cam = head_scene(n, res)
-    ps = [t.detach().cuda().requires_grad_() for t in params]
-    c = cam.to("cuda")
+    ps, c = on_device(*head_scene(n, res), device)
     with torch.no_grad():
         p = project(*ps, None, c)
     leaves = [t.detach().requires_grad_() for t in (p.means2d, p.conics, p.opacities, p.features)]
@@ -198,18 +196,22 @@ def main(argv=None) -> None:
     p.add_argument("--tiny", default="100x64", help="NxRES of the scene that measures the fixed cost per call")
     p.add_argument("--fixed-only", action="store_true", help="only the fixed-cost section")
     p.add_argument("--skip-fixed", action="store_true", help="leave the fixed-cost section out")
+    p.add_argument("--device", default="cuda", help="the CUDA device the GPU rows run on (default cuda)")
     p.add_argument("--json")
     args = p.parse_args(argv)
 
     import torch
 
     from lmgs.render import _triton
-    from lmgs.render.bench import head_scene
+    from lmgs.render.bench_scene import head_scene
+
+    if torch.device(args.device).type != "cuda" or not torch.cuda.is_available():
+        p.error(f"--device {args.device}: this benchmark measures a CUDA device, and none is here")
 
     torch.set_num_threads(os.cpu_count() or 1)
     rows = []
     report = {"torch": torch.__version__, "cpu_count": os.cpu_count(),
-              "device": torch.cuda.get_device_name() if torch.cuda.is_available() else None, "rows": rows}
+              "device": torch.cuda.get_device_name(args.device), "rows": rows}
 
     def emit(r):
         rows.append(r)
@@ -220,7 +222,7 @@ def main(argv=None) -> None:
 
     if not args.skip_fixed:
         for scene in [args.tiny] + args.scenes:
-            for r in _fixed_cost(*(int(v) for v in scene.split("x")), args.repeats):
+            for r in _fixed_cost(*(int(v) for v in scene.split("x")), args.repeats, args.device):
                 emit(r)
     shipped = (_triton.BLOCK_G, _triton.NUM_WARPS)
     for scene in [] if args.fixed_only else args.scenes:
@@ -237,8 +239,9 @@ def main(argv=None) -> None:
                     _triton.BLOCK_G, _triton.NUM_WARPS = bg, nw
                 backend = {"numba-split": "numba"}.get(path, path)
                 reps = args.torch_repeats if path == "torch" else args.repeats
-                r = {**base, "path": path if conf is None else f"triton {conf}", "device": torch.cuda.get_device_name(),
-                     **_row(params, cam, backend, reps, "cuda")}
+                r = {**base, "path": path if conf is None else f"triton {conf}",
+                     "device": torch.cuda.get_device_name(args.device),
+                     **_row(params, cam, backend, reps, args.device)}
                 r["speedup_fwd"] = ref["fwd_ms"] / r["fwd_ms"]
                 r["speedup_fwd_bwd"] = ref["fwd_bwd_ms"] / r["fwd_bwd_ms"]
             except Exception as e:  # noqa: BLE001 - a failed candidate is a row saying so

@@ -26,7 +26,7 @@ import sys
 import time
 
 from lmgs.render.bench_scaling import SHORT_SPIN, measure_scaling, scaling, scaling_text, thread_counts
-from lmgs.render.bench_scene import FAST, head_scene, worker_row
+from lmgs.render.bench_scene import FAST, head_scene, on_device, worker_row
 
 HELP = "Gaussian rasterizer: numba fast path vs the pure-torch tiled anchor (fwd, fwd+bwd, peak memory)"
 
@@ -49,13 +49,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         f"(GOMP_SPINCOUNT={SHORT_SPIN}), against lmgs's default of sleeping at once (PASSIVE)")
 
 
-def _on(params, cam, device: str):
-    """The scene's leaf tensors and camera on ``device`` (leaves again, needing a gradient)."""
-    if device == "cpu":
-        return params, cam
-    return [t.detach().to(device).requires_grad_(t.requires_grad) for t in params], cam.to(device)
-
-
 def _measure(backend: str, res: int, n: int, repeats: int, device: str = "cpu") -> dict:
     """One row, in this process (called in the worker). On CUDA each timed call ends with a
     device synchronisation and ``peak_mb`` is the growth of the allocator's peak."""
@@ -65,9 +58,9 @@ def _measure(backend: str, res: int, n: int, repeats: int, device: str = "cpu") 
 
     cuda = device != "cpu"
     sync = torch.cuda.synchronize if cuda else (lambda: None)
-    params, cam = _on(*head_scene(n, res), device)
+    params, cam = on_device(*head_scene(n, res), device)
     bg = torch.tensor([0.2, 0.3, 0.4], device=device)
-    tiny, tiny_cam = _on(*head_scene(64, 32, seed=1), device)
+    tiny, tiny_cam = on_device(*head_scene(64, 32, seed=1), device)
 
     def fwd(p, c):
         return rasterize(*p, c, bg, backend=backend)

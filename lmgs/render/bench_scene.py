@@ -47,6 +47,13 @@ def head_scene(n: int, res: int, seed: int = 0, requires_grad: bool = True):
     return params, cam
 
 
+def on_device(params, cam, device: str):
+    """The scene's leaf tensors and camera on ``device`` (leaves again, needing a gradient as before)."""
+    if device == "cpu":
+        return params, cam
+    return [t.detach().to(device).requires_grad_(t.requires_grad) for t in params], cam.to(device)
+
+
 def worker_row(backend: str, res: int, n: int, repeats: int, device: str = "cpu", threads: int | None = None,
                 omp_env: dict | None = None) -> dict:
     """One row measured in a fresh worker process; with ``threads``, a scaling row (:func:`lmgs.render.bench_scaling.measure_scaling`)
