@@ -13,6 +13,7 @@ the crop. When the presence logit falls below :data:`PRESENCE` the face is detec
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
@@ -39,6 +40,13 @@ def load_session(path: Path | None = None):
     opts = ort.SessionOptions()
     opts.log_severity_level = 3
     return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+
+
+@functools.cache
+def shipped_session():
+    """The shipped mesh model's session, loaded (and its file checked) once per process: every
+    :class:`FaceMesh` made without a session of its own shares it."""
+    return load_session()
 
 
 def crop_matrix(cx: float, cy: float, side: float, angle: float) -> np.ndarray:
@@ -73,7 +81,7 @@ class FaceMesh:
     """478 face points per frame. ``mesh(frame, region)`` for one crop; :meth:`track` over a clip."""
 
     def __init__(self, detect: Callable[[np.ndarray], Box | None] | None = None, session=None):
-        self.session = session if session is not None else load_session()
+        self.session = session if session is not None else shipped_session()
         self._input = self.session.get_inputs()[0].name
         self.detect = detect if detect is not None else dlib_box
         self._region: tuple[float, float, float, float] | None = None

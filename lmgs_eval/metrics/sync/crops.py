@@ -187,7 +187,7 @@ class FaceClip:
             from lmgs_eval.data.ingest.lips import to_canonical
             from lmgs_eval.data.ingest.mesh import FaceMesh
 
-            fm = FaceMesh(session=_mesh_session())
+            fm = FaceMesh()
             pts = [fm.step(np.ascontiguousarray(to_u8(frame)))[0] for frame in self._frames()]
             mesh = np.stack(pts) if pts else np.zeros((0, 478, 3), np.float32)
             b._set_n(len(mesh))
@@ -207,15 +207,3 @@ class FaceClip:
             b._crops[detect_every] = (crop_faces(self._frames(), boxes), n_missing)
         crops, n_missing = b._crops[detect_every]
         return self._part(crops), n_missing
-
-
-_MESH_SESSION: list = []
-
-
-def _mesh_session():
-    """The face mesh model's ONNX Runtime session, loaded (and its sha256 checked) once per process."""
-    if not _MESH_SESSION:
-        from lmgs_eval.data.ingest.mesh import load_session
-
-        _MESH_SESSION.append(load_session())
-    return _MESH_SESSION[0]
