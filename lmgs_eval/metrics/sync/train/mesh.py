@@ -202,8 +202,7 @@ def heldout_generated(n: int = 10) -> list[dict]:
     import hashlib
 
     from lmgs_eval.data.bundled import synthesize_clip
-    from lmgs_eval.data.ingest.lips import to_canonical
-    from lmgs_eval.data.ingest.mesh import FaceMesh
+    from lmgs_eval.metrics.sync.crops import FaceClip
     from lmgs_eval.metrics.sync.train.landmark import heldout_specs, split
     from lmgs_eval.paths import cache_root
 
@@ -214,10 +213,7 @@ def heldout_generated(n: int = 10) -> list[dict]:
         p = folder / f"{s['id']}-{hashlib.sha256(json.dumps(s, sort_keys=True).encode()).hexdigest()[:12]}.npz"
         if not p.is_file():
             c = synthesize_clip(s["face"], s["text"], s["voice"], size=s["size"], seed=s["seed"])
-            fm = FaceMesh()
-            mesh = np.stack([fm.step(f)[0] for f in c.frames])
-            lms, _ = to_canonical(mesh)
-            np.savez(p, lms=lms, audio=c.audio)
+            np.savez(p, lms=FaceClip(c.frames).mesh_landmarks(), audio=c.audio)
         with np.load(p) as z:
             out.append({**s, "lms": z["lms"], "audio": z["audio"]})
     return out
