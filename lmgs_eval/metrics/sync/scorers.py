@@ -87,21 +87,29 @@ def find_scorer(prefer: str | None = None) -> tuple[SyncScorer | None, str]:
     return None, "; ".join(reasons)
 
 
+def _load_points_scorer(cls, files: tuple[str, str], context: int, folder: Path | None):
+    """A scorer of mouth points (``cls``: :class:`LandmarkScorer` or :class:`~mesh.MeshScorer`) from its ONNX
+    graph and manifest ``files`` in ``folder`` (default the shipped ones), or ``(None, reason)``; ``context``
+    when the manifest gives none."""
+    from lmgs_eval.metrics.ort import load_session
+
+    folder = Path(folder if folder is not None else WEIGHTS)
+    onnx_name, json_name = files
+    p, j = folder / onnx_name, folder / json_name
+    if not (p.is_file() and j.is_file()):
+        return None, f"{cls.name} weights not present ({onnx_name} + {json_name} in {folder})"
+    m = json.loads(j.read_text())
+    sha = _check_sha(p, j, m.get("sha256"))
+    return cls(load_session(p), sha, int(m.get("context", context)), int(m.get("highpass", 0))), ""
+
+
 def load_landmark(folder: Path | None = None) -> tuple[LandmarkScorer | None, str]:
     """The landmark scorer of ``folder`` (default the shipped one), or ``(None, reason)``.
 
     Raises:
         UserError: the ONNX file does not match the sha256 in its manifest.
     """
-    from lmgs_eval.metrics.ort import load_session
-
-    folder = Path(folder if folder is not None else WEIGHTS)
-    p, j = folder / ONNX_NAME, folder / JSON_NAME
-    if not (p.is_file() and j.is_file()):
-        return None, f"landmark-sync weights not present ({ONNX_NAME} + {JSON_NAME} in {folder})"
-    m = json.loads(j.read_text())
-    sha = _check_sha(p, j, m.get("sha256"))
-    return LandmarkScorer(load_session(p), sha, int(m.get("context", 5)), int(m.get("highpass", 0))), ""
+    return _load_points_scorer(LandmarkScorer, (ONNX_NAME, JSON_NAME), 5, folder)
 
 
 def load_mesh(folder: Path | None = None) -> tuple[mesh.MeshScorer | None, str]:
@@ -110,15 +118,7 @@ def load_mesh(folder: Path | None = None) -> tuple[mesh.MeshScorer | None, str]:
     Raises:
         UserError: the ONNX file does not match the sha256 in its manifest.
     """
-    from lmgs_eval.metrics.ort import load_session
-
-    folder = Path(folder if folder is not None else WEIGHTS)
-    p, j = folder / mesh.ONNX_NAME, folder / mesh.JSON_NAME
-    if not (p.is_file() and j.is_file()):
-        return None, f"mesh-sync weights not present ({mesh.ONNX_NAME} + {mesh.JSON_NAME} in {folder})"
-    m = json.loads(j.read_text())
-    sha = _check_sha(p, j, m.get("sha256"))
-    return mesh.MeshScorer(load_session(p), sha, int(m.get("context", 15)), int(m.get("highpass", 0))), ""
+    return _load_points_scorer(mesh.MeshScorer, (mesh.ONNX_NAME, mesh.JSON_NAME), 15, folder)
 
 
 def mesh_manifest(folder: Path | None = None) -> dict | None:
