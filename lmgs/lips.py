@@ -424,7 +424,9 @@ def correlation_at_lags(a: np.ndarray, b: np.ndarray, max_lag: int = 5) -> dict[
     a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
     out = {}
     for lag in range(-max_lag, max_lag + 1):
-        x, y = (a[: len(a) - lag], b[lag:]) if lag >= 0 else (a[-lag:], b[: len(b) + lag])
+        x, y = (a, b[lag:]) if lag >= 0 else (a[-lag:], b)
+        m = min(len(x), len(y))
+        x, y = x[:m], y[:m]
         if len(x) < 3 or x.std() == 0 or y.std() == 0:
             out[lag] = math.nan
         else:

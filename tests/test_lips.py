@@ -147,6 +147,37 @@ def test_bench_lips_without_footage_is_one_line_exit_2(tmp_path):
     assert len(lines) == 1 and "none" in lines[0] and "footage" in lines[0], res.stderr
 
 
+def test_bench_lips_scores_the_generic_mouth_in_the_tracks_frame(monkeypatch):
+    """A recording whose track sits in a frame turned, scaled and moved away from the canonical face: a lip model
+    that predicts no motion must score exactly the training split's median mouth against the track, on the test
+    split and on the whole clip (the retargeting's canonical frame never leaks into the comparison)."""
+    from lmgs_eval.commands import _bench_lips
+    from lmgs_eval.data.layout import split_point
+    from lmgs_eval.data.lip_corpus import Recording
+
+    monkeypatch.setattr(lips, "TUNE_STEPS", 1)
+    monkeypatch.setattr(_bench_lips, "CNN_STEPS", 1)
+    rng = np.random.default_rng(3)
+    model = lips.load()
+    for p in model.head.parameters():
+        torch.nn.init.zeros_(p)
+    n = 44
+    tpl = model.template.numpy().astype(np.float64)
+    canon = np.repeat(tpl[None], n, 0)
+    # one mode of motion (an opening along a fixed pattern), so that the per-point median is the same whichever
+    # frame it is taken in
+    canon[:, lips.MOUTH] += 0.003 * rng.standard_normal(n)[:, None, None] * rng.standard_normal((20, 3))
+    R, s, t = _rotation(rng), 1.3, 0.05 * rng.standard_normal(3)
+    world = (s * canon @ R.T + t).astype(np.float32)
+    rec = Recording("turned", (0.1 * rng.standard_normal(n * 640)).astype(np.float32), world, "turned")
+    row = _bench_lips.evaluate_clip(rec, model)
+    cut = split_point(n)
+    median = np.median(world[:cut, lips.MOUTH].astype(np.float64), 0)
+    err = lambda sl: 1000 * np.linalg.norm(median - world[sl, lips.MOUTH], axis=-1).mean()  # noqa: E731
+    assert row["generic_mm"] == pytest.approx(err(slice(cut, n)), rel=1e-4)
+    assert row["generic_all_mm"] == pytest.approx(err(slice(0, n)), rel=1e-4)
+
+
 @pytest.mark.slow
 @pytest.mark.skipif(not FOOTAGE.is_dir(), reason="../shared/footage (real development clips) is not here")
 def test_bench_lips_on_one_real_clip():

@@ -38,6 +38,7 @@ IN_ALL = False  # trains a model per held-out speaker: `bench all` leaves it out
 HELP = "the generic lip model against lmgs's per-subject CNN and the mean mouth, each real speaker held out"
 FOOTAGE = Path("../shared/footage")
 MAX_LAG = 5
+CNN_STEPS = 400  # the per-subject predictor's steps, as lmgs fits it by default
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -56,6 +57,13 @@ def _gap_stats(pred_mouth: np.ndarray, true_mouth: np.ndarray) -> tuple[float, i
         return float("nan"), 0, float("nan")
     peak = max(finite, key=lambda k: finite[k])
     return c[0], peak, finite[peak]  # peak > 0: the prediction leads the track by that many frames
+
+
+def mouth_in_world(ret, feats) -> np.ndarray:
+    """A retargeted model's mouth ``[N, 20, 3]`` in the recording's own frame, where the track (the truth), the
+    subject CNN and the mean mouth are: the retargeting's canonical frame is fitted to the skull points of the
+    training split and differs from the track's by a similarity."""
+    return ret.predict(feats).astype(np.float64)
 
 
 def evaluate_clip(rec, model, base=None) -> dict:
@@ -78,16 +86,16 @@ def evaluate_clip(rec, model, base=None) -> dict:
     tr, te = slice(0, cut), slice(cut, n)
     truth = y[te, MOUTH]
     ret = RetargetedLips.fit(feats[tr], y[tr], model=model, name="adapted without this speaker")
-    generic = ret.canonical(feats[te])
-    tuned = RetargetedLips.fit(feats[tr], y[tr], model=model, name="adapted without this speaker",
-                               tune_steps=TUNE_STEPS, seed=0).canonical(feats[te])
-    tuned_gen = None if base is None else RetargetedLips.fit(feats[tr], y[tr], model=base, name="generated only",
-                                                             tune_steps=TUNE_STEPS, seed=0).canonical(feats[te])
-    cnn = fit_landmark_predictor(torch.from_numpy(feats[tr]), torch.from_numpy(y[tr]).float(), steps=400, seed=0)
+    generic = mouth_in_world(ret, feats[te])
+    tuned = mouth_in_world(RetargetedLips.fit(feats[tr], y[tr], model=model, name="adapted without this speaker",
+                                              tune_steps=TUNE_STEPS, seed=0), feats[te])
+    tuned_gen = None if base is None else mouth_in_world(
+        RetargetedLips.fit(feats[tr], y[tr], model=base, name="generated only", tune_steps=TUNE_STEPS, seed=0), feats[te])
+    cnn = fit_landmark_predictor(torch.from_numpy(feats[tr]), torch.from_numpy(y[tr]).float(), steps=CNN_STEPS, seed=0)
     subject = cnn.predict(torch.from_numpy(feats[te])).numpy()[:, MOUTH]
     mean = np.broadcast_to(y[tr, MOUTH].mean(0), truth.shape)
     err = lambda p: float(1000 * np.linalg.norm(p - truth, axis=-1).mean())  # noqa: E731
-    whole = ret.canonical(feats)
+    whole = mouth_in_world(ret, feats)
     row = {"clip": rec.name, "test_frames": n - cut,
            "generic_mm": err(generic), "tuned_mm": err(tuned), "subject_cnn_mm": err(subject), "mean_mouth_mm": err(mean)}
     if tuned_gen is not None:
