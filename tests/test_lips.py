@@ -178,6 +178,21 @@ def test_bench_lips_scores_the_generic_mouth_in_the_tracks_frame(monkeypatch):
     assert row["generic_all_mm"] == pytest.approx(err(slice(0, n)), rel=1e-4)
 
 
+def test_main_mode_oracle_keeps_the_main_mode_only():
+    """Mouths that move along one pattern are reproduced exactly; motion orthogonal to it is not predicted at all."""
+    from lmgs_eval.commands._bench_lips import main_mode_oracle
+
+    rng = np.random.default_rng(4)
+    mu, v = rng.standard_normal((20, 3)), rng.standard_normal((20, 3))
+    train = mu + rng.standard_normal(30)[:, None, None] * v
+    along = mu + rng.standard_normal(7)[:, None, None] * v
+    np.testing.assert_allclose(main_mode_oracle(train, along), along, atol=1e-9)
+    w = rng.standard_normal((20, 3))
+    w -= (w * v).sum() / (v * v).sum() * v  # orthogonal to the training motion
+    across = train.mean(0) + rng.standard_normal(5)[:, None, None] * w
+    np.testing.assert_allclose(main_mode_oracle(train, across), np.broadcast_to(train.mean(0), across.shape), atol=1e-9)
+
+
 @pytest.mark.slow
 @pytest.mark.skipif(not FOOTAGE.is_dir(), reason="../shared/footage (real development clips) is not here")
 def test_bench_lips_on_one_real_clip():

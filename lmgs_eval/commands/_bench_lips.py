@@ -12,11 +12,14 @@ For every clip, i.e. every held-out speaker:
 - **generic fine-tuned** (``tuned_*``): the same model fine-tuned on the training split first
   (:data:`lmgs.lips.TUNE_STEPS`; lmgs's ``train.landmark_source=generic-tuned``), and, for comparison, the
   generated-only weights fine-tuned the same way (``tuned_gen_*``: what the real speakers' adaptation adds);
-- **mean mouth**: the training split's mean mouth on every test frame.
+- **mean mouth**: the training split's mean mouth on every test frame;
+- **main-mode oracle** (``oracle_mm``, a reference that reads the truth): the test mouths projected onto the
+  training split's first principal mode of motion (mostly the opening), i.e. a perfect predictor of that one
+  mode: how far below the mean mouth any predictor of the opening alone can get.
 
 The split is the field's (lmgs's): the first 10/11 of the frames train, the rest test. Errors are the mean
-distance of the 20 mouth points (48-67) in the canonical face frame, in millimetres (MediaPipe's canonical
-face is metric); the inner-lip gap (62-66) correlation of prediction and track is given at lag 0 and at its
+distance of the 20 mouth points (48-67) in the track's frame (the canonical face, up to the fit of its skull
+points), in millimetres (MediaPipe's canonical face is metric); the inner-lip gap (62-66) correlation of prediction and track is given at lag 0 and at its
 peak within +-5 frames (positive: the prediction leads). The test split of an 8 s clip is 19 frames, so the
 generic model is also scored on the whole clip (``generic_all_*``: it never saw the speaker), where the
 correlations rest on every frame.
@@ -66,6 +69,17 @@ def mouth_in_world(ret, feats) -> np.ndarray:
     return ret.predict(feats).astype(np.float64)
 
 
+def main_mode_oracle(train_mouth: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """What a perfect predictor of the mouth's main mode of motion would give ``[N, 20, 3]``: the truth projected
+    onto the first principal component of the training split's mouths ``[T, 20, 3]`` about their mean. A
+    reference, not a method: it reads the test frames, and bounds what predicting the opening alone can gain."""
+    mu = train_mouth.mean(0)
+    _, _, vt = np.linalg.svd((train_mouth - mu).reshape(len(train_mouth), -1), full_matrices=False)
+    v = vt[0]
+    coef = (truth - mu).reshape(len(truth), -1) @ v
+    return mu + (coef[:, None] * v[None]).reshape(truth.shape)
+
+
 def evaluate_clip(rec, model, base=None) -> dict:
     """One held-out clip: the three predictors' errors and gap correlations (see the module's text)."""
     import torch
@@ -94,10 +108,12 @@ def evaluate_clip(rec, model, base=None) -> dict:
     cnn = fit_landmark_predictor(torch.from_numpy(feats[tr]), torch.from_numpy(y[tr]).float(), steps=CNN_STEPS, seed=0)
     subject = cnn.predict(torch.from_numpy(feats[te])).numpy()[:, MOUTH]
     mean = np.broadcast_to(y[tr, MOUTH].mean(0), truth.shape)
+    oracle = main_mode_oracle(y[tr, MOUTH], truth)
     err = lambda p: float(1000 * np.linalg.norm(p - truth, axis=-1).mean())  # noqa: E731
     whole = mouth_in_world(ret, feats)
     row = {"clip": rec.name, "test_frames": n - cut,
-           "generic_mm": err(generic), "tuned_mm": err(tuned), "subject_cnn_mm": err(subject), "mean_mouth_mm": err(mean)}
+           "generic_mm": err(generic), "tuned_mm": err(tuned), "subject_cnn_mm": err(subject), "mean_mouth_mm": err(mean),
+           "oracle_mm": err(oracle)}
     if tuned_gen is not None:
         row["tuned_gen_mm"] = err(tuned_gen)
     row["gap_r0"], row["gap_peak_lag"], _ = _gap_stats(generic, truth)
@@ -144,7 +160,7 @@ def run(args: argparse.Namespace) -> dict:
             print(f"bench lips: {rec.name} held out: generic {rows[-1]['generic_mm']:.2f} mm, fine-tuned {rows[-1]['tuned_mm']:.2f}, "
                   f"subject CNN {rows[-1]['subject_cnn_mm']:.2f}, mean mouth {rows[-1]['mean_mouth_mm']:.2f} "
                   f"({time.perf_counter() - a:.0f} s)", file=sys.stderr, flush=True)
-        keys = ("generic_mm", "tuned_mm", "tuned_gen_mm", "subject_cnn_mm", "mean_mouth_mm", "gap_r0", "tuned_gap_r0",
+        keys = ("generic_mm", "tuned_mm", "tuned_gen_mm", "subject_cnn_mm", "mean_mouth_mm", "oracle_mm", "gap_r0", "tuned_gap_r0",
                 "tuned_gen_gap_r0", "cnn_gap_r0", "generic_all_mm", "mean_all_mm", "gap_all_r0")
         mean = {k: float(np.mean([r[k] for r in rows])) for k in keys}
         rel = lambda a, b: f"{100 * (mean[a] / mean[b] - 1):+.1f} %"  # noqa: E731
@@ -159,6 +175,7 @@ def run(args: argparse.Namespace) -> dict:
             "generic fine-tuned vs mean mouth": rel("tuned_mm", "mean_mouth_mm"),
             "generated-only fine-tuned vs subject CNN": rel("tuned_gen_mm", "subject_cnn_mm"),
             "generated-only fine-tuned vs mean mouth": rel("tuned_gen_mm", "mean_mouth_mm"),
+            "main-mode oracle vs mean mouth (a bound, not a method)": rel("oracle_mm", "mean_mouth_mm"),
             "gap correlation at lag 0, test splits (mean)": round(mean["gap_r0"], 3),
             "gap correlation at lag 0, fine-tuned, test splits (mean)": round(mean["tuned_gap_r0"], 3),
             "subject CNN gap correlation at lag 0, test splits (mean)": round(mean["cnn_gap_r0"], 3),
