@@ -168,7 +168,7 @@ def run(args: argparse.Namespace) -> dict:
             "footage": str(folder),
             "clips": len(rows),
             "split": "first 10/11 of each clip train (neutral mouth, CNN), the rest test",
-            "units": "mean distance of the 20 mouth points in the canonical face frame, mm",
+            "units": "mean distance of the 20 mouth points in the track's (canonical face) frame, mm",
             "generic vs subject CNN": rel("generic_mm", "subject_cnn_mm") + " (goal <= -25 %)",
             "generic vs mean mouth": rel("generic_mm", "mean_mouth_mm") + " (goal <= -40 %)",
             "generic fine-tuned vs subject CNN": rel("tuned_mm", "subject_cnn_mm"),
