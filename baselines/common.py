@@ -19,7 +19,7 @@ from tqdm import tqdm
 
 from baselines.protocol import MethodInfo
 from lmgs.audio import compute_features
-from lmgs.config import AudioConfig, config_hash, override
+from lmgs.config import AudioConfig, config_dict, config_hash, override
 from lmgs.device import choose_device
 from lmgs.errors import InputError
 from lmgs.fileio import atomic_path
@@ -195,6 +195,55 @@ def landmark_targets(clip: TrainingClip) -> np.ndarray:
     return lift_2d_landmarks(clip.landmarks2d, c2w, clip.focal, clip.cx, clip.cy).numpy()
 
 
+def check_landmark_source(budget, method: str, reads_landmarks: bool) -> None:
+    """A budget's ``landmark_source`` (where the mouth of the audio-predicted landmarks comes from) must be one
+    lmgs knows, and other than ``subject`` only for a method that reads such landmarks."""
+    from lmgs.presets import LANDMARK_SOURCES
+
+    source = getattr(budget, "landmark_source", "subject")
+    if source not in LANDMARK_SOURCES:
+        raise InputError(f"--set landmark_source={source}: not one of {', '.join(LANDMARK_SOURCES)}")
+    if source != "subject" and not reads_landmarks:
+        raise InputError(f"--set landmark_source={source}: method '{method}' reads no audio-predicted landmarks "
+                         "(geneface and ip_lap do, as lmgs does)")
+
+
+def fit_mouth_model(source: str, clip: TrainingClip, targets: np.ndarray, seed: int) -> dict | None:
+    """The generic lip model (:mod:`lmgs.lips`) retargeted to ``clip`` from its 68 landmark targets ``[T, 68, 3]``,
+    fine-tuned on them for ``generic-tuned``, as its JSON-able state (what a checkpoint's ``build`` keeps); ``None``
+    for ``subject`` (the method's own predictor gives the whole face)."""
+    if source == "subject":
+        return None
+    from lmgs.lips import TUNE_STEPS, RetargetedLips, logmel
+
+    lips = RetargetedLips.fit(logmel(clip.audio, len(clip)), np.asarray(targets, np.float32),
+                              tune_steps=TUNE_STEPS if source == "generic-tuned" else 0, seed=seed)
+    return lips.to_state()
+
+
+def mouth_model(build: dict):
+    """``(constructor arguments, lmgs.lips.RetargetedLips or None)`` from a checkpoint's ``build``."""
+    rest = {k: v for k, v in build.items() if k != "lips"}
+    state = build.get("lips")
+    if state is None:
+        return rest, None
+    from lmgs.lips import RetargetedLips
+
+    return rest, RetargetedLips.from_state(state)
+
+
+def with_generic_mouth(lips, lms: torch.Tensor, windows: torch.Tensor) -> torch.Tensor:
+    """Landmarks ``[T, 68, 3]`` with the mouth (48-67) replaced by ``lips``'s prediction from the audio windows
+    ``[T, 16, 80]`` (the project's log-mel front end, which the lip model reads); ``lms`` itself when ``lips`` is None."""
+    if lips is None:
+        return lms
+    from lmgs.lips import MOUTH
+
+    out = lms.clone()
+    out[:, MOUTH] = torch.from_numpy(lips.predict(windows.detach().cpu().numpy())).to(out)
+    return out
+
+
 def project(points: np.ndarray, w2c: np.ndarray, focal: float, cx: float, cy: float) -> np.ndarray:
     """World points ``[..., 3]`` -> pixels ``[..., 2]`` (OpenCV camera)."""
     p = points @ w2c[:3, :3].T + w2c[:3, 3]
@@ -216,8 +265,11 @@ class Adapter:
     description = ""
     standins: tuple[str, ...] = ()
 
+    reads_landmarks = False  # whether the method reads audio-predicted landmarks (a budget's landmark_source)
+
     def __init__(self, preset: str = "quick", device: str | None = None, **overrides):
         self.cfg = configured(self.budget_cls, preset, overrides, self.name)
+        check_landmark_source(self.cfg, self.name, self.reads_landmarks)
         self.preset = preset
         self.device = device
         self.model = None
@@ -230,7 +282,7 @@ class Adapter:
         return choose_device(self.device)
 
     def config(self) -> dict:
-        return {"method": self.name, "preset": self.preset, **dataclasses.asdict(self.cfg)}
+        return {"method": self.name, "preset": self.preset, **config_dict(self.cfg)}
 
     def config_hash(self) -> str:
         return config_hash(self.config())
@@ -274,12 +326,19 @@ class Adapter:
             raise RuntimeError(f"{self.name}: render() before fit()")
 
     def describe(self):
+        standins = self.standins
+        source = getattr(self.cfg, "landmark_source", "subject")
+        if source != "subject":
+            standins = standins + (
+                "mouth landmarks (48-67): lmgs's generic lip model (pretrained on generated voices, adapted on real "
+                "speakers' lip tracks), retargeted to the subject" + (", fine-tuned on its training split"
+                                                                      if source == "generic-tuned" else ""),)
         return MethodInfo(name=self.name, display_name=self.display_name, family=self.family,
                           description=f"{self.description} Budget '{self.preset}': {self.budget_text()}.",
-                          standins=self.standins, config=self.config(), config_hash=self.config_hash())
+                          standins=standins, config=self.config(), config_hash=self.config_hash())
 
     def budget_text(self) -> str:
-        return ", ".join(f"{k}={v}" for k, v in dataclasses.asdict(self.cfg).items())
+        return ", ".join(f"{k}={v}" for k, v in config_dict(self.cfg).items())
 
     def cost(self) -> dict:
         c = cost_of(self.model, None)

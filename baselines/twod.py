@@ -31,10 +31,11 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from baselines.common import Adapter, Budget, audio_windows, landmark_targets, n_frames_of, progress_bar, project
+from baselines.common import (Adapter, Budget, audio_windows, fit_mouth_model, landmark_targets, mouth_model, n_frames_of,
+                              progress_bar, project, with_generic_mouth)
 from baselines.protocol import register
 from lmgs.audio.encoder import AudioEncoder
-from lmgs.config import AudioConfig
+from lmgs.config import AudioConfig, added_option
 from lmgs.landmarks import LandmarkPredictor, fit_landmark_predictor
 
 STANDINS = ("audio front end: the project's log-mel windows (Wav2Lip's 16 x 80 mel windows at 16 kHz, same shape)",)
@@ -54,6 +55,9 @@ class TwoDBudget(Budget):
         lr: Adam learning rate.
         sync_weight: weight of the sync loss when a scorer is available (Wav2Lip: 0.03).
         landmark_steps: audio-to-landmark predictor steps (IP_LAP).
+        landmark_source: where the mouth (48-67) of IP_LAP's predicted landmarks comes from: ``subject`` (its
+            predictor, fitted on the training split), ``generic`` or ``generic-tuned`` (the generic lip model of
+            :mod:`lmgs.lips`, retargeted to the subject; fine-tuned on its training split), as lmgs's key.
     """
 
     steps: int = 800
@@ -63,6 +67,7 @@ class TwoDBudget(Budget):
     lr: float = 1e-3
     sync_weight: float = 0.03
     landmark_steps: int = 300
+    landmark_source: str = added_option("subject")
 
     TINY = {"steps": 250, "batch": 4, "crop": 32, "width": 16, "lr": 2e-3, "landmark_steps": 60}
 
@@ -385,8 +390,13 @@ class IPLAP(TwoDMethod):
         "audio-to-landmark: the project's per-subject temporal CNN trained on the training split (IP_LAP's pretrained transformer cannot be had offline)",
     )
 
+    reads_landmarks = True
+
     def _build(self, build: dict) -> IPLAPNet:
-        return IPLAPNet(**build)
+        args, lips = mouth_model(build)
+        net = IPLAPNet(**args)
+        net.lips = lips  # lmgs.lips.RetargetedLips (not a submodule: its weights are the shipped file's or in build)
+        return net
 
     def _lms2d(self, lms3d: np.ndarray, w2c: np.ndarray) -> np.ndarray:
         return np.stack([project(lms3d[k], w2c[k], *self.intr) for k in range(len(lms3d))]).astype(np.float32)
@@ -400,7 +410,10 @@ class IPLAP(TwoDMethod):
         predictor = fit_landmark_predictor(feats, torch.from_numpy(targets).to(dev), steps=b.landmark_steps, seed=seed)
         build = {"in_channels": int(feats.shape[2]), "window": int(feats.shape[1]), "width": b.width, "box": list(box),
                  "crop_size": b.crop, "n_components": predictor.n_components}
-        model = IPLAPNet(**build).to(dev)
+        lips = fit_mouth_model(b.landmark_source, clip, targets, seed)
+        if lips is not None:
+            build["lips"] = lips
+        model = self._build(build).to(dev)
         model.predictor.load_state_dict(predictor.state_dict())
         model.predictor.requires_grad_(False)
         crops = crop(clip.frames, box, b.crop).to(dev)
@@ -409,7 +422,8 @@ class IPLAP(TwoDMethod):
         return model, build
 
     def _audio(self, model, windows: torch.Tensor) -> np.ndarray:
-        return model.predictor.predict(windows).cpu().numpy()  # the predicted 3D landmarks
+        lms = model.predictor.predict(windows)  # the predicted 3D landmarks
+        return with_generic_mouth(getattr(model, "lips", None), lms, windows).cpu().numpy()
 
     def _edit(self, model, dev, base, audio, w2c, j, t) -> torch.Tensor:
         cam = self.ref_w2c[j] if w2c is None else w2c

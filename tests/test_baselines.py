@@ -285,3 +285,61 @@ def test_a_subject_knee_density_reaches_every_method_sized_by_face_area_and_no_o
     assert lm.cfg.train.budget_density == 0.3
     assert create_method("lmgs", subject=SimpleNamespace(budget_density=None)).describe().config_hash == \
         create_method("lmgs").describe().config_hash
+
+
+@pytest.mark.parametrize("name", ["geneface", "ip_lap"])
+def test_landmark_methods_take_the_generic_mouth(name, fitted, clip, tmp_path):
+    """``landmark_source=generic``: the method's predicted mouth (48-67) is the generic lip model's, retargeted to the
+    subject; the default's config (and every record's hash) is unchanged; the checkpoint keeps the retargeting."""
+    import torch
+
+    from baselines.common import audio_windows
+
+    base, _ = fitted(name)
+    assert "landmark_source" not in base.config()
+    m = create_method(name, preset="tiny", landmark_source="generic")
+    assert m.config_hash() != base.config_hash()
+    assert any("generic lip model" in s for s in m.describe().standins)
+    m.fit(clip, seed=0, workdir=tmp_path, progress=False)
+    lips = m.model.lips
+    assert lips is not None and base.model.lips is None
+    windows = audio_windows(clip.audio, len(clip))
+    with torch.no_grad():
+        subject = base.model.predictor.predict(windows).numpy()
+    want = lips.predict(windows.numpy())
+    if name == "ip_lap":
+        got = m._audio(m.model, windows)
+        np.testing.assert_allclose(got[:, 48:68], want, atol=1e-6)
+        with torch.no_grad():
+            np.testing.assert_allclose(got[:, :48], m.model.predictor.predict(windows).numpy()[:, :48], atol=1e-6)
+    assert not np.allclose(want, subject[:, 48:68], atol=1e-4)  # a different mouth than the subject predictor's
+    d = DrivingAudio(audio=clip.audio[: 6 * 640], w2c=clip.w2c[:6])
+    again = create_method(name, preset="tiny", landmark_source="generic")
+    again.fit(clip, seed=5, workdir=tmp_path, progress=False)  # loads the checkpoint, the retargeting with it
+    np.testing.assert_array_equal(m.render(d), again.render(d))
+
+
+def test_geneface_coefficients_of_its_own_prediction_are_its_coefficients(fitted, clip):
+    """The generic mouth reaches GeneFace's NeRF as the coefficients of the edited landmarks in the predictor's basis;
+    with the predictor's own landmarks that is the predictor's own condition (on every component the NeRF reads)."""
+    import torch
+
+    from baselines.common import audio_windows
+    from baselines.nerf.methods import _landmark_coefficients
+
+    m, _ = fitted("geneface")
+    p = m.model.predictor
+    w = audio_windows(clip.audio, len(clip))
+    mask = m.model.coef_mask.numpy() > 0  # the components the NeRF reads (the others have no spread in training)
+    assert mask.any()
+    with torch.no_grad():
+        np.testing.assert_allclose(_landmark_coefficients(p, p.predict(w)).numpy()[:, mask], p.coefficients(w).numpy()[:, mask],
+                                   atol=1e-4)
+
+
+@pytest.mark.parametrize("name", ["adnerf", "wav2lip", "talkinggaussian"])
+def test_a_method_without_landmarks_refuses_a_landmark_source(name):
+    with pytest.raises(InputError, match=f"landmark_source=generic: method '{name}' reads no audio-predicted landmarks"):
+        create_method(name, preset="tiny", landmark_source="generic")
+    with pytest.raises(InputError, match="landmark_source=nope: not one of subject, generic, generic-tuned"):
+        create_method("ip_lap", preset="tiny", landmark_source="nope")

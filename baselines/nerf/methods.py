@@ -15,16 +15,20 @@ from baselines.common import (
     audio_windows,
     driving_background,
     driving_w2c,
+    fit_mouth_model,
     head_box,
     landmark_targets,
     mean_background,
+    mouth_model,
     n_frames_of,
     progress_bar,
     to_u8,
+    with_generic_mouth,
 )
 from baselines.nerf.field import NeRFHead
 from baselines.nerf.rays import STOP_TRANSMITTANCE, box_hits, camera_rays, march_rays, render_rays
 from baselines.protocol import register
+from lmgs.config import added_option
 from lmgs.landmarks import fit_landmark_predictor
 
 STANDINS = ("audio front end: the project's log-mel windows (DeepSpeech / HuBERT features cannot be had offline)",)
@@ -50,6 +54,10 @@ class NeRFBudget(Budget):
     """Adam learning rate."""
     landmark_steps: int = 300
     """Steps of the audio-to-landmark predictor (GeneFace only)."""
+    landmark_source: str = added_option("subject")
+    """Where the mouth (48-67) of GeneFace's predicted landmarks comes from at test time: ``subject`` (its
+    predictor), ``generic`` or ``generic-tuned`` (the generic lip model of :mod:`lmgs.lips`, retargeted to the
+    subject; fine-tuned on its training split), as lmgs's key. The NeRF trains on the tracked landmarks either way."""
     chunk: int = 2048
     """Rays per chunk when rendering full frames."""
     occupancy: int = 32
@@ -89,7 +97,10 @@ class NeRFMethod(Adapter):
     standins = STANDINS
 
     def _build(self, build: dict) -> NeRFHead:
-        return NeRFHead(self.name, **build)
+        args, lips = mouth_model(build)
+        head = NeRFHead(self.name, **args)
+        head.lips = lips  # lmgs.lips.RetargetedLips (not a submodule: its weights are the shipped file's or in build)
+        return head
 
     def _train(self, clip, seed: int, progress: bool):
         dev, rng, n, feats = self._start(clip, seed)
@@ -105,7 +116,10 @@ class NeRFMethod(Adapter):
             predictor = fit_landmark_predictor(feats, targets, steps=b.landmark_steps, seed=seed)
             build["n_landmark_coef"] = predictor.n_components
             lm_coef = _landmark_coefficients(predictor, targets)
-        model = NeRFHead(self.name, **build).to(dev)
+            lips = fit_mouth_model(b.landmark_source, clip, targets.cpu().numpy(), seed)
+            if lips is not None:
+                build["lips"] = lips
+        model = self._build(build).to(dev)
         if predictor is not None:
             model.predictor.load_state_dict(predictor.state_dict())
             model.predictor.requires_grad_(False)
@@ -169,7 +183,12 @@ class NeRFMethod(Adapter):
         if n == 0:
             return out
         feats = audio_windows(driving.audio, n).to(dev)
-        conds = m.conditions(feats)
+        lips = getattr(m, "lips", None)
+        if lips is None:
+            conds = m.conditions(feats)
+        else:  # the predictor's landmarks with the generic model's mouth, as coefficients of the predictor's basis
+            lms = with_generic_mouth(lips, m.predictor.predict(feats), feats)
+            conds = m.conditions(feats, _landmark_coefficients(m.predictor, lms))
         train_w2c = m.train_w2c.cpu().numpy()
         default_bg = m.default_background.cpu().numpy()
         for t in range(n):
@@ -235,6 +254,7 @@ class ERNeRF(NeRFMethod):
 @register("geneface")
 class GeneFace(NeRFMethod):
     name = "geneface"
+    reads_landmarks = True
     display_name = "GeneFace"
     description = (
         "Kept: the two-stage audio -> 68 3D landmarks -> landmark-conditioned NeRF pipeline; the NeRF is trained on "
