@@ -23,6 +23,11 @@ FRONTEND_STANDINS = {  # front ends computed here in place of the paper's WavLM;
 }
 
 
+GENERIC_MOUTH_STANDIN = ("mouth landmarks (48-67): the project's generic lip model (lmgs.lips: pretrained on generated "
+                         "voices, adapted on about 100 s of real speakers' lip tracks), retargeted to the subject, in place "
+                         "of GeneFace's model trained on LRS3")
+
+
 def standins(frontend: str) -> tuple[str, ...]:
     """What stands in for the paper's parts under this audio front end."""
     return tuple(x for x in (FRONTEND_STANDINS.get(frontend), LANDMARK_STANDIN) if x)
@@ -128,12 +133,15 @@ class LMGSMethod:
                          else "SE by theta alone (no cap on the points selected)")
         if (g.se or g.lc) and t.landmark_folds:
             parts.append(f"out-of-fold training landmarks ({t.landmark_folds} folds)")
+        generic = None  # the landmark source in the display name, when not the per-subject predictor
         if (g.se or g.lc) and t.landmark_source != "subject":
             parts.append("mouth landmarks from the generic lip model" + (", fine-tuned on the subject"
                                                                           if t.landmark_source == "generic-tuned" else ""))
+            generic = "generic mouth" + (", tuned" if t.landmark_source == "generic-tuned" else "")
         return MethodInfo(
             name=self.variant,
-            display_name="Ours (lmgs)" if self.variant == "lmgs" else f"lmgs ({', '.join(parts)})",
+            display_name=(("Ours (lmgs)" if generic is None else f"Ours (lmgs, {generic})") if self.variant == "lmgs"
+                          else f"lmgs ({', '.join(parts)})"),
             family="3DGS",
             description=(
                 "The paper's method on TalkingGaussian's face/mouth decomposition, trained on a CPU schedule "
@@ -145,7 +153,7 @@ class LMGSMethod:
                 + ("; not the paper's GR form: the normal term per pixel at 2DGS's weight (the paper's sum at 1e-4 "
                    "collapsed training on bundled data)." if self.cfg.gr and t.normal_reduce != "sum" else ".")
             ),
-            standins=standins(a.frontend),
+            standins=standins(a.frontend) + ((GENERIC_MOUTH_STANDIN,) if generic is not None else ()),
             config=self.cfg.to_dict(),
             config_hash=self.cfg.hash(),
             variant=None if self.variant == "lmgs" else self.variant.removeprefix("lmgs-"),

@@ -242,6 +242,20 @@ def test_landmark_source_key():
         base.replace(**{"train.landmark_source": "geneface"})
 
 
+def test_the_record_names_the_mouths_source():
+    """A table row and its stand-ins say which mouth guided lmgs; the default's name and hash are unchanged."""
+    from baselines.protocol import create_method
+
+    info = {ls: create_method("lmgs", preset="quick", overrides={"train.landmark_source": ls}).describe()
+            for ls in ("subject", "generic", "generic-tuned")}
+    assert info["subject"].display_name == "Ours (lmgs)"
+    assert info["generic"].display_name == "Ours (lmgs, generic mouth)"
+    assert info["generic-tuned"].display_name == "Ours (lmgs, generic mouth, tuned)"
+    assert not any("generic lip model" in s for s in info["subject"].standins)
+    assert all(any("generic lip model" in s for s in info[k].standins) for k in ("generic", "generic-tuned"))
+    assert len({i.config_hash for i in info.values()}) == 3
+
+
 def test_lmgs_trains_and_renders_with_the_generic_mouth(tmp_path):
     """``train.landmark_source=generic``: the mouth landmarks come from the lip model, are kept by the checkpoint,
     and the reloaded model renders the same frames."""
