@@ -212,13 +212,10 @@ def fit_mouth_model(source: str, clip: TrainingClip, targets: np.ndarray, seed: 
     """The generic lip model (:mod:`lmgs.lips`) retargeted to ``clip`` from its 68 landmark targets ``[T, 68, 3]``,
     fine-tuned on them for ``generic-tuned``, as its JSON-able state (what a checkpoint's ``build`` keeps); ``None``
     for ``subject`` (the method's own predictor gives the whole face)."""
-    if source == "subject":
-        return None
-    from lmgs.lips import TUNE_STEPS, RetargetedLips, logmel
+    from lmgs.lips import retarget_for
 
-    lips = RetargetedLips.fit(logmel(clip.audio, len(clip)), np.asarray(targets, np.float32),
-                              tune_steps=TUNE_STEPS if source == "generic-tuned" else 0, seed=seed)
-    return lips.to_state()
+    lips = retarget_for(source, clip.audio, len(clip), targets, seed)
+    return None if lips is None else lips.to_state()
 
 
 def mouth_model(build: dict):
@@ -235,13 +232,7 @@ def mouth_model(build: dict):
 def with_generic_mouth(lips, lms: torch.Tensor, windows: torch.Tensor) -> torch.Tensor:
     """Landmarks ``[T, 68, 3]`` with the mouth (48-67) replaced by ``lips``'s prediction from the audio windows
     ``[T, 16, 80]`` (the project's log-mel front end, which the lip model reads); ``lms`` itself when ``lips`` is None."""
-    if lips is None:
-        return lms
-    from lmgs.lips import MOUTH
-
-    out = lms.clone()
-    out[:, MOUTH] = torch.from_numpy(lips.predict(windows.detach().cpu().numpy())).to(out)
-    return out
+    return lms if lips is None else lips.with_mouth(lms, windows.detach().cpu().numpy())
 
 
 def project(points: np.ndarray, w2c: np.ndarray, focal: float, cx: float, cy: float) -> np.ndarray:

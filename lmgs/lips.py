@@ -399,11 +399,15 @@ class RetargetedLips:
         """Mouth points ``[N, 20, 3]`` in the subject's world."""
         return self.frame.from_canonical(self.canonical(feats)).astype(np.float32)
 
+    def with_mouth(self, lms68: torch.Tensor, feats) -> torch.Tensor:
+        """``lms68`` ``[N, 68, 3]`` (a copy) with its mouth (48-67) predicted from raw log-mel windows ``[N, 16, 80]``."""
+        out = lms68.clone()
+        out[:, MOUTH] = torch.from_numpy(self.predict(feats)[: len(out)]).to(out)
+        return out
+
     def replace_mouth(self, lms68: torch.Tensor, audio, n_frames: int) -> torch.Tensor:
         """``lms68`` ``[N, 68, 3]`` (a copy) with its mouth (48-67) predicted from the waveform ``audio``."""
-        out = lms68.clone()
-        out[:, MOUTH] = torch.from_numpy(self.predict(logmel(audio, n_frames))[: len(out)]).to(out)
-        return out
+        return self.with_mouth(lms68, logmel(audio, n_frames))
 
     def describe(self) -> dict:
         return {
@@ -417,6 +421,16 @@ class RetargetedLips:
             "neutral_width": round(self.width, 6),
             "gain_xyz": [round(float(g), 3) for g in self.gain],
         }
+
+
+def retarget_for(source: str, audio, n_frames: int, landmarks3d, seed: int = 0) -> RetargetedLips | None:
+    """The generic model retargeted to a subject for a landmark source (``train.landmark_source``): ``None`` for
+    ``subject``, fitted on the training audio (a 16 kHz waveform of ``n_frames`` frames) and 68 landmarks
+    ``[n_frames, 68, 3]`` for ``generic``, and fine-tuned on them too for ``generic-tuned``."""
+    if source == "subject":
+        return None
+    return RetargetedLips.fit(logmel(audio, n_frames), np.asarray(landmarks3d, np.float32),
+                              tune_steps=TUNE_STEPS if source == "generic-tuned" else 0, seed=seed)
 
 
 def correlation_at_lags(a: np.ndarray, b: np.ndarray, max_lag: int = 5) -> dict[int, float]:

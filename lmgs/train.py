@@ -243,11 +243,9 @@ def _fit_landmarks(run: _Run, seed: int) -> None:
     else:
         run.lms_pred = model.predictor.predict(feats).to(run.dev)
     if t.landmark_source != "subject":  # the mouth from the generic lip model, retargeted to this subject
-        from lmgs.lips import TUNE_STEPS, RetargetedLips, logmel
+        from lmgs.lips import retarget_for
 
-        mel = logmel(clip.audio, n)
-        model.lips = RetargetedLips.fit(mel, targets.numpy(), tune_steps=TUNE_STEPS if t.landmark_source == "generic-tuned" else 0,
-                                        seed=seed)
+        model.lips = retarget_for(t.landmark_source, clip.audio, n, targets.numpy(), seed)
         run.lms_pred = model.lips.replace_mouth(run.lms_pred, clip.audio, n)
     run.t_lms = time.perf_counter() - a
     how = f"{folds}-fold out-of-fold" if folds >= 2 else "in-sample"
