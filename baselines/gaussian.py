@@ -52,6 +52,7 @@ from lmgs.device import choose_device
 from lmgs.encoders import TriplaneEncoder
 from lmgs.gaussians import PARAM_NAMES, GaussianSet
 from lmgs.init import face_area_px, init_face, scene_box
+from lmgs.clipdata import ClipTensors
 from lmgs.model import to_image
 from lmgs.optim import densify, gaussian_adam, network_adamw, optimise
 from lmgs.presets import TrainConfig, quick
@@ -206,9 +207,9 @@ class CrossAttentionDeform(nn.Module):
             self.mlp[-1].weight.mul_(0.01)
             self.mlp[-1].bias.zero_()
 
-    def tokens(self, audio: torch.Tensor, blink: float) -> torch.Tensor:
+    def tokens(self, audio: torch.Tensor, blink: float | torch.Tensor) -> torch.Tensor:
         a = self.audio_tokens(audio).view(self.n_audio_tokens, self.d)
-        e = self.eye_token(torch.tensor([float(blink)], dtype=audio.dtype, device=audio.device)).view(1, self.d)
+        e = self.eye_token(torch.as_tensor(blink, dtype=audio.dtype, device=audio.device).reshape(1)).view(1, self.d)
         return torch.cat([a, e, self.null_token], 0)  # [n_audio + 2, d]
 
     def forward(self, feats: torch.Tensor, audio: torch.Tensor, blink: float) -> tuple[torch.Tensor, ...]:
@@ -298,13 +299,14 @@ class GaussianTalker(Adapter):
         state = initialize_state(len(model.gs), dev)
         order = rng.integers(0, n, size=total)
         bar = progress_bar(total, "gaussiantalker fit", progress)
+        data = ClipTensors(clip, dev)
         for step in range(total):
             i = int(order[step])
             dynamic = step >= b.static_steps
-            gt = to_image(clip.frames[i], dev)
-            bg = to_image(clip.background(i), dev)
-            audio = model.audio_net(feats, index=torch.tensor([i], device=dev))[0] if dynamic else None
-            res = model.render_frame(model.train_w2c[i], bg, audio, float(clip.blink[i]))
+            gt = data.frame(i)
+            bg = data.background(i)
+            audio = model.audio_net(feats, index=data.index(i))[0] if dynamic else None
+            res = model.render_frame(model.train_w2c[i], bg, audio, data.blink(i))
             loss = losses.photometric(_composite(res, bg), gt, lt.lambda_dssim)
             optimise(loss, g_opt, n_opt, dynamic, (model.gs,))
             densify([(strategy, model.gs, state, res.means2d, res.visible)], g_opt, step + 1, extent, clip.width, clip.height)

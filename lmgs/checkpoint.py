@@ -152,7 +152,7 @@ def write_failed_curve(workdir, rows: list[dict], step: int, dynamic: bool, loss
     last = {"step": step, "stage": "dynamic" if dynamic else "static", "loss": loss_value,
             "psnr": psnr(r.rgb.detach(), gt) if math.isfinite(loss_value) else float("nan"),
             "n_face": rows[-1]["n_face"] if rows else 0, "n_mouth": rows[-1]["n_mouth"] if rows else 0,
-            "se_fraction": r.se_fraction, "seconds": rows[-1]["seconds"] if rows else 0.0}
+            "se_fraction": float(r.se_fraction), "seconds": rows[-1]["seconds"] if rows else 0.0}
     return write_curve(Path(workdir), [*rows, last])
 
 

@@ -47,7 +47,14 @@ from torch import nn
 from lmgs.config import DeformConfig, GuidanceConfig, TriplaneConfig
 from lmgs.encoders.triplane import TriplaneEncoder
 from lmgs.errors import InputError
-from lmgs.guidance import LandmarkCompensation, select_points, spatial_enhance, unit_rows
+from lmgs.guidance import LandmarkCompensation, select_points, selected_share, spatial_enhance, unit_rows
+
+
+def select_by_mask(device: torch.device) -> bool:
+    """Whether :meth:`DeformNet.forward_prepared` applies Spatial Enhancement's selection to every row
+    by masks (on a GPU: picking the selected rows would first read back how many there are) rather
+    than computing the selected rows alone (on the CPU: less work). Both give the same offsets."""
+    return device.type != "cpu"
 
 
 @dataclass(frozen=True)
@@ -58,14 +65,15 @@ class DeformOutput:
         d_xyz: ``[N, 3]`` position offsets.
         d_rot: ``[N, 4]`` quaternion offsets (added before normalisation); zeros in position-only mode.
         d_scale: ``[N, 3]`` log-scale offsets; zeros in position-only mode.
-        se_fraction: share of points Spatial Enhancement selected (``None`` when SE is off).
+        se_fraction: share of points Spatial Enhancement selected, a 0-d tensor on the points'
+            device (``float()`` reads it back; ``None`` when SE is off).
         audio_attention: ``[N, A]`` the audio gates (for region-attention visualisation).
     """
 
     d_xyz: torch.Tensor
     d_rot: torch.Tensor
     d_scale: torch.Tensor
-    se_fraction: float | None
+    se_fraction: torch.Tensor | None
     audio_attention: torch.Tensor
 
 
@@ -177,7 +185,7 @@ class DeformNet(nn.Module):
         se_fraction = None
         if self.guidance_cfg.se:
             res = spatial_enhance(f, g, self.guidance_cfg.theta, self.guidance_cfg.select_fraction)
-            F, se_fraction = res.features, res.fraction
+            F, se_fraction = res.features, selected_share(res.selected)
         else:
             F = f
         kind = self.cfg.attention
@@ -250,21 +258,32 @@ class DeformNet(nn.Module):
             g = self.encoder(landmarks.to(prep.f))
         if gcfg.se:
             selected, match, _ = select_points(prep.f_unit @ unit_rows(g).T, gcfg.theta, gcfg.select_fraction)
-            se_fraction = float(selected.float().mean()) if len(selected) else 0.0
-            idx = selected.nonzero()[:, 0]
-            if len(idx):
-                # F_i = f_i + g_j* on the selected rows: each first layer gains g_j* W^T there
-                gw = (g @ prep.w_first.T)[match[idx]]
+            se_fraction = selected_share(selected)
+            gw = g @ prep.w_first.T  # F_i = f_i + g_j* on the selected rows: each first layer gains g_j* W^T there
+            if not select_by_mask(prep.f.device):  # the selected rows alone
+                idx = selected.nonzero()[:, 0]
+                if len(idx):
+                    gw = gw[match[idx]]
+                    extra = {name: gw[:, sl] for name, sl in prep.slices.items()}
+                    a_aud = a_aud.clone()
+                    a_aud[idx] = _gate(self.aud_att[1:](base["aud"][idx] + extra["aud"]), kind)
+                    if a_exp is not None:
+                        a_exp = a_exp.clone()
+                        a_exp[idx] = _gate(self.exp_att[1:](base["exp"][idx] + extra["exp"]), kind)
+            else:  # every row, the selection applied by masks: no read-back of how many rows were selected
+                sel = selected[:, None]
+                gw = gw[match] * sel.to(gw.dtype)
                 extra = {name: gw[:, sl] for name, sl in prep.slices.items()}
-                a_aud = a_aud.clone()
-                a_aud[idx] = _gate(self.aud_att[1:](base["aud"][idx] + extra["aud"]), kind)
+                a_aud = torch.where(sel, _gate(self.aud_att[1:](base["aud"] + extra["aud"]), kind), a_aud)
                 if a_exp is not None:
-                    a_exp = a_exp.clone()
-                    a_exp[idx] = _gate(self.exp_att[1:](base["exp"][idx] + extra["exp"]), kind)
+                    a_exp = torch.where(sel, _gate(self.exp_att[1:](base["exp"] + extra["exp"]), kind), a_exp)
 
         def first(name: str, h: torch.Tensor) -> torch.Tensor:
-            if extra:
-                h[idx] += extra[name]
+            if not extra:
+                return h
+            if idx is None:
+                return h + extra[name]
+            h[idx] += extra[name]
             return h
 
         audio = torch.tanh(audio.to(prep.f)) if self.cfg.bound_audio else audio.to(prep.f)

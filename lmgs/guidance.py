@@ -26,14 +26,25 @@ class EnhanceResult:
         selected: ``[N]`` bool, :math:`i \\in \\mathcal{M}`.
         match: ``[N]`` int64, :math:`j^*_i` (defined for every point; used only where selected).
         max_similarity: ``[N]`` :math:`\\max_j S_{ij}`.
-        fraction: share of points selected, a float (log it: the paper reports about 0.2 at 0.6).
     """
 
     features: torch.Tensor
     selected: torch.Tensor
     match: torch.Tensor
     max_similarity: torch.Tensor
-    fraction: float
+
+    @property
+    def fraction(self) -> float:
+        """Share of points selected (log it: the paper reports about 0.2 at 0.6); reading it waits
+        for the device (:func:`selected_share` keeps it there)."""
+        return float(selected_share(self.selected))
+
+
+def selected_share(selected: torch.Tensor) -> torch.Tensor:
+    """The share of True in ``selected`` as a 0-d float32 tensor on its device (0 when empty)."""
+    if selected.numel() == 0:
+        return torch.zeros((), device=selected.device)
+    return selected.float().mean()
 
 
 def cosine_similarity_matrix(f: torch.Tensor, g: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
@@ -50,11 +61,13 @@ def select_points(s: torch.Tensor, theta: float, max_fraction: float = 0.0) -> t
     """The selection of :func:`spatial_enhance` from the similarities ``S`` ``[N, K]``:
     ``(selected [N] bool, match [N] int64, max_similarity [N])``."""
     best, match = s.max(dim=1)
-    thr = theta
     if max_fraction > 0.0 and s.shape[0]:
         k = int(round(max_fraction * s.shape[0]))
-        thr = max(theta, float(torch.topk(best, k).values[-1]) if k > 0 else float("inf"))
-    return best >= thr, match, best
+        if k == 0:
+            return torch.zeros_like(best, dtype=torch.bool), match, best
+        # the threshold stays on the device (a float() here would wait for it)
+        return best >= torch.topk(best, k).values[-1].clamp_min(theta), match, best
+    return best >= theta, match, best
 
 
 def spatial_enhance(f: torch.Tensor, g: torch.Tensor, theta: float = 0.6, max_fraction: float = 0.0) -> EnhanceResult:
@@ -88,8 +101,7 @@ def spatial_enhance(f: torch.Tensor, g: torch.Tensor, theta: float = 0.6, max_fr
     # float sums); a matrix product is reproducible for a given machine and thread count.
     pick = torch.nn.functional.one_hot(match, g.shape[0]).to(f.dtype) * selected.unsqueeze(-1).to(f.dtype)
     features = f + pick @ g
-    fraction = float(selected.float().mean()) if f.shape[0] else 0.0
-    return EnhanceResult(features, selected, match, best, fraction)
+    return EnhanceResult(features, selected, match, best)
 
 
 def _mlp(d_in: int, hidden: int, d_out: int) -> nn.Sequential:

@@ -15,7 +15,6 @@ each frame through the tracked camera with a depth from a face depth prior.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 import numpy as np
@@ -24,6 +23,7 @@ from torch import nn
 
 from lmgs.config import AudioConfig
 from lmgs.errors import InputError
+from lmgs.optim import fused_on_gpu
 
 # Relative depth of the 68 landmarks (iBUG 300-W order) behind the nose tip, in units of the
 # face width |p0 - p16|, for a frontal average adult face. Written from the proportions of the
@@ -259,10 +259,10 @@ def fit_landmark_predictor(
     model.frame_enc.fit_normalization(f)
     target = coef / std
     weight = (std**2) / (std**2).sum()  # whitened coefficients weighted back to landmark error
-    opt = torch.optim.Adam(model.parameters(), lr=lr, weight_decay=1e-5)
+    params = list(model.parameters())
+    opt = torch.optim.Adam(params, lr=lr, weight_decay=1e-5, fused=fused_on_gpu(params))
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(steps, 1))
     model.train()
-    loss_v = math.nan
     for step in range(steps):
         pred = model.coefficients(f)
         loss = (((pred - target) ** 2) * weight).sum(-1).mean()
@@ -270,9 +270,8 @@ def fit_landmark_predictor(
         loss.backward()
         opt.step()
         sched.step()
-        loss_v = float(loss.detach())
-        if progress is not None and (step % 50 == 0 or step == steps - 1):
-            progress(step, loss_v)
+        if progress is not None and (step % 50 == 0 or step == steps - 1):  # (reading the loss waits for a GPU)
+            progress(step, float(loss.detach()))
     model.fitted_frames = int(len(y))
     model.eval()
     return model

@@ -75,13 +75,42 @@ def normal_loss(normal: torch.Tensor, ref: torch.Tensor, mask: torch.Tensor, red
     raise ValueError(f"normal_loss: reduce must be 'sum' or 'mean', not {reduce!r}")
 
 
+def masked_scale_invariant_depth(depth: torch.Tensor, ref: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """:func:`scale_invariant_depth` as sums over the whole image with the mask as weights: the same
+    value (up to the order of float sums), without selecting pixels, so nothing is read back from
+    the device (selecting by a mask must learn how many pixels it holds first)."""
+    m = mask & (ref > 0) & (depth > 1e-6)
+    w = m.to(depth.dtype)
+    n = w.sum()
+    d = torch.where(m, torch.log(torch.where(m, depth, 1.0)) - torch.log(torch.where(m, ref, 1.0)), 0.0)
+    mean = d.sum() / n.clamp_min(1.0)
+    value = (d * d).sum() / n.clamp_min(1.0) - mean**2
+    return torch.where(n >= 2, value, depth.sum() * 0.0)
+
+
+def masked_normal_loss(normal: torch.Tensor, ref: torch.Tensor, mask: torch.Tensor, reduce: str = "sum") -> torch.Tensor:
+    """:func:`normal_loss` as masked sums over the whole image (see :func:`masked_scale_invariant_depth`)."""
+    n = F.normalize(normal, dim=-1, eps=1e-6)
+    err = torch.where(mask, 1.0 - (n * ref).sum(-1), 0.0)
+    if reduce == "sum":
+        return err.sum()
+    if reduce == "mean":
+        return err.sum() / mask.sum().clamp_min(1).to(err.dtype)
+    raise ValueError(f"normal_loss: reduce must be 'sum' or 'mean', not {reduce!r}")
+
+
 def geometry(
     depth: torch.Tensor, normal: torch.Tensor, alpha: torch.Tensor, ref_depth: torch.Tensor, ref_normal: torch.Tensor,
-    lambda_d: float = 1e-4, lambda_n: float = 1e-4, normal_reduce: str = "sum",
+    lambda_d: float = 1e-4, lambda_n: float = 1e-4, normal_reduce: str = "sum", gather: bool = True,
 ) -> torch.Tensor:
     """The Geometry Regularizer on pixels where both the render and the reference have a surface.
 
     ``depth`` is the alpha-normalised expected depth ``[H, W, 1]``; ``normal`` ``[H, W, 3]``.
+    ``gather=False`` computes the same terms as masked sums (:func:`masked_scale_invariant_depth`,
+    :func:`masked_normal_loss`): equal up to float rounding, and no read-back on a GPU.
     """
     mask = (alpha[..., 0] > 0.5) & (ref_depth > 0)
+    if not gather:
+        return (lambda_d * masked_scale_invariant_depth(depth[..., 0], ref_depth, mask)
+                + lambda_n * masked_normal_loss(normal, ref_normal, mask, normal_reduce))
     return lambda_d * scale_invariant_depth(depth[..., 0], ref_depth, mask) + lambda_n * normal_loss(normal, ref_normal, mask, normal_reduce)

@@ -33,6 +33,9 @@ from lmgs.render import rasterize
 from lmgs.types import Camera
 
 
+RENDER_CHUNK = 32  # frames :meth:`LMGSModel.render` moves between host and device at a time
+
+
 @dataclass
 class FrameRender:
     """One rendered frame: the composite and the pieces the losses need."""
@@ -48,7 +51,9 @@ class FrameRender:
     face_visible: torch.Tensor
     mouth_means2d: torch.Tensor
     mouth_visible: torch.Tensor
-    se_fraction: float = float("nan")
+    # share of face points Spatial Enhancement selected: a 0-d tensor (``float()`` reads it back from
+    # the device), nan when SE is off
+    se_fraction: torch.Tensor | float = float("nan")
 
 
 def composite(face, mouth, background: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -69,14 +74,17 @@ def render_branches(
     background: torch.Tensor,
     backend: str = "auto",
     geometry: bool = True,
+    check_values: bool = True,
 ) -> FrameRender:
     """Render (means, quats, log_scales, opacity_logits, colors) of both branches and composite.
 
     ``geometry=False`` (rendering a trained model) leaves out the face's depth and normal maps,
-    which only the Geometry Regularizer reads (``depth`` and ``normal`` are None).
+    which only the Geometry Regularizer reads (``depth`` and ``normal`` are None);
+    ``check_values`` is :func:`~lmgs.render.rasterize`'s.
     """
-    face = rasterize(*face_params, camera, None, backend=backend, render_mode="RGB+D+N" if geometry else "RGB")
-    mouth = rasterize(*mouth_params, camera, None, backend=backend, render_mode="RGB")
+    face = rasterize(*face_params, camera, None, backend=backend, render_mode="RGB+D+N" if geometry else "RGB",
+                     check_values=check_values)
+    mouth = rasterize(*mouth_params, camera, None, backend=backend, render_mode="RGB", check_values=check_values)
     rgb, head_rgb, head_alpha = composite(face, mouth, background)
     a = face.alpha.clamp_min(1e-6)
     return FrameRender(
@@ -157,15 +165,26 @@ class LMGSModel(nn.Module):
 
     def render_frame(
         self, w2c: torch.Tensor, background: torch.Tensor, *, dynamic: bool = True, audio=None, landmarks=None, blink=None,
-        face_features=None, mouth_features=None,
+        face_features=None, mouth_features=None, check_values: bool = True,
     ) -> FrameRender:
+        """One frame, differentiable (training). ``check_values=False`` leaves out the rasterizer's
+        finiteness check, a read-back from the device per branch (the training step's own loss
+        check catches parameters gone non-finite)."""
         face_p, frac = self.branch_params(self.face, self.face_deform, dynamic, audio, landmarks, blink, face_features)
         mouth_p, _ = self.branch_params(self.mouth, self.mouth_deform, dynamic, audio, None, None, mouth_features)
-        r = render_branches(face_p, mouth_p, self.camera(w2c), background)
-        r.se_fraction = float("nan") if frac is None else float(frac)
+        r = render_branches(face_p, mouth_p, self.camera(w2c), background, check_values=check_values)
+        r.se_fraction = float("nan") if frac is None else frac
         return r
 
     # ------------------------------------------------------------------ inference
+    def _check_finite(self) -> None:
+        """Raise :class:`InputError` naming the first parameter that holds NaN or inf (one read-back)."""
+        named = [(k, v) for k, v in self.named_parameters() if v.numel()]
+        sums = torch.stack([v.detach().float().abs().sum() for _, v in named]).tolist() if named else []
+        for (name, v), total in zip(named, sums):
+            if not np.isfinite(total) and not bool(torch.isfinite(v).all()):
+                raise InputError(f"the model's parameter {name} holds {int((~torch.isfinite(v)).sum())} non-finite value(s)")
+
     def audio_windows(self, audio: np.ndarray, n_frames: int, features: dict | None = None) -> torch.Tensor:
         """Per-frame audio windows ``[T, W, C]`` from the configured front end."""
         kind = self.cfg.audio.frontend
@@ -197,29 +216,48 @@ class LMGSModel(nn.Module):
         t_audio = time.perf_counter() - t0
         face_prep = self.face_deform.prepare(self.face.means)
         mouth_prep = self.mouth_deform.prepare(self.mouth.means)
+        on_host = dev.type == "cpu"
+        if not on_host:  # once for the clip, in one read-back, what the rasterizer would check per frame
+            self._check_finite()
         out = np.empty((n, int(self.intrinsics[4]), int(self.intrinsics[3]), 3), np.uint8)
         t_net = t_ras = 0.0
         fracs = []
-        it = range(n)
-        if progress:
-            it = tqdm(it, desc="rendering", unit="frame", leave=False)
-        for t in it:
-            w2c = torch.from_numpy(np.asarray(driving.w2c[t], np.float32)) if driving.w2c is not None else self.train_w2c[t % len(self.train_w2c)]
-            bg = to_image(driving.backgrounds[t], dev) if driving.backgrounds is not None else self.default_background
-            blink = float(driving.blink[t]) if driving.blink is not None else 0.0
-            a = time.perf_counter()
-            face_p, frac = prepared_params(self.face, self.face_deform, face_prep, fa[t], None if lms is None else lms[t], blink)
-            if frac is not None:
-                fracs.append(float(frac))
-            mouth_p, _ = prepared_params(self.mouth, self.mouth_deform, mouth_prep, fa[t], None, None)
-            b = time.perf_counter()
-            r = render_branches(face_p, mouth_p, self.camera(w2c.to(dev)), bg, geometry=False)
-            out[t] = (r.rgb.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()
-            c = time.perf_counter()
-            t_net += b - a
-            t_ras += c - b
+        bar = tqdm(total=n, desc="rendering", unit="frame", leave=False) if progress else None
+        for s in range(0, n, RENDER_CHUNK):
+            # a chunk's cameras, backgrounds and blinks go to the device in one copy each, and its frames
+            # come back in one: on a GPU each copy makes the host wait for the queue (see lmgs.clipdata)
+            e = min(n, s + RENDER_CHUNK)
+            w2cs = torch.from_numpy(np.asarray(driving.w2c[s:e], np.float32)).to(dev) if driving.w2c is not None else None
+            bgs = (torch.from_numpy(np.ascontiguousarray(driving.backgrounds[s:e])).to(dev)
+                   if driving.backgrounds is not None else None)
+            blinks = (torch.from_numpy(np.asarray(driving.blink[s:e], np.float32)).to(dev) if driving.blink is not None
+                      else torch.zeros(e - s, device=dev))
+            frames = torch.from_numpy(out[s:e]) if dev.type == "cpu" else torch.empty(out[s:e].shape, dtype=torch.uint8, device=dev)
+            for k, t in enumerate(range(s, e)):
+                w2c = w2cs[k] if w2cs is not None else self.train_w2c[t % len(self.train_w2c)]
+                bg = bgs[k].float() / 255.0 if bgs is not None else self.default_background
+                a = time.perf_counter()
+                face_p, frac = prepared_params(self.face, self.face_deform, face_prep, fa[t], None if lms is None else lms[t],
+                                               blinks[k])
+                if frac is not None:
+                    fracs.append(frac)
+                mouth_p, _ = prepared_params(self.mouth, self.mouth_deform, mouth_prep, fa[t], None, None)
+                b = time.perf_counter()
+                r = render_branches(face_p, mouth_p, self.camera(w2c), bg, geometry=False, check_values=on_host)
+                frames[k] = (r.rgb.clamp(0, 1) * 255 + 0.5).to(torch.uint8)
+                c = time.perf_counter()
+                t_net += b - a
+                t_ras += c - b
+            if dev.type != "cpu":
+                out[s:e] = frames.cpu().numpy()
+            if bar is not None:
+                bar.update(e - s)
+        if bar is not None:
+            bar.close()
+        if fracs:  # the mean of the per-frame shares, as float64 (read back once)
+            fracs = [float(np.mean(torch.stack(fracs).cpu().numpy().astype(np.float64)))]
         if timings is not None:
             timings.update(audio=t_audio, network=t_net, raster=t_ras, frames=n)
             if fracs:
-                timings["se_fraction"] = float(np.mean(fracs))
+                timings["se_fraction"] = fracs[0]
         return out

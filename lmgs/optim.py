@@ -23,12 +23,21 @@ def gaussian_adam(branches: Iterable[GaussianSet], t) -> torch.optim.Adam:
     rates = {"means": t.lr_means, "quats": t.lr_quats, "log_scales": t.lr_scales, "opacity_logits": t.lr_opacity,
              "color_logits": t.lr_colors}
     groups = [{"params": [getattr(gs, name)], "lr": rates[name], "name": name} for gs in branches for name in PARAM_NAMES]
-    return torch.optim.Adam(groups, eps=1e-15)
+    return torch.optim.Adam(groups, eps=1e-15, fused=fused_on_gpu(g["params"][0] for g in groups))
 
 
 def network_adamw(modules: Iterable[torch.nn.Module], lr: float) -> torch.optim.AdamW:
     """AdamW (weight decay 1e-4) over the parameters of ``modules``, in order."""
-    return torch.optim.AdamW([p for m in modules for p in m.parameters()], lr=lr, weight_decay=1e-4)
+    params = [p for m in modules for p in m.parameters()]
+    return torch.optim.AdamW(params, lr=lr, weight_decay=1e-4, fused=fused_on_gpu(params))
+
+
+def fused_on_gpu(params: Iterable[torch.Tensor]) -> bool | None:
+    """True (torch's fused kernel: one launch per parameter group instead of one per operation per
+    tensor) when every parameter is on a GPU; else None, torch's default (the CPU keeps its results
+    of the per-tensor loop)."""
+    params = list(params)
+    return True if params and all(p.is_cuda for p in params) else None
 
 
 def optimise(loss: torch.Tensor, g_opt: torch.optim.Optimizer, n_opt: torch.optim.Optimizer, nets: bool,

@@ -64,8 +64,11 @@ def accumulate(state: dict[str, torch.Tensor], means2d: torch.Tensor, visible: t
     g[:, 0] *= width / 2.0
     g[:, 1] *= height / 2.0
     norm = g.norm(dim=-1)
-    state["grad2d"][visible] += norm[visible]
-    state["count"][visible] += 1
+    # adding zero where not visible (the same sums as updating the visible rows alone, which on a
+    # GPU would first read back how many there are)
+    visible = visible.to(norm.device)
+    state["grad2d"] += torch.where(visible, norm, 0.0)
+    state["count"] += visible.to(state["count"].dtype)
 
 
 def _swap_params(opt: torch.optim.Optimizer, gs: GaussianSet, param_fn, moment_fn) -> None:

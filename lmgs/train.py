@@ -45,8 +45,9 @@ from lmgs.checkpoint import (
 )
 from lmgs.errors import InputError, TrainingDiverged  # noqa: F401 (TrainingDiverged re-exported)
 from lmgs.gaussians import GaussianSet
+from lmgs.clipdata import ClipTensors
 from lmgs.init import face_area_px, init_face, init_mouth, scene_box
-from lmgs.model import LMGSModel, to_image
+from lmgs.model import LMGSModel
 from lmgs.optim import densify, gaussian_adam, network_adamw, optimise
 from lmgs.strategy import Strategy, budget_from_face_area, initialize_state
 from lmgs.types import TrainingClip
@@ -131,6 +132,7 @@ class _Run:
     last_frac: float = float("nan")
     lip_boxes: np.ndarray | None = None
     use_geo: bool = False
+    data: ClipTensors | None = None
 
     @property
     def total(self) -> int:
@@ -278,28 +280,28 @@ def _prepare(run: _Run, progress: bool) -> None:
         run.bar = tqdm(total=run.total, initial=run.start, desc="lmgs fit", unit="step", leave=False)
     run.lip_boxes = _lip_boxes(clip)
     run.use_geo = run.cfg.gr and clip.depth is not None and clip.normal is not None
+    run.data = ClipTensors(clip, dev)
 
 
 def _frame_loss(run: _Run, step: int, i: int, dynamic: bool):
     """Render training frame ``i`` and its loss: L1 + D-SSIM, and in the dynamic stage the mouth
     term, the Geometry Regularizer and the lips' L1 where they apply. Returns ``(render, gt, loss)``."""
-    model, clip, t, dev = run.model, run.clip, run.cfg.train, run.dev
-    gt = to_image(clip.frames[i], dev)
-    bg = to_image(clip.background(i), dev)
-    audio = model.audio_net(run.feats, index=torch.tensor([i], device=dev))[0] if dynamic else None
+    model, clip, t, data = run.model, run.clip, run.cfg.train, run.data
+    gt = data.frame(i)
+    bg = data.background(i)
+    audio = model.audio_net(run.feats, index=data.index(i))[0] if dynamic else None
     lm = run.lms_pred[i] if (dynamic and run.lms_pred is not None) else None
-    r = model.render_frame(model.train_w2c[i], bg, dynamic=dynamic, audio=audio, landmarks=lm, blink=float(clip.blink[i]))
+    on_host = run.dev.type == "cpu"  # on a GPU nothing in the step reads a value back (see lmgs.clipdata)
+    r = model.render_frame(model.train_w2c[i], bg, dynamic=dynamic, audio=audio, landmarks=lm, blink=data.blink(i),
+                           check_values=on_host)
     loss = losses.photometric(r.rgb, gt, t.lambda_dssim)
-    if clip.mouth_masks is not None and dynamic:
-        m = torch.from_numpy(clip.mouth_masks[i]).to(dev)
-        if m.any():
-            loss = loss + t.lambda_mouth * r.face_alpha[..., 0][m].mean()
+    mouth = data.mouth_pixels(i) if dynamic else None
+    if mouth is not None:
+        loss = loss + t.lambda_mouth * r.face_alpha[..., 0].reshape(-1)[mouth].mean()
     if run.use_geo and dynamic:
-        ref_d = torch.from_numpy(clip.depth[i].astype(np.float32)).to(dev)
-        ref_n = torch.from_numpy(clip.normal[i].astype(np.float32) / 127.0).to(dev)
         ramp = gr_ramp(step - t.static_steps, t.gr_warmup)
-        loss = loss + losses.geometry(r.depth, r.normal, r.face_alpha, ref_d, ref_n, ramp * t.lambda_depth,
-                                      ramp * t.lambda_normal, t.normal_reduce)
+        loss = loss + losses.geometry(r.depth, r.normal, r.face_alpha, data.depth(i), data.normal(i), ramp * t.lambda_depth,
+                                      ramp * t.lambda_normal, t.normal_reduce, gather=on_host)
     if run.lip_boxes is not None and dynamic and t.lambda_lips > 0:
         y0, y1, x0, x1 = run.lip_boxes[i]
         loss = loss + t.lambda_lips * (r.rgb[y0:y1, x0:x1] - gt[y0:y1, x0:x1]).abs().mean()
@@ -350,11 +352,12 @@ def _step(run: _Run, step: int, i: int) -> None:
             run.g_opt, step + 1, run.extent, clip.width, clip.height)
     if step % 25 == 0 or step == run.total - 1:
         run.last_psnr = psnr(r.rgb.detach(), gt)
-        if not np.isnan(r.se_fraction):
-            run.last_frac = r.se_fraction
+        frac = float(r.se_fraction)
+        if not np.isnan(frac):
+            run.last_frac = frac
         run.curve_rows.append({"step": step, "stage": "dynamic" if dynamic else "static", "loss": loss_value,
                                "psnr": run.last_psnr, "n_face": len(model.face), "n_mouth": len(model.mouth),
-                               "se_fraction": r.se_fraction, "seconds": time.perf_counter() - run.t_start})
+                               "se_fraction": frac, "seconds": time.perf_counter() - run.t_start})
         if run.bar is not None:
             run.bar.set_postfix(loss=f"{loss_value:.4f}", psnr=f"{run.last_psnr:.2f}", n=model.n_gaussians())
     if run.bar is not None:

@@ -50,3 +50,37 @@ def test_geometry_weights_the_two_terms_and_masks_by_alpha():
     assert float(got) == pytest.approx(0.3 * si + 0.01 * 1.5, rel=1e-5)
     got = losses.geometry(depth, rend, alpha, ref_d, ref_n, lambda_d=0.3, lambda_n=0.01, normal_reduce="mean")
     assert float(got) == pytest.approx(0.3 * si + 0.01 * 0.5, rel=1e-5)
+
+
+@pytest.mark.parametrize("reduce", ["sum", "mean"])
+@pytest.mark.parametrize("case", ["random", "one pixel", "no surface"])
+def test_geometry_as_masked_sums_equals_the_gathered_terms(reduce, case):
+    """``gather=False`` (no read-back on a GPU) gives the value and the gradients of the gathered terms,
+    down to the hand cases where the depth term has fewer than two pixels."""
+    g = torch.Generator().manual_seed(3)
+    h, w = 24, 20
+    ref_d = 0.5 + torch.rand(h, w, generator=g)
+    ref_d[:3] = 0.0  # no reference surface on the top rows
+    ref_n = torch.nn.functional.normalize(torch.randn(h, w, 3, generator=g), dim=-1)
+    alpha = torch.rand(h, w, 1, generator=g)
+    if case == "one pixel":
+        alpha = torch.zeros(h, w, 1)
+        alpha[10, 7] = 0.9
+    elif case == "no surface":
+        alpha = torch.zeros(h, w, 1)
+    depth0 = (ref_d * (1 + 0.2 * torch.rand(h, w, generator=g)) + 0.1)[..., None]
+    normal0 = torch.randn(h, w, 3, generator=g)
+    out = []
+    for gather in (True, False):
+        depth, normal = depth0.clone().requires_grad_(), normal0.clone().requires_grad_()
+        loss = losses.geometry(depth, normal, alpha, ref_d, ref_n, 0.3, 0.02, reduce, gather=gather)
+        loss.backward()
+        out.append((loss.detach(), depth.grad, normal.grad))
+    (la, da, na), (lb, db, nb) = out
+    torch.testing.assert_close(lb, la, rtol=1e-5, atol=1e-7)
+    torch.testing.assert_close(db, da, rtol=1e-4, atol=1e-8)
+    torch.testing.assert_close(nb, na, rtol=1e-4, atol=1e-8)
+    if case == "random":
+        assert float(la) > 0 and float(da.abs().max()) > 0
+    else:
+        assert float(da.abs().max()) == 0.0  # fewer than two pixels: no depth term

@@ -248,9 +248,9 @@ def test_gr_warmup_ramps_the_geometry_weights_in_and_leaves_the_hash_when_off(cl
     seen = []
     real = tr.losses.geometry
 
-    def spy(depth, normal, alpha, ref_d, ref_n, lambda_d, lambda_n, reduce):
+    def spy(depth, normal, alpha, ref_d, ref_n, lambda_d, lambda_n, reduce, **kw):
         seen.append((lambda_d, lambda_n))
-        return real(depth, normal, alpha, ref_d, ref_n, lambda_d, lambda_n, reduce)
+        return real(depth, normal, alpha, ref_d, ref_n, lambda_d, lambda_n, reduce, **kw)
 
     monkeypatch.setattr(tr.losses, "geometry", spy)
     fit(clip, warm, seed=0, progress=False)

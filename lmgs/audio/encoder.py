@@ -166,12 +166,14 @@ class AudioNet(nn.Module):
 
     def forward(self, features: torch.Tensor, index: torch.Tensor | None = None) -> torch.Tensor:
         if self.smoother is None:
-            fa = self.encoder(features if index is None else features[index.to(features.device).long()])
+            fa = self.encoder(features if index is None else features[index.long().to(features.device, non_blocking=True)])
             return fa
         if index is not None:
-            # only the frames inside the windows of ``index`` need encoding
-            idx = index.to(features.device).long()
+            # only the frames inside the windows of ``index`` need encoding; which frames those are is
+            # worked out where ``index`` lies (an index on the CPU: without waiting for a GPU) and sent over
+            idx = index.long()
             need = torch.unique(frame_windows_index(idx, features.shape[0], self.smoother.seq_len))
+            idx, need = idx.to(features.device, non_blocking=True), need.to(features.device, non_blocking=True)
             fa_all = features.new_zeros(features.shape[0], self.cfg.dim)
             fa_all[need] = self.encoder(features[need])
             return self.smoother(frame_windows(fa_all, self.smoother.seq_len, idx))

@@ -149,7 +149,8 @@ class TriplaneEncoder(nn.Module):
         if backend == "numba":
             out = _NumbaTriplane.apply(u, self.embeddings, self.res, self.dense, self.offsets, self.table_size)
             return out.reshape(*lead, self.out_dim)
-        uv = torch.stack([u[:, list(p)] for p in PLANES], dim=1)  # [N, 3, 2]
+        # integer indexing only (a list index would be copied to the device and wait for it)
+        uv = torch.stack([torch.stack((u[:, a], u[:, b]), dim=-1) for a, b in PLANES], dim=1)  # [N, 3, 2]
         res = self.res.to(u.dtype)
         pos = uv[:, :, None, :] * res.view(1, 1, -1, 1)  # [N, 3, L, 2]
         # u == 1 lands on the last cell with fraction 1, not outside the grid
@@ -161,7 +162,8 @@ class TriplaneEncoder(nn.Module):
         idx = hash_grid_2d(ix, iy, self.res, self.dense, self.table_size) + self.offsets[None, :, :, None]
         fx, fy = frac[..., 0:1], frac[..., 1:2]
         w = torch.cat([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], dim=-1)  # [N, 3, L, 4]
-        feats = nn.functional.embedding(idx.reshape(-1), self.embeddings).view(*idx.shape, -1)  # [N,3,L,4,F]
+        # index_select: its backward adds rows (index_add_); embedding's sorts the indices and reads a count back
+        feats = self.embeddings.index_select(0, idx.reshape(-1)).view(*idx.shape, -1)  # [N,3,L,4,F]
         out = (feats * w.unsqueeze(-1)).sum(dim=-2)  # [N, 3, L, F]
         return out.reshape(*lead, self.out_dim)
 

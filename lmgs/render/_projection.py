@@ -64,8 +64,9 @@ def check_inputs(
     camera: Camera,
     background: torch.Tensor | None,
     sh_degree: int | None,
+    values: bool = True,
 ) -> int | None:
-    """Raise :class:`InputError` on bad shapes or non-finite values; return the SH degree.
+    """Raise :class:`InputError` on bad shapes or (``values``) non-finite values; return the SH degree.
 
     Returns ``None`` for plain colours ``[N, 3]``, else the SH degree used.
     """
@@ -117,6 +118,8 @@ def check_inputs(
     for name, t in tensors.items():
         if not t.is_floating_point():
             raise InputError(f"{name} must be a floating-point tensor, got {t.dtype}")
+    if not values:
+        return degree
     # one reduction per tensor and one read-back for all of them (a single host sync on a GPU): a NaN or
     # inf makes a sum non-finite
     sums = torch.stack([t.detach().sum().to(device=means.device, dtype=torch.float64) for t in tensors.values()])

@@ -72,6 +72,7 @@ def rasterize(
     sh_degree: int | None = None,
     backend: Backend = "auto",
     render_mode: RenderMode = "RGB+D+N",
+    check_values: bool = True,
 ) -> RasterResult:
     """Render 3D Gaussians (Kerbl et al., 3D Gaussian Splatting, SIGGRAPH 2023).
 
@@ -123,7 +124,8 @@ def rasterize(
     """
     if render_mode not in RENDER_MODES:
         raise InputError(f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
-    degree = check_inputs(means, quats, log_scales, opacity_logits, colors, camera, background, sh_degree)
+    degree = check_inputs(means, quats, log_scales, opacity_logits, colors, camera, background, sh_degree,
+                          values=check_values)
     chosen = _choose_backend(backend, means.device)
     width, height = int(camera.width), int(camera.height)
     if chosen == "gsplat":
