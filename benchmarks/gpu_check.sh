@@ -7,7 +7,7 @@
 #   step_base.json   the same for the model library of another tree (BASE, a folder holding its lmgs/:
 #                    e.g. `git archive REV lmgs | tar -x -C .gpu/base`), when BASE is set
 #   lmgs_512.json    lmgs, quick preset, a packed 512 px clip (benchmarks/gpu_clip.py) trained and rendered on CUDA
-#   parity.txt       the CUDA tests: tests/test_render.py -k cuda_paths (Triton, numba-split, torch; gsplat where
+#   parity.txt       the CUDA tests: test_cuda_paths_match_cpu in tests/test_render.py (Triton, numba-split, torch; gsplat where
 #                    installed) and tests/test_train_device.py (a fit and renders on CUDA against the CPU)
 #   lmgs_512_base.json  the training above with BASE's model library, when BASE is set
 #   raster_cuda.json benchmarks/gpu_raster.py: the Triton path's cost per call split into projection,
@@ -47,8 +47,8 @@ if want train; then
   stamp "train rc=$? $(figures "$OUT/lmgs_512.json")"
 fi
 if want parity; then
-  timeout "$(left 150)" python3 -m pytest -q -p no:cacheprovider tests/test_render.py -k cuda_paths tests/test_train_device.py \
-    > "$OUT/parity.txt" 2>&1
+  timeout "$(left 150)" python3 -m pytest -q -p no:cacheprovider tests/test_render.py::test_cuda_paths_match_cpu \
+    tests/test_train_device.py > "$OUT/parity.txt" 2>&1
   stamp "parity rc=$? $(tail -1 "$OUT/parity.txt")"
 fi
 if want train && [[ -n "$BASE" ]]; then
