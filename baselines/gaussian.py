@@ -52,8 +52,7 @@ from lmgs.device import choose_device
 from lmgs.encoders import TriplaneEncoder
 from lmgs.gaussians import PARAM_NAMES, GaussianSet
 from lmgs.init import face_area_px, init_face, scene_box
-from lmgs.clipdata import ClipTensors
-from lmgs.model import to_image
+from lmgs.clipdata import ClipTensors, to_image
 from lmgs.optim import densify, gaussian_adam, network_adamw, optimise
 from lmgs.presets import TrainConfig, quick
 from lmgs.render import rasterize

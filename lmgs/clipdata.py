@@ -40,6 +40,16 @@ def fits_on_device(clip: TrainingClip, dev: torch.device) -> bool:
     return _nbytes(clip) <= DEVICE_SHARE * free
 
 
+def as_image(x: torch.Tensor) -> torch.Tensor:
+    """uint8 ``[..., 3]`` -> float in [0, 1], on its device."""
+    return x.float() / 255.0
+
+
+def to_image(x: np.ndarray, device) -> torch.Tensor:
+    """uint8 ``[H, W, 3]`` -> float ``[H, W, 3]`` in [0, 1] on ``device``."""
+    return as_image(torch.from_numpy(np.ascontiguousarray(x)).to(device))
+
+
 class ClipTensors:
     """Per-frame tensors of ``clip`` on ``dev`` (see the module docstring).
 
@@ -65,19 +75,12 @@ class ClipTensors:
             ends = np.cumsum([0] + [len(f) for f in flat])
             self._mouth = (torch.from_numpy(np.concatenate(flat).astype(np.int64)).to(dev), ends)
 
-    @staticmethod
-    def _image(x: torch.Tensor) -> torch.Tensor:
-        return x.float() / 255.0
-
-    def _host(self, a: np.ndarray) -> torch.Tensor:
-        return torch.from_numpy(np.ascontiguousarray(a)).to(self.dev)
-
     def frame(self, i: int) -> torch.Tensor:
-        return self._image(self._frames[i] if self.resident else self._host(self.clip.frames[i]))
+        return as_image(self._frames[i]) if self.resident else to_image(self.clip.frames[i], self.dev)
 
     def background(self, i: int) -> torch.Tensor:
         k = i if self.clip.backgrounds.shape[0] > 1 else 0
-        return self._image(self._backgrounds[k] if self.resident else self._host(self.clip.backgrounds[k]))
+        return as_image(self._backgrounds[k]) if self.resident else to_image(self.clip.backgrounds[k], self.dev)
 
     def depth(self, i: int) -> torch.Tensor:
         if self.resident:

@@ -47,12 +47,21 @@ def photometric(img: torch.Tensor, ref: torch.Tensor, lambda_dssim: float = 0.2)
     return (1 - lambda_dssim) * (img - ref).abs().mean() + lambda_dssim * (1 - ssim(img, ref))
 
 
-def scale_invariant_depth(depth: torch.Tensor, ref: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+def scale_invariant_depth(depth: torch.Tensor, ref: torch.Tensor, mask: torch.Tensor, gather: bool = True) -> torch.Tensor:
     """Scale-invariant log-depth loss (Eigen et al. 2014) over ``mask``.
 
     .. math:: L_D = \\frac1n \\sum \\delta^2 - \\frac1{n^2} (\\sum \\delta)^2, \\quad \\delta = \\log D - \\log \\tilde D
+
+    ``gather=False`` sums over the whole image with the mask as weights instead of selecting the
+    masked pixels: the same value up to the order of float sums, and nothing read back from the
+    device (selecting by a mask, or testing how many pixels it holds, waits for a GPU).
     """
     m = mask & (ref > 0) & (depth > 1e-6)
+    if not gather:
+        n = m.to(depth.dtype).sum()
+        d = torch.where(m, torch.log(torch.where(m, depth, 1.0)) - torch.log(torch.where(m, ref, 1.0)), 0.0)
+        mean = d.sum() / n.clamp_min(1.0)
+        return torch.where(n >= 2, (d * d).sum() / n.clamp_min(1.0) - mean**2, depth.sum() * 0.0)
     n = m.sum()
     if n < 2:
         return depth.sum() * 0.0
@@ -60,43 +69,25 @@ def scale_invariant_depth(depth: torch.Tensor, ref: torch.Tensor, mask: torch.Te
     return (d**2).mean() - d.mean() ** 2
 
 
-def normal_loss(normal: torch.Tensor, ref: torch.Tensor, mask: torch.Tensor, reduce: str = "sum") -> torch.Tensor:
+def normal_loss(normal: torch.Tensor, ref: torch.Tensor, mask: torch.Tensor, reduce: str = "sum",
+                gather: bool = True) -> torch.Tensor:
     """:math:`\\sum_{ij} (1 - N_{ij} \\cdot \\tilde N_{ij})` over ``mask``.
 
     ``reduce="sum"`` is the paper's formula; ``"mean"`` divides by the masked pixel count (the
     per-pixel normal terms of 2DGS / PGSR), so its weight does not grow with the face's area.
+    ``gather=False``: masked sums, as in :func:`scale_invariant_depth`.
     """
+    if reduce not in ("sum", "mean"):
+        raise ValueError(f"normal_loss: reduce must be 'sum' or 'mean', not {reduce!r}")
     n = F.normalize(normal, dim=-1, eps=1e-6)
-    err = (1.0 - (n * ref).sum(-1))[mask]
+    per_pixel = 1.0 - (n * ref).sum(-1)
+    if not gather:
+        total = torch.where(mask, per_pixel, 0.0).sum()
+        return total if reduce == "sum" else total / mask.sum().clamp_min(1).to(total.dtype)
+    err = per_pixel[mask]
     if reduce == "sum":
         return err.sum()
-    if reduce == "mean":
-        return err.mean() if err.numel() else err.sum()
-    raise ValueError(f"normal_loss: reduce must be 'sum' or 'mean', not {reduce!r}")
-
-
-def masked_scale_invariant_depth(depth: torch.Tensor, ref: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """:func:`scale_invariant_depth` as sums over the whole image with the mask as weights: the same
-    value (up to the order of float sums), without selecting pixels, so nothing is read back from
-    the device (selecting by a mask must learn how many pixels it holds first)."""
-    m = mask & (ref > 0) & (depth > 1e-6)
-    w = m.to(depth.dtype)
-    n = w.sum()
-    d = torch.where(m, torch.log(torch.where(m, depth, 1.0)) - torch.log(torch.where(m, ref, 1.0)), 0.0)
-    mean = d.sum() / n.clamp_min(1.0)
-    value = (d * d).sum() / n.clamp_min(1.0) - mean**2
-    return torch.where(n >= 2, value, depth.sum() * 0.0)
-
-
-def masked_normal_loss(normal: torch.Tensor, ref: torch.Tensor, mask: torch.Tensor, reduce: str = "sum") -> torch.Tensor:
-    """:func:`normal_loss` as masked sums over the whole image (see :func:`masked_scale_invariant_depth`)."""
-    n = F.normalize(normal, dim=-1, eps=1e-6)
-    err = torch.where(mask, 1.0 - (n * ref).sum(-1), 0.0)
-    if reduce == "sum":
-        return err.sum()
-    if reduce == "mean":
-        return err.sum() / mask.sum().clamp_min(1).to(err.dtype)
-    raise ValueError(f"normal_loss: reduce must be 'sum' or 'mean', not {reduce!r}")
+    return err.mean() if err.numel() else err.sum()
 
 
 def geometry(
@@ -106,11 +97,9 @@ def geometry(
     """The Geometry Regularizer on pixels where both the render and the reference have a surface.
 
     ``depth`` is the alpha-normalised expected depth ``[H, W, 1]``; ``normal`` ``[H, W, 3]``.
-    ``gather=False`` computes the same terms as masked sums (:func:`masked_scale_invariant_depth`,
-    :func:`masked_normal_loss`): equal up to float rounding, and no read-back on a GPU.
+    ``gather=False`` computes both terms as masked sums (:func:`scale_invariant_depth`): equal up to
+    float rounding, and no read-back on a GPU.
     """
     mask = (alpha[..., 0] > 0.5) & (ref_depth > 0)
-    if not gather:
-        return (lambda_d * masked_scale_invariant_depth(depth[..., 0], ref_depth, mask)
-                + lambda_n * masked_normal_loss(normal, ref_normal, mask, normal_reduce))
-    return lambda_d * scale_invariant_depth(depth[..., 0], ref_depth, mask) + lambda_n * normal_loss(normal, ref_normal, mask, normal_reduce)
+    return (lambda_d * scale_invariant_depth(depth[..., 0], ref_depth, mask, gather)
+            + lambda_n * normal_loss(normal, ref_normal, mask, normal_reduce, gather))

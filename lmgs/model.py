@@ -25,11 +25,13 @@ from torch import nn
 from tqdm import tqdm
 
 from lmgs.audio import AudioNet, compute_features, frontend_from_array
+from lmgs.clipdata import as_image
 from lmgs.config import GuidanceConfig
 from lmgs.deform import DeformNet
 from lmgs.errors import InputError
 from lmgs.gaussians import GaussianSet
 from lmgs.render import rasterize
+from lmgs.render._projection import first_non_finite
 from lmgs.types import Camera
 
 
@@ -100,11 +102,6 @@ def render_branches(
         mouth_means2d=mouth.means2d,
         mouth_visible=mouth.visible,
     )
-
-
-def to_image(x: np.ndarray, device) -> torch.Tensor:
-    """uint8 ``[H, W, 3]`` -> float ``[H, W, 3]`` in [0, 1] on ``device``."""
-    return torch.from_numpy(np.ascontiguousarray(x)).to(device).float() / 255.0
 
 
 def prepared_params(gs: GaussianSet, deform, prep, audio: torch.Tensor, landmarks, blink) -> tuple[tuple[torch.Tensor, ...], float | None]:
@@ -179,11 +176,10 @@ class LMGSModel(nn.Module):
     # ------------------------------------------------------------------ inference
     def _check_finite(self) -> None:
         """Raise :class:`InputError` naming the first parameter that holds NaN or inf (one read-back)."""
-        named = [(k, v) for k, v in self.named_parameters() if v.numel()]
-        sums = torch.stack([v.detach().float().abs().sum() for _, v in named]).tolist() if named else []
-        for (name, v), total in zip(named, sums):
-            if not np.isfinite(total) and not bool(torch.isfinite(v).all()):
-                raise InputError(f"the model's parameter {name} holds {int((~torch.isfinite(v)).sum())} non-finite value(s)")
+        found = first_non_finite(dict(self.named_parameters()))
+        if found is not None:
+            name, _, bad = found
+            raise InputError(f"the model's parameter {name} holds {int(bad.sum())} non-finite value(s)")
 
     def audio_windows(self, audio: np.ndarray, n_frames: int, features: dict | None = None) -> torch.Tensor:
         """Per-frame audio windows ``[T, W, C]`` from the configured front end."""
@@ -235,7 +231,7 @@ class LMGSModel(nn.Module):
             frames = torch.from_numpy(out[s:e]) if dev.type == "cpu" else torch.empty(out[s:e].shape, dtype=torch.uint8, device=dev)
             for k, t in enumerate(range(s, e)):
                 w2c = w2cs[k] if w2cs is not None else self.train_w2c[t % len(self.train_w2c)]
-                bg = bgs[k].float() / 255.0 if bgs is not None else self.default_background
+                bg = as_image(bgs[k]) if bgs is not None else self.default_background
                 a = time.perf_counter()
                 face_p, frac = prepared_params(self.face, self.face_deform, face_prep, fa[t], None if lms is None else lms[t],
                                                blinks[k])
@@ -254,10 +250,8 @@ class LMGSModel(nn.Module):
                 bar.update(e - s)
         if bar is not None:
             bar.close()
-        if fracs:  # the mean of the per-frame shares, as float64 (read back once)
-            fracs = [float(np.mean(torch.stack(fracs).cpu().numpy().astype(np.float64)))]
         if timings is not None:
             timings.update(audio=t_audio, network=t_net, raster=t_ras, frames=n)
-            if fracs:
-                timings["se_fraction"] = fracs[0]
+            if fracs:  # the mean of the per-frame shares, in float64 (read back once)
+                timings["se_fraction"] = float(np.mean(torch.stack(fracs).cpu().numpy().astype(np.float64)))
         return out

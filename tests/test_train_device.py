@@ -16,6 +16,7 @@ import torch
 from model_fixtures import synthetic_clip
 
 import lmgs.clipdata as cd
+from lmgs.device import choose_device
 from lmgs.errors import InputError
 from lmgs.presets import quick
 from lmgs.render import rasterize
@@ -126,7 +127,7 @@ def test_training_on_cuda_tracks_the_cpu():  # pragma: no cover - CUDA only
     clip = _clip_with_masks()
     cfg = _tiny(clip)
     m_cpu, r_cpu = fit(clip, cfg, seed=0, progress=False, device="cpu")
-    m_gpu, r_gpu = fit(clip, cfg, seed=0, progress=False, device="cuda")
+    m_gpu, r_gpu = fit(clip, cfg, seed=0, progress=False, device=choose_device("cuda"))
     assert r_gpu.curve[0]["loss"] == pytest.approx(r_cpu.curve[0]["loss"], rel=1e-4)
     assert abs(r_gpu.final_psnr - r_cpu.final_psnr) < 2.0
     assert abs(r_gpu.se_fraction - r_cpu.se_fraction) < 0.05
@@ -144,9 +145,10 @@ def test_optimisers_are_fused_on_cuda():  # pragma: no cover - CUDA only
     from lmgs.gaussians import GaussianSet
     from lmgs.optim import gaussian_adam, network_adamw
 
-    gs = GaussianSet(torch.rand(5, 3, device="cuda"), torch.rand(5, 3, device="cuda"), 0.01)
+    dev = choose_device("cuda")  # (the test is skipped without CUDA)
+    gs = GaussianSet(torch.rand(5, 3, device=dev), torch.rand(5, 3, device=dev), 0.01)
     assert gaussian_adam([gs], quick().train).defaults["fused"] is True
-    assert network_adamw([torch.nn.Linear(3, 2).cuda()], 1e-3).defaults["fused"] is True
+    assert network_adamw([torch.nn.Linear(3, 2).to(dev)], 1e-3).defaults["fused"] is True
 
 
 def test_a_model_with_a_non_finite_parameter_is_named_before_rendering_on_a_gpu():

@@ -120,22 +120,35 @@ def check_inputs(
             raise InputError(f"{name} must be a floating-point tensor, got {t.dtype}")
     if not values:
         return degree
-    # one reduction per tensor and one read-back for all of them (a single host sync on a GPU): a NaN or
-    # inf makes a sum non-finite
-    sums = torch.stack([t.detach().sum().to(device=means.device, dtype=torch.float64) for t in tensors.values()])
-    for (name, t), total in zip(tensors.items(), sums.tolist()):
-        if math.isfinite(total):
-            continue
-        bad = ~torch.isfinite(t.detach())  # (or finite values summed past the float range: no error then)
-        n_bad = int(bad.sum())
-        if n_bad:
-            rows = bad.reshape(t.shape[0], -1).any(dim=1).nonzero().flatten() if t.dim() > 0 else torch.zeros(1)
-            first = rows[:5].tolist()
-            raise InputError(
-                f"{name} has {n_bad} non-finite value(s) (NaN/inf) in {len(rows)} of its {t.shape[0]} rows "
-                f"(first rows: {first})"
-            )
+    found = first_non_finite(tensors)
+    if found is not None:
+        name, t, bad = found
+        rows = bad.reshape(t.shape[0], -1).any(dim=1).nonzero().flatten() if t.dim() > 0 else torch.zeros(1)
+        first = rows[:5].tolist()
+        raise InputError(
+            f"{name} has {int(bad.sum())} non-finite value(s) (NaN/inf) in {len(rows)} of its {t.shape[0]} rows "
+            f"(first rows: {first})"
+        )
     return degree
+
+
+def first_non_finite(tensors: dict[str, torch.Tensor]) -> tuple[str, torch.Tensor, torch.Tensor] | None:
+    """The first of the named ``tensors`` holding NaN or inf, with the mask of its bad values, or None.
+
+    One reduction per tensor and one read-back for all of them (a single host sync on a GPU): a NaN or
+    inf makes a sum non-finite; only a tensor whose sum is not finite is looked at value by value
+    (finite values summed past the float range are no error).
+    """
+    if not tensors:
+        return None
+    dev = next(iter(tensors.values())).device
+    sums = torch.stack([t.detach().sum().to(device=dev, dtype=torch.float64) for t in tensors.values()])
+    for (name, t), total in zip(tensors.items(), sums.tolist()):
+        if not math.isfinite(total):
+            bad = ~torch.isfinite(t.detach())
+            if bool(bad.any()):
+                return name, t, bad
+    return None
 
 
 def _shape(t: object) -> str:
