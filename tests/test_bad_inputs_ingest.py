@@ -61,6 +61,9 @@ def test_ingest_refuses_an_empty_name_and_a_folder_given_as_a_file(truth, tmp_pa
     ingest_error_line(rc, err, str(truth), "is a folder, not an audio file")
     rc, _, err = run_cli("ingest", str(tmp_path / "none.mp4"), "--data-root", str(root), "--quiet")
     ingest_error_line(rc, err, "none.mp4", "video not found")
+    for bad in ("often", "-2"):
+        rc, _, err = run_cli("ingest", str(truth / "astronaut.mp4"), "--pose-smooth", bad, "--data-root", str(root), "--quiet")
+        ingest_error_line(rc, err, f"--pose-smooth '{bad}'", "auto or a number of frames")
     assert not root.exists()
 
 

@@ -31,8 +31,8 @@ def test_ingest_matches_the_generators_truth(truth, ingested):
 
     folder, _ = ingested
     got = compare(truth, folder)
-    # measured (this fixture): landmarks 1.05 px (mouth 1.47), rotation 0.30 deg (the truth
-    # moves 1.55 deg from its mean on average), distance 0.24 %, head IoU 0.887, plate
+    # measured (this fixture): landmarks 1.05 px (mouth 1.47), rotation 0.40 deg (the truth
+    # moves 1.55 deg from its mean on average; 0.34 with the landmark poses), distance 0.24 %, head IoU 0.887, plate
     # 35.2 dB, blink r 0.85, audio (AAC) 40.6 dB. The head IoU was 0.927 (0.925 with the
     # segmenter's person) while the head label stopped at the head outline: this fixture's hair
     # beside the jaw is a still layer its truth labels torso, which the ingest now labels head,
@@ -61,9 +61,12 @@ def test_ingest_matches_the_generators_truth(truth, ingested):
 
 
 def test_tracked_texture_refines_the_landmark_pose(truth, ingested):
-    """The poses the ingest writes (landmark poses refined by the upper head's tracked corners)
-    against the landmark poses alone, both against the truth's cameras: measured on this
-    fixture 0.46 deg mean rotation error without the images, 0.30 with them; every frame refined."""
+    """Landmark poses refined by the upper head's tracked corners against the landmark poses
+    alone, both against the truth's cameras: measured on this fixture 0.46 deg mean rotation error
+    without the images (0.56 since the focal fit), 0.34 with them; every frame refined. The poses the
+    ingest writes (the dense mesh's, refined the same way, smoothed by cross-validation): 0.40 deg
+    on this short H.264 clip (on 20 s lossless clips of both subjects the mesh's are the better:
+    design.md, "Poses from the dense mesh")."""
     from lmgs_eval.data.ingest import pose
     from lmgs_eval.data.ingest.compare import rotation_error_deg
     from lmgs_eval.data.layout import read_subject
@@ -77,7 +80,8 @@ def test_tracked_texture_refines_the_landmark_pose(truth, ingested):
     rot_plain, _ = rotation_error_deg(t.c2w, plain.c2w)
     rot_refined, _ = rotation_error_deg(t.c2w, refined.c2w)
     assert rot_refined < 0.8 * rot_plain, (rot_refined, rot_plain)
-    np.testing.assert_allclose(refined.c2w, e.c2w, atol=1e-4)  # what the ingest wrote (from landmarks kept to 4 decimals)
+    rot_written, _ = rotation_error_deg(t.c2w, e.c2w)
+    assert rot_written < 0.5, (rot_written, rot_refined)
     man = json.loads((folder / "manifest.json").read_text())
     assert any(n.startswith(f"pose: {e.n_frames} of {e.n_frames} frames refined") for n in man["notes"]), man["notes"]
 

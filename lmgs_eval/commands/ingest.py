@@ -10,6 +10,8 @@ HELP = "make a subject in the ER-NeRF / TalkingGaussian layout from a raw talkin
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from lmgs_eval.data.ingest import IngestConfig
+
     p.add_argument("video", help="the video (any format ffmpeg reads; audio from its own track unless --audio)")
     p.add_argument("--audio", help="speech to use instead of the video's own track (WAV or any audio file)")
     p.add_argument("--name", help="subject name (default: the video's file name without extension)")
@@ -17,6 +19,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--crop", choices=("auto", "head", "none"), default="auto",
                    help="auto: a fixed square window around the head unless the video already is a head crop (default)")
     p.add_argument("--focal", type=float, default=None, help="focal length in output pixels (default: searched over the clip)")
+    p.add_argument("--pose-from", choices=("mesh", "landmarks"), default=IngestConfig.pose_from,
+                   help="each frame's head pose from the subject's shape fitted to the dense face mesh, or from the "
+                        f"68-point template on dlib's landmarks (default {IngestConfig.pose_from})")
+    p.add_argument("--pose-smooth", default=None, metavar="auto|FRAMES",
+                   help="the poses' smoothing over time: auto (Whittaker's smoother, its weight chosen by generalised "
+                        "cross-validation) or a Gaussian's sigma in frames (0: none); default "
+                        f"{'auto' if IngestConfig.pose_sigma is None else IngestConfig.pose_sigma}")
     p.add_argument("--data-root", help="folder of subjects (default: $LMGS_DATA or ~/.cache/lmgs/data)")
     p.add_argument("--preview", action="store_true", help="also write preview.png: a contact sheet of frames, landmarks, masks, plate and pose axes")
     p.add_argument("--force", action="store_true", help="replace an existing subject of that name")
@@ -28,7 +37,10 @@ def run(args: argparse.Namespace) -> int:
     from lmgs_eval.data.ingest import IngestConfig, ingest
 
     t0 = time.perf_counter()
-    cfg = IngestConfig(size=args.size, crop=args.crop, focal=args.focal)
+    from lmgs_eval.data.ingest.pipeline import pose_sigma_from
+
+    smooth = {} if args.pose_smooth is None else {"pose_sigma": pose_sigma_from(args.pose_smooth)}
+    cfg = IngestConfig(size=args.size, crop=args.crop, focal=args.focal, pose_from=args.pose_from, **smooth)
     folder = ingest(args.video, args.name, audio=args.audio, data_root=args.data_root, cfg=cfg, force=args.force,
                     progress=not args.quiet, jobs=args.jobs)
     man = json.loads((folder / "manifest.json").read_text())

@@ -1,4 +1,5 @@
-"""Sub-pixel head motion from the images: the landmark poses refined by tracked texture.
+"""Sub-pixel head motion from the images: the per-frame poses (the dense mesh's or the
+landmarks', :mod:`pose`) refined by tracked texture.
 
 A detector's 68 points jitter by about a pixel from frame to frame, and the pose fitted to
 them (:mod:`pose`) jitters with them: a degree of rotation moves the top of the hair by a
@@ -76,9 +77,9 @@ def _grey(path: Path) -> np.ndarray:
 
 def refine(frame_paths: list[Path], lms: np.ndarray, rv: np.ndarray, tv: np.ndarray, focal: float, w: int, h: int,
            template: np.ndarray, rigid: np.ndarray) -> Refined:
-    """Refine per-frame landmark poses ``rv``, ``tv`` (``[N, 3]``, OpenCV world-to-camera) by
-    tracked corners; ``template``: the fitted ``[68, 3]`` points, ``rigid`` the indices the
-    landmark pose was solved from."""
+    """Refine per-frame poses ``rv``, ``tv`` (``[N, 3]``, OpenCV world-to-camera; the dense mesh's
+    or the landmarks') by tracked corners; ``template``: the fitted ``[68, 3]`` points, ``rigid`` the
+    indices whose projections must stay near the detected landmarks."""
     import cv2
     from scipy.spatial.transform import Rotation
 

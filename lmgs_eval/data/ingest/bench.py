@@ -33,6 +33,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lossless", action="store_true",
                    help="ingest the subject's frames and audio encoded without loss instead of its H.264 video: the "
                         "accuracy is then the ingest's alone, without the codec's")
+    p.add_argument("--motion", choices=("still", "turn", "zoom"), default="still",
+                   help="the bundled subject's head motion: still (as built), turn (yaw +-28 deg, pitch +-10 deg) or zoom "
+                        "(the camera's focal +-8 %%); the variants are built in a temporary folder")
+    p.add_argument("--pose-from", choices=("mesh", "landmarks"), default=None,
+                   help="the ingest's pose source (default: the ingest's own default)")
+    p.add_argument("--pose-smooth", default=None, metavar="auto|FRAMES",
+                   help="the ingest's pose smoothing: auto or a Gaussian's sigma in frames (default: the ingest's own)")
     p.add_argument("--data-root", help="where bundled subjects are built (default: $LMGS_DATA or ~/.cache/lmgs/data)")
     p.add_argument("--jobs", type=int, default=None, help="processes for the per-frame stages (default: CPU count, at most 4)")
 
@@ -49,19 +56,24 @@ def run(args: argparse.Namespace) -> dict:
     from lmgs_eval.data.bundled_spec import BundledSpec
     from lmgs_eval.errors import UserError
 
-    if args.video and (args.hair != "layer" or args.lossless):
-        raise UserError("--video: times that video alone; --hair and --lossless apply to the bundled subject's")
+    if args.video and (args.hair != "layer" or args.lossless or args.motion != "still"):
+        raise UserError("--video: times that video alone; --hair, --motion and --lossless apply to the bundled subject's")
+    from lmgs_eval.data.ingest.pipeline import pose_sigma_from
+
+    cfg = IngestConfig(size=args.size, **({"pose_from": args.pose_from} if args.pose_from else {}),
+                       **({"pose_sigma": pose_sigma_from(args.pose_smooth)} if args.pose_smooth is not None else {}))
     with tempfile.TemporaryDirectory(prefix="lmgs-bench-ingest-") as tmp:
         truth = None
         if args.video:
             video = Path(args.video)
         else:
-            truth = bundled_truth(BundledSpec(args.subject, args.size, args.seconds), args.hair, Path(tmp), args.data_root)
+            truth = bundled_truth(BundledSpec(args.subject, args.size, args.seconds), args.hair, Path(tmp), args.data_root,
+                                  motion=None if args.motion == "still" else args.motion)
             video = truth / f"{args.subject}.mp4"
             if args.lossless:
                 video = lossless_video(truth, Path(tmp) / "lossless" / video.name)
         t0, c0 = time.perf_counter(), _cpu()
-        folder = ingest(video, "bench", data_root=tmp, cfg=IngestConfig(size=args.size), progress=False, jobs=args.jobs)
+        folder = ingest(video, "bench", data_root=tmp, cfg=cfg, progress=False, jobs=args.jobs)
         wall, cpu = time.perf_counter() - t0, _cpu() - c0
         man = json.loads((folder / "manifest.json").read_text())
         acc = compare(truth, folder) if truth is not None else {}
@@ -70,8 +82,11 @@ def run(args: argparse.Namespace) -> dict:
     out = {
         "video": str(video) if truth is None else (f"{args.subject}, {args.size} px, {args.seconds:g} s"
                                                     + (", hair on the head" if args.hair == "head" else "")
+                                                    + (f", head motion {args.motion}" if args.motion != "still" else "")
                                                     + (": its frames and audio without loss" if args.lossless else ": its H.264 video")),
         "frames": n,
+        "pose_from": cfg.pose_from,
+        "pose_smooth": "auto" if cfg.pose_sigma is None else cfg.pose_sigma,
         "size": args.size,
         "wall_s": round(wall, 1),
         "cpu_s": round(cpu, 1),

@@ -7,7 +7,7 @@ from pathlib import Path
 from lmgs_eval.data.ingest import decode
 from lmgs_eval.errors import UserError
 
-INGEST_VERSION = "8"  # 2: depth / normal priors; 3: the zoom check (pose.scale in the manifest); 4: head label on the jaw line, neck continued behind the head in torso_imgs, poses refined by tracked texture; 5: depth / normal priors cover the whole head mask; 6: the person's holes only where background does not reach the edge, the person grown against the plate; 7: the dense face mesh tracked, the focal length from it (a joint fit with a prior), AU45 from its blendshapes; 8: the person from the selfie segmenter, the head label beside the jaw, the soft rim in gt_imgs / torso_imgs only
+INGEST_VERSION = "9"  # 2: depth / normal priors; 3: the zoom check (pose.scale in the manifest); 4: head label on the jaw line, neck continued behind the head in torso_imgs, poses refined by tracked texture; 5: depth / normal priors cover the whole head mask; 6: the person's holes only where background does not reach the edge, the person grown against the plate; 7: the dense face mesh tracked, the focal length from it (a joint fit with a prior), AU45 from its blendshapes; 8: the person from the selfie segmenter, the head label beside the jaw, the soft rim in gt_imgs / torso_imgs only; 9: poses from the subject's shape fitted to the dense mesh, not smoothed over time (was a 2-frame Gaussian)
 MIN_SECONDS = 10.0  # shorter clips are ingested with a warning: too little to train on
 MIN_FRAMES = 25  # fewer are refused: one second, which the first-10/11 split leaves 22 frames to train on and 3 to test
 CUT_SHORT_WARN = 2 / 25  # seconds of the stated video that may not decode (rounding of the header); more: a warning...

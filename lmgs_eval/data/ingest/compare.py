@@ -202,17 +202,18 @@ def lossless_video(truth_root: Path, out: Path) -> Path:
     return out
 
 
-def bundled_truth(spec, hair: str, tmp: Path, data_root=None) -> Path:
-    """The bundled subject ``spec`` (a ``BundledSpec``): ``hair="layer"`` as the registry builds it
-    (cached under the data root), ``"head"`` a copy built under ``tmp`` whose hair all moves with
-    the head (not a registry subject: it goes with ``tmp``)."""
+def bundled_truth(spec, hair: str, tmp: Path, data_root=None, motion: str | None = None) -> Path:
+    """The bundled subject ``spec`` (a ``BundledSpec``): ``hair="layer"`` without ``motion`` as the
+    registry builds it (cached under the data root); otherwise a copy built under ``tmp`` (not a
+    registry subject: it goes with ``tmp``), with ``hair="head"`` its hair all moving with the head,
+    with ``motion`` (``"turn"``, ``"zoom"``) the generator's motion variant."""
     from lmgs_eval.data.registry import ensure_bundled
 
-    if hair == "layer":
+    if hair == "layer" and motion is None:
         return ensure_bundled(spec, data_root, progress=False)
     from lmgs_eval.data.bundled import build
 
-    root = Path(tmp) / "truth" / f"{spec.folder}-hair"
+    root = Path(tmp) / "truth" / f"{spec.folder}-{hair}-{motion or 'still'}"
     root.mkdir(parents=True)
-    build(spec.name, root, size=spec.size, seconds=spec.seconds, seed=spec.seed, progress=False, hair="head")
+    build(spec.name, root, size=spec.size, seconds=spec.seconds, seed=spec.seed, progress=False, hair=hair, motion=motion)
     return root

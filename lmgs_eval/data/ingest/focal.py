@@ -86,15 +86,25 @@ class FocalFit:
                 "prior_widths": PRIOR_WIDTHS, "prior_log_sd": PRIOR_LOG_SD, "profile": [[round(f / width, 3), round(c, 2)] for f, c in self.curve]}
 
 
-def _poses(shape: np.ndarray, obs: np.ndarray, f: float, w: int, h: int) -> tuple[np.ndarray, np.ndarray]:
+def solve_pnp(shape: np.ndarray, img: np.ndarray, K: np.ndarray, guess: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The pose ``(rotation vector [3], translation [3])`` (OpenCV camera) that projects ``shape [P, 3]``
+    onto ``img [P, 2]``: Levenberg-Marquardt from ``guess`` (rotation, translation), or from EPnP."""
     import cv2
 
+    img = np.ascontiguousarray(img, np.float64)
+    if guess is None:
+        _, r, t = cv2.solvePnP(shape, img, K, None, flags=cv2.SOLVEPNP_EPNP)
+    else:
+        r, t = (np.asarray(g, np.float64).reshape(3, 1).copy() for g in guess)
+    _, r, t = cv2.solvePnP(shape, img, K, None, r, t, useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
+    return r.ravel(), t.ravel()
+
+
+def _poses(shape: np.ndarray, obs: np.ndarray, f: float, w: int, h: int) -> tuple[np.ndarray, np.ndarray]:
     K = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1.0]])
     rv, tv = np.zeros((len(obs), 3)), np.zeros((len(obs), 3))
     for k, img in enumerate(obs):
-        _, r, t = cv2.solvePnP(shape, img, K, None, flags=cv2.SOLVEPNP_EPNP)
-        _, r, t = cv2.solvePnP(shape, img, K, None, r, t, useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
-        rv[k], tv[k] = r.ravel(), t.ravel()
+        rv[k], tv[k] = solve_pnp(shape, img, K)
     return rv, tv
 
 
@@ -109,6 +119,14 @@ def _rotate(rv: np.ndarray, pts: np.ndarray) -> np.ndarray:
 def _profile_point(prior: np.ndarray, obs: np.ndarray, f: float, w: int, h: int) -> tuple[float, float]:
     """``(sum of squared pixel residuals, sum of squared prior residuals in prior units)`` at the
     best shape and poses for focal ``f``."""
+    return fit_shape(prior, obs, f, w, h)[3:]
+
+
+def fit_shape(prior: np.ndarray, obs: np.ndarray, f: float, w: int, h: int):
+    """The subject's shape and the frames' poses fitted jointly to tracked points ``obs [F, P, 2]``
+    (pixels) seen with focal ``f``, the shape held near ``prior [P, 3]`` (metres, OpenCV axes) with
+    :data:`SHAPE_MM` per coordinate: ``(shape [P, 3], rotation vectors [F, 3], translations [F, 3],
+    sum of squared pixel residuals, sum of squared prior residuals in prior units)``."""
     from scipy.optimize import least_squares
     from scipy.sparse import coo_matrix
 
@@ -137,8 +155,9 @@ def _profile_point(prior: np.ndarray, obs: np.ndarray, f: float, w: int, h: int)
     c_all = np.concatenate([cc.ravel(), np.arange(3 * n_p)])
     sparsity = coo_matrix((np.ones(len(r_all), np.int8), (r_all, c_all)), shape=(2 * n_f * n_p + 3 * n_p, len(x0)))
     fit = least_squares(residuals, x0, jac_sparsity=sparsity, method="trf", x_scale="jac", max_nfev=40)
-    res = fit.fun
-    return float((res[: 2 * n_f * n_p] ** 2).sum()), float((res[2 * n_f * n_p:] ** 2).sum())
+    res, x = fit.fun, fit.x
+    return (x[:o_rot].reshape(n_p, 3), x[o_rot:o_t].reshape(n_f, 3), x[o_t:].reshape(n_f, 3),
+            float((res[: 2 * n_f * n_p] ** 2).sum()), float((res[2 * n_f * n_p:] ** 2).sum()))
 
 
 def fit_focal(mesh: np.ndarray, w: int, h: int, frames: int = FRAMES, progress=None, mapper=None) -> FocalFit:

@@ -39,9 +39,12 @@ class IngestConfig:
             ``head`` or ``none``.
         focal: focal length in output pixels; None searches it over the clip.
         smooth_window: Savitzky-Golay window of the landmark smoothing (frames, odd; 1 = off).
-        pose_sigma: Gaussian smoothing of the pose (frames; 0 = off).
+        pose_sigma: Gaussian smoothing of the pose (frames; 0 = off); None: Whittaker's smoother,
+            its weight chosen per clip by generalised cross-validation (:func:`pose.smooth_gcv`).
         pose_refine: refine each frame's landmark pose by the upper head's texture tracked
             from a reference frame (:mod:`align`).
+        pose_from: ``mesh`` (each frame's pose from the subject's shape fitted to the dense face
+            mesh) or ``landmarks`` (from the 68-point template on dlib's landmarks).
         plate_frames: frames sampled for the background plate.
     """
 
@@ -49,9 +52,24 @@ class IngestConfig:
     crop: str = "auto"
     focal: float | None = None
     smooth_window: int = 5
-    pose_sigma: float = 2.0
+    pose_sigma: float | None = 0.0
     pose_refine: bool = True
     plate_frames: int = 60
+    pose_from: str = "mesh"
+
+
+def pose_sigma_from(text: str) -> float | None:
+    """``--pose-smooth``'s value as :attr:`IngestConfig.pose_sigma`: ``auto`` is None (cross-validated
+    Whittaker smoothing), a number the Gaussian's sigma in frames; anything else a :class:`UserError`."""
+    if text == "auto":
+        return None
+    try:
+        sigma = float(text)
+    except ValueError:
+        sigma = -1.0
+    if not sigma >= 0:
+        raise UserError(f"--pose-smooth {text!r}: must be auto or a number of frames >= 0")
+    return sigma
 
 
 @dataclass
@@ -109,6 +127,10 @@ def ingest(video: str | Path, name: str | None = None, *, audio: str | Path | No
         raise UserError(f"--size {cfg.size}: must be between 64 and 2048 pixels")
     if cfg.crop not in ("auto", "head", "none"):
         raise UserError(f"--crop {cfg.crop!r}: must be auto, head or none")
+    if cfg.pose_from not in ("mesh", "landmarks"):
+        raise UserError(f"--pose-from {cfg.pose_from!r}: must be mesh or landmarks")
+    if cfg.pose_sigma is not None and not cfg.pose_sigma >= 0:
+        raise UserError(f"--pose-smooth {cfg.pose_sigma}: must be auto or a number of frames >= 0")
     if cfg.focal is not None and not cfg.focal > 0:
         raise UserError(f"--focal {cfg.focal}: must be positive")
     njobs = _jobs(jobs)

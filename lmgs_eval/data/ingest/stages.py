@@ -134,6 +134,12 @@ def _ranges(ks) -> str:
     return ", ".join(parts[:6]) + (", ..." if len(parts) > 6 else "")
 
 
+POSE_SOURCES = {
+    "mesh": "the subject's shape (canonical face's skull vertices, fitted to the dense mesh) posed per frame by perspective-n-point",
+    "landmarks": "the 68-point template (the subject's frontal layout, generic relief) posed per frame on dlib's landmarks",
+}
+
+
 def pose(ctx, sel) -> None:
     t0 = time.perf_counter()
     lms = sel["lms"]
@@ -152,13 +158,14 @@ def pose(ctx, sel) -> None:
                           f"{ff.evidence:.2f} < 1): the prior about the field's 2.5 widths does; pass --focal if the camera's is known"
                           if ff.evidence < 1 else f"the clip's evidence {ff.evidence:.2f}"))
     fit = pose_mod.fit_poses(lms, s, s, focal=focal, sigma=ctx.cfg.pose_sigma, frames=frames,
-                             runs=track_mod.segments(src))
+                             runs=track_mod.segments(src), mesh=sel["mesh"] if ctx.cfg.pose_from == "mesh" else None)
     ref = int(src[fit.reference])  # in the source's frame numbers
+    kind = "dense-mesh" if fit.source == "mesh" else "landmark"
     if fit.aligned is not None and fit.aligned.any():
         ctx.log.append(f"pose: {int(fit.aligned.sum())} of {len(lms)} frames refined by the upper head's texture tracked "
-                       f"from frame {ref} (the rest keep their landmark pose)")
+                       f"from frame {ref} (the rest keep their {kind} pose)")
     elif fit.aligned is not None:
-        ctx.log.append(f"pose: the landmark poses are kept: the upper head's texture could refine {fit.refinable} of {len(lms)} "
+        ctx.log.append(f"pose: the {kind} poses are kept: the upper head's texture could refine {fit.refinable} of {len(lms)} "
                        f"frames, fewer than {100 * MIN_SHARE:.0f} % (the head turns too far from frame {ref}, or too little "
                        "texture follows)")
     write_transforms(ctx.sub, fit.c2w, fit.focal, s, s)
@@ -177,7 +184,8 @@ def pose(ctx, sel) -> None:
                        f"(too little of it, or too little texture): a zoom would go unseen; the face's scale changes by {100 * sc.face_range:.1f} %")
     writer.save_npz(ctx.work / "pose.npz", w2c=fit.w2c, c2w=fit.c2w, euler=fit.euler, trans=fit.trans, template=fit.template,
              focal=fit.focal, reproj=fit.reproj_px, focal_fit=json.dumps(ff.to_json(s) if ff is not None else {"method": "--focal"}),
-             scale=json.dumps(sc.to_json()))
+             scale=json.dumps(sc.to_json()), source=fit.source,
+             mesh_reproj=fit.mesh_reproj_px if fit.mesh_reproj_px is not None else np.full(len(lms), np.nan))
     ctx.timed("pose", t0, len(lms))
 
 
@@ -295,6 +303,9 @@ def finish(ctx, info: decode.VideoInfo, sel, audio: np.ndarray, source: str, key
         "window": json.loads(str(sel["window"])),
         "pose": {"focal": float(pz["focal"]), "focal_widths": float(pz["focal"]) / ctx.cfg.size,
                  "focal_fit": json.loads(str(pz["focal_fit"])), "reprojection_px_mean": float(pz["reproj"].mean()),
+                 "source": POSE_SOURCES.get(str(pz["source"]), str(pz["source"])) if "source" in pz.files else POSE_SOURCES["landmarks"],
+                 **({"mesh_reprojection_px_mean": round(float(np.nanmean(pz["mesh_reproj"])), 3)}
+                    if "mesh_reproj" in pz.files and np.isfinite(pz["mesh_reproj"]).any() else {}),
                  "pitch_yaw_roll_deg_min": eul.min(0).round(2).tolist(), "pitch_yaw_roll_deg_max": eul.max(0).round(2).tolist(),
                  "scale": json.loads(str(pz["scale"]))},
         "flags": ctx.flags,
