@@ -206,15 +206,36 @@ def check_landmark_source(budget, method: str, reads_landmarks: bool) -> None:
     if source != "subject" and not reads_landmarks:
         raise InputError(f"--set landmark_source={source}: method '{method}' reads no audio-predicted landmarks "
                          "(geneface and ip_lap do, as lmgs does)")
+    weights = getattr(budget, "lip_weights", None)
+    if weights is not None:
+        from lmgs.lips import DEFAULT, check_weights
+
+        if weights != DEFAULT and source == "subject":
+            raise InputError(f"--set lip_weights={weights}: the lip model is read only with --set "
+                             "landmark_source=generic or generic-tuned")
+        try:
+            check_weights(weights)
+        except InputError as exc:
+            raise InputError(f"--set lip_weights: {exc}") from None
 
 
-def fit_mouth_model(source: str, clip: TrainingClip, targets: np.ndarray, seed: int) -> dict | None:
-    """The generic lip model (:mod:`lmgs.lips`) retargeted to ``clip`` from its 68 landmark targets ``[T, 68, 3]``,
-    fine-tuned on them for ``generic-tuned``, as its JSON-able state (what a checkpoint's ``build`` keeps); ``None``
-    for ``subject`` (the method's own predictor gives the whole face)."""
-    from lmgs.lips import retarget_for
+def lip_weights_read(source: str, weights: str | None) -> str | None:
+    """The lip model's weights a method reads under landmark source ``source`` (None under ``subject``)."""
+    if source == "subject":
+        return None
+    from lmgs.lips import DEFAULT
 
-    lips = retarget_for(source, clip.audio, len(clip), targets, seed)
+    return weights or DEFAULT
+
+
+def fit_mouth_model(source: str, clip: TrainingClip, targets: np.ndarray, seed: int,
+                    weights: str | None = None) -> dict | None:
+    """The generic lip model (:mod:`lmgs.lips`; ``weights``, default the shipped one) retargeted to ``clip`` from its
+    68 landmark targets ``[T, 68, 3]``, fine-tuned on them for ``generic-tuned``, as its JSON-able state (what a
+    checkpoint's ``build`` keeps); ``None`` for ``subject`` (the method's own predictor gives the whole face)."""
+    from lmgs.lips import DEFAULT, retarget_for
+
+    lips = retarget_for(source, clip.audio, len(clip), targets, seed, weights=weights or DEFAULT)
     return None if lips is None else lips.to_state()
 
 
@@ -316,14 +337,19 @@ class Adapter:
         if self.model is None:
             raise RuntimeError(f"{self.name}: render() before fit()")
 
+    def lip_weights(self) -> str | None:
+        """The generic lip model's weights this method reads (None where it reads none)."""
+        return lip_weights_read(getattr(self.cfg, "landmark_source", "subject"), getattr(self.cfg, "lip_weights", None))
+
     def describe(self):
         standins = self.standins
         source = getattr(self.cfg, "landmark_source", "subject")
         if source != "subject":
+            from lmgs.lips import describe_weights
+
             standins = standins + (
-                "mouth landmarks (48-67): lmgs's generic lip model (pretrained on generated voices, adapted on real "
-                "speakers' lip tracks), retargeted to the subject" + (", fine-tuned on its training split"
-                                                                      if source == "generic-tuned" else ""),)
+                f"mouth landmarks (48-67): lmgs's generic lip model ({describe_weights(self.lip_weights())}), retargeted "
+                "to the subject" + (", fine-tuned on its training split" if source == "generic-tuned" else ""),)
         return MethodInfo(name=self.name, display_name=self.display_name, family=self.family,
                           description=f"{self.description} Budget '{self.preset}': {self.budget_text()}.",
                           standins=standins, config=self.config(), config_hash=self.config_hash())

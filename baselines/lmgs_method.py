@@ -28,6 +28,29 @@ GENERIC_MOUTH_STANDIN = ("mouth landmarks (48-67): the project's generic lip mod
                          "of GeneFace's model trained on LRS3")
 
 
+def check_lip_weights(t) -> None:
+    """``train.lip_weights`` names a lip model lmgs has, and is set only where the generic mouth is read."""
+    from lmgs.lips import DEFAULT, check_weights
+
+    if t.lip_weights != DEFAULT and t.landmark_source == "subject":
+        raise InputError(f"--set train.lip_weights={t.lip_weights}: the lip model is read only with --set "
+                         "train.landmark_source=generic or generic-tuned")
+    try:
+        check_weights(t.lip_weights)
+    except InputError as exc:
+        raise InputError(f"--set train.lip_weights: {exc}") from None
+
+
+def generic_mouth_standin(weights: str) -> str:
+    """The stand-in line of the generic lip model under ``train.lip_weights`` = ``weights``."""
+    from lmgs.lips import DEFAULT, describe_weights
+
+    if weights == DEFAULT:
+        return GENERIC_MOUTH_STANDIN
+    return (f"mouth landmarks (48-67): the project's generic lip model (lmgs.lips: {describe_weights(weights)}), "
+            "retargeted to the subject, in place of GeneFace's model trained on LRS3")
+
+
 def standins(frontend: str) -> tuple[str, ...]:
     """What stands in for the paper's parts under this audio front end."""
     return tuple(x for x in (FRONTEND_STANDINS.get(frontend), LANDMARK_STANDIN) if x)
@@ -98,6 +121,7 @@ class LMGSMethod:
             raise
         except ValueError as exc:  # a config's own check of a value (e.g. a fraction outside [0, 1])
             raise InputError(f"--set: a value lmgs does not take ({exc})") from None
+        check_lip_weights(self.cfg.train)
         self.device = device
         self.model = None
         self.report = None
@@ -153,12 +177,18 @@ class LMGSMethod:
                 + ("; not the paper's GR form: the normal term per pixel at 2DGS's weight (the paper's sum at 1e-4 "
                    "collapsed training on bundled data)." if self.cfg.gr and t.normal_reduce != "sum" else ".")
             ),
-            standins=standins(a.frontend) + ((GENERIC_MOUTH_STANDIN,) if generic is not None else ()),
+            standins=standins(a.frontend) + ((generic_mouth_standin(t.lip_weights),) if generic is not None else ()),
             config=self.cfg.to_dict(),
             config_hash=self.cfg.hash(),
             variant=None if self.variant == "lmgs" else self.variant.removeprefix("lmgs-"),
             components=components(self.cfg),
         )
+
+    def lip_weights(self) -> str | None:
+        """The generic lip model's weights this configuration reads (None where SE and LC read the per-subject
+        predictor, or neither is on)."""
+        g, t = self.cfg.guidance, self.cfg.train
+        return t.lip_weights if (g.se or g.lc) and t.landmark_source != "subject" else None
 
     def cost(self) -> dict:
         if self.model is None:

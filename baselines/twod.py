@@ -58,6 +58,8 @@ class TwoDBudget(Budget):
         landmark_source: where the mouth (48-67) of IP_LAP's predicted landmarks comes from: ``subject`` (its
             predictor, fitted on the training split), ``generic`` or ``generic-tuned`` (the generic lip model of
             :mod:`lmgs.lips`, retargeted to the subject; fine-tuned on its training split), as lmgs's key.
+        lip_weights: the generic lip model's weights under ``generic`` / ``generic-tuned``, as lmgs's
+            ``train.lip_weights``.
     """
 
     steps: int = 800
@@ -68,6 +70,7 @@ class TwoDBudget(Budget):
     sync_weight: float = 0.03
     landmark_steps: int = 300
     landmark_source: str = added_option("subject")
+    lip_weights: str = added_option("lips_generic.pt")
 
     TINY = {"steps": 250, "batch": 4, "crop": 32, "width": 16, "lr": 2e-3, "landmark_steps": 60}
 
@@ -410,7 +413,7 @@ class IPLAP(TwoDMethod):
         predictor = fit_landmark_predictor(feats, torch.from_numpy(targets).to(dev), steps=b.landmark_steps, seed=seed)
         build = {"in_channels": int(feats.shape[2]), "window": int(feats.shape[1]), "width": b.width, "box": list(box),
                  "crop_size": b.crop, "n_components": predictor.n_components}
-        lips = fit_mouth_model(b.landmark_source, clip, targets, seed)
+        lips = fit_mouth_model(b.landmark_source, clip, targets, seed, b.lip_weights)
         if lips is not None:
             build["lips"] = lips
         model = self._build(build).to(dev)

@@ -57,6 +57,9 @@ WEIGHTS = {
                         "edaa71ed0db72f39a033f3070ae66993d150d581106fc1c430a9955d29740425"),
 }
 DEFAULT = "lips_generic.pt"
+# Which real recordings each shipped file was adapted on (clip name, the video file's sha256, frames), written by
+# scripts/train_lip_model.py beside the weights; a weights file elsewhere carries the same as ``<file>.json``.
+PROVENANCE = "provenance.json"
 GAIN_MIN, GAIN_MAX = 0.05, 2.0  # the calibrated gain's range (see RetargetedLips.fit)
 TUNE_STEPS = 400  # fine-tuning steps on a subject's own training split (train.landmark_source = generic-tuned)
 
@@ -312,6 +315,83 @@ def load(name_or_path: str | Path = DEFAULT, *, check: bool = True) -> LipModel:
     return m
 
 
+def weights_path(name_or_path: str | Path) -> Path:
+    """The file of a shipped model's name (a key of :data:`WEIGHTS`) or of a path."""
+    return FOLDER / str(name_or_path) if str(name_or_path) in WEIGHTS else Path(name_or_path)
+
+
+def weights_sha256(name_or_path: str | Path) -> str:
+    """The sha256 of a lip model's weights: the recorded one for a shipped name, the file's own for a path."""
+    from lmgs.fileio import sha256_file
+
+    if str(name_or_path) in WEIGHTS:
+        return WEIGHTS[str(name_or_path)][1]
+    p = Path(name_or_path)
+    if not p.is_file():
+        raise InputError(f"{p}: no such lip model file")
+    return sha256_file(p)
+
+
+def check_weights(name_or_path: str | Path) -> None:
+    """A lip model name lmgs can load: a shipped name, or a file that exists (one line otherwise)."""
+    if str(name_or_path) not in WEIGHTS and not Path(name_or_path).is_file():
+        raise InputError(f"{name_or_path}: no such lip model file (the shipped ones: {', '.join(WEIGHTS)})")
+
+
+def describe_weights(name_or_path: str | Path) -> str:
+    """What a lip model's weights are, in a few words (a record's stand-in line)."""
+    if str(name_or_path) == DEFAULT:
+        return "pretrained on generated voices, adapted on real speakers' lip tracks"
+    if str(name_or_path) in WEIGHTS:
+        return WEIGHTS[str(name_or_path)][0]
+    held = held_out(name_or_path)
+    return (f"weights {Path(name_or_path).name}, sha256 {weights_sha256(name_or_path)[:12]}..."
+            + (f", adapted with {', '.join(held)} held out" if held else ""))
+
+
+def held_out(name_or_path: str | Path) -> list[str]:
+    """The clips a lip model's weights file was adapted without, by its ``<file>.json`` ([] where it names none)."""
+    import json
+
+    f = Path(str(name_or_path) + ".json")
+    if str(name_or_path) in WEIGHTS or not f.is_file():
+        return []
+    try:
+        return [str(c) for c in json.loads(f.read_text()).get("held_out", [])]
+    except (OSError, ValueError):
+        return []
+
+
+def adapted_on(name_or_path: str | Path) -> list[dict] | None:
+    """The real recordings a lip model was adapted on (``clip``, ``sha256`` of the video file, ``frames``), from
+    :data:`PROVENANCE` beside the shipped files or ``<file>.json`` beside another; None where nothing says."""
+    import json
+
+    if str(name_or_path) in WEIGHTS:
+        f, key = FOLDER / PROVENANCE, str(name_or_path)
+    else:
+        f, key = Path(str(name_or_path) + ".json"), None
+    if not f.is_file():
+        return None
+    try:
+        doc = json.loads(f.read_text())
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{f}: not a lip model provenance file ({exc})") from None
+    entry = doc.get(key, {}) if key else doc
+    clips = entry.get("adapted_on")
+    return None if clips is None else [dict(c) for c in clips]
+
+
+def write_provenance(path: str | Path, clips: Sequence[dict], held_out: Sequence[str] = ()) -> None:
+    """``<path>.json``: the recordings a weights file at ``path`` was adapted on and the clips held out of it."""
+    import json
+
+    from lmgs.fileio import atomic_write
+
+    doc = {"adapted_on": [dict(c) for c in clips], "held_out": list(held_out)}
+    atomic_write(Path(str(path) + ".json"), (json.dumps(doc, indent=1, sort_keys=True) + "\n").encode())
+
+
 # ----------------------------------------------------------------------------- a subject's mouth
 class RetargetedLips:
     """The generic lip model fitted to one subject: its frame, neutral mouth, width and audio statistics.
@@ -323,7 +403,9 @@ class RetargetedLips:
                  stats: tuple[np.ndarray, np.ndarray], name: str = DEFAULT, tuned_frames: int = 0,
                  offset: np.ndarray | None = None, gain: np.ndarray | None = None):
         self.model, self.frame, self.neutral, self.width = model, frame, np.asarray(neutral, np.float64), float(width)
-        self.stats, self.name, self.tuned_frames = stats, name, int(tuned_frames)
+        self.stats, self.name, self.tuned_frames = stats, str(name), int(tuned_frames)
+        # the weights' sha256 (shipped or a file); "" for a model handed over in memory under a label
+        self.sha256 = weights_sha256(name) if str(name) in WEIGHTS or Path(name).is_file() else ""
         self.offset = np.zeros((N_MOUTH, 3)) if offset is None else np.asarray(offset, np.float64)
         self.gain = np.ones(3) if gain is None else np.asarray(gain, np.float64)
 
@@ -364,7 +446,7 @@ class RetargetedLips:
     def to_state(self) -> dict:
         """What a checkpoint keeps: the retargeting, and the weights themselves only when fine-tuned (else the
         shipped file's name and sha256, read again on load)."""
-        return {"name": self.name, "sha256": WEIGHTS.get(self.name, ("", ""))[1], "s": self.frame.s,
+        return {"name": self.name, "sha256": self.sha256, "s": self.frame.s,
                 "R": self.frame.R.tolist(), "t": self.frame.t.tolist(), "neutral": self.neutral.tolist(),
                 "width": self.width, "stats": [self.stats[0].tolist(), self.stats[1].tolist()],
                 "tuned_frames": self.tuned_frames, "offset": self.offset.tolist(), "gain": self.gain.tolist(),
@@ -378,9 +460,10 @@ class RetargetedLips:
             model.load_state_dict(st["state"])
             model.eval()
         else:
-            if st["name"] in WEIGHTS and WEIGHTS[st["name"]][1] != st.get("sha256"):
-                raise InputError(f"the checkpoint's lip model {st['name']} (sha256 {str(st.get('sha256'))[:12]}...) is not "
-                                 f"the one installed (sha256 {WEIGHTS[st['name']][1][:12]}...)")
+            have = weights_sha256(st["name"])
+            if st.get("sha256") and have != st["sha256"]:
+                raise InputError(f"the checkpoint's lip model {st['name']} (sha256 {str(st['sha256'])[:12]}...) is not "
+                                 f"the one {'installed' if st['name'] in WEIGHTS else 'there now'} (sha256 {have[:12]}...)")
             model = load(st["name"])
         frame = Frame(float(st["s"]), np.asarray(st["R"], np.float64), np.asarray(st["t"], np.float64))
         stats = (np.asarray(st["stats"][0], np.float32), np.asarray(st["stats"][1], np.float32))
@@ -413,8 +496,9 @@ class RetargetedLips:
         return {
             "name": "lmgs.lips.LipModel",
             "weights": self.name,
+            "weights_sha256": self.sha256,
             "role": "audio-to-lip model for the mouth landmarks (48-67) guiding Spatial Enhancement and Landmark Compensation",
-            "note": ("generic model (pretrained on the bundled generator's voices, adapted on real speakers' lip tracks), "
+            "note": (f"generic model ({WEIGHTS[self.name][0] if self.name in WEIGHTS else 'weights from ' + self.name}), "
                      "retargeted to this subject's neutral mouth, width and pose frame, its predicted neutral and "
                      "per-axis amplitude calibrated on the training split"
                      + (f"; fine-tuned on {self.tuned_frames} training frames" if self.tuned_frames else "")),
@@ -423,13 +507,15 @@ class RetargetedLips:
         }
 
 
-def retarget_for(source: str, audio, n_frames: int, landmarks3d, seed: int = 0) -> RetargetedLips | None:
+def retarget_for(source: str, audio, n_frames: int, landmarks3d, seed: int = 0,
+                 weights: str | Path = DEFAULT) -> RetargetedLips | None:
     """The generic model retargeted to a subject for a landmark source (``train.landmark_source``): ``None`` for
     ``subject``, fitted on the training audio (a 16 kHz waveform of ``n_frames`` frames) and 68 landmarks
-    ``[n_frames, 68, 3]`` for ``generic``, and fine-tuned on them too for ``generic-tuned``."""
+    ``[n_frames, 68, 3]`` for ``generic``, and fine-tuned on them too for ``generic-tuned``. ``weights``: a
+    shipped model's name or a weights file (``train.lip_weights``)."""
     if source == "subject":
         return None
-    return RetargetedLips.fit(logmel(audio, n_frames), np.asarray(landmarks3d, np.float32),
+    return RetargetedLips.fit(logmel(audio, n_frames), np.asarray(landmarks3d, np.float32), name=str(weights),
                               tune_steps=TUNE_STEPS if source == "generic-tuned" else 0, seed=seed)
 
 

@@ -75,6 +75,10 @@ class TrainConfig:
             speakers) retargeted to the subject's neutral mouth, width and pose; ``generic-tuned``
             the same, fine-tuned on the subject's training split first. The other 48 points stay
             the per-subject predictor's. An :func:`~lmgs.config.added_option`.
+        lip_weights: the generic lip model's weights for ``generic`` / ``generic-tuned``: a shipped
+            file's name (``lips_generic.pt``, the default; ``lips_generated.pt``, generated speech
+            only) or a weights file, e.g. one adapted with a speaker held out
+            (``scripts/train_lip_model.py --hold-out``). An :func:`~lmgs.config.added_option`.
         checkpoint_every: steps between checkpoints.
     """
 
@@ -105,6 +109,7 @@ class TrainConfig:
     gr_warmup: int = added_option(0, default=400)
     landmark_folds: int = added_option(0)
     landmark_source: str = added_option("subject")
+    lip_weights: str = added_option("lips_generic.pt")
 
     def __post_init__(self) -> None:
         if self.normal_reduce not in ("sum", "mean"):
@@ -115,6 +120,8 @@ class TrainConfig:
             raise ValueError(f"train.landmark_folds must be 0 (off) or at least 2, not {self.landmark_folds!r}")
         if self.landmark_source not in LANDMARK_SOURCES:
             raise ValueError(f"train.landmark_source must be one of {', '.join(LANDMARK_SOURCES)}, not {self.landmark_source!r}")
+        if not isinstance(self.lip_weights, str) or not self.lip_weights:
+            raise ValueError(f"train.lip_weights must name a lip model (a shipped file or a path), not {self.lip_weights!r}")
 
 
 @dataclass(frozen=True)

@@ -247,12 +247,12 @@ def _fit_landmarks(run: _Run, seed: int) -> None:
     if t.landmark_source != "subject":  # the mouth from the generic lip model, retargeted to this subject
         from lmgs.lips import retarget_for
 
-        model.lips = retarget_for(t.landmark_source, clip.audio, n, targets.numpy(), seed)
+        model.lips = retarget_for(t.landmark_source, clip.audio, n, targets.numpy(), seed, weights=t.lip_weights)
         run.lms_pred = model.lips.replace_mouth(run.lms_pred, clip.audio, n)
     run.t_lms = time.perf_counter() - a
     how = f"{folds}-fold out-of-fold" if folds >= 2 else "in-sample"
     if model.lips is not None:
-        how += f"; mouth (48-67) from the generic lip model ({t.landmark_source})"
+        how += f"; mouth (48-67) from the generic lip model ({t.landmark_source}, {t.lip_weights})"
     if t.landmark_folds and folds < 2:
         how += f" ({n} frames are too few for {t.landmark_folds} folds)"
     run.say(f"landmark predictor fitted in {run.t_lms:.1f} s; training landmarks {how}")

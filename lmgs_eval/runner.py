@@ -68,7 +68,42 @@ def build_method(cfg: RunConfig, name: str, subject, **options) -> TalkingHead:
     else:
         opts.setdefault("preset", cfg.preset)
         opts.setdefault("device", cfg.device)
-    return create_method(name, subject=subject, hooks=adapter_hooks(), **opts)
+    method = create_method(name, subject=subject, hooks=adapter_hooks(), **opts)
+    if subject is not None:
+        check_lips_held_out(method, subject)
+    return method
+
+
+def source_sha256(folder) -> set[str]:
+    """The sha256 of the video and audio files an ingested subject was made from (its ``manifest.json``); empty
+    for a subject without one (bundled, or a processed folder from elsewhere)."""
+    try:
+        doc = json.loads((Path(folder) / "manifest.json").read_text())
+    except (OSError, ValueError):
+        return set()
+    return {str(v) for v in ((doc.get("input") or {}).get("sha256"), (doc.get("audio") or {}).get("sha256")) if v}
+
+
+def check_lips_held_out(method, subject) -> None:
+    """A method that reads the generic lip model must not be scored on a clip the model was adapted on: its test
+    split would not be held out. The weights' provenance (:func:`lmgs.lips.adapted_on`) lists the video files by
+    sha256; a match with the subject's source is a :class:`UserError` naming the way out (weights made without
+    the clip). A re-encoded copy of a clip is not caught: the guard compares files, not content."""
+    read = getattr(method, "lip_weights", None)
+    weights = read() if callable(read) else None
+    root = getattr(subject, "root", None)
+    if weights is None or root is None:
+        return
+    from lmgs.lips import adapted_on
+
+    ours = source_sha256(root)
+    hit = [c for c in adapted_on(weights) or () if c.get("sha256") in ours]
+    if hit:
+        clip = hit[0].get("clip", "?")
+        raise UserError(f"subject {subject.name}: the lip model {weights} was adapted on this very clip ({clip}), so its "
+                        f"test split is not held out; make weights without it (python scripts/train_lip_model.py "
+                        f"--hold-out {clip} --out DIR) and pass --set train.lip_weights=DIR/lips_generic.pt "
+                        "(lip_weights= for geneface and ip_lap)")
 
 
 def log(msg: str) -> None:

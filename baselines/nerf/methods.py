@@ -58,6 +58,8 @@ class NeRFBudget(Budget):
     """Where the mouth (48-67) of GeneFace's predicted landmarks comes from at test time: ``subject`` (its
     predictor), ``generic`` or ``generic-tuned`` (the generic lip model of :mod:`lmgs.lips`, retargeted to the
     subject; fine-tuned on its training split), as lmgs's key. The NeRF trains on the tracked landmarks either way."""
+    lip_weights: str = added_option("lips_generic.pt")
+    """The generic lip model's weights under ``generic`` / ``generic-tuned``, as lmgs's ``train.lip_weights``."""
     chunk: int = 2048
     """Rays per chunk when rendering full frames."""
     occupancy: int = 32
@@ -116,7 +118,7 @@ class NeRFMethod(Adapter):
             predictor = fit_landmark_predictor(feats, targets, steps=b.landmark_steps, seed=seed)
             build["n_landmark_coef"] = predictor.n_components
             lm_coef = _landmark_coefficients(predictor, targets)
-            lips = fit_mouth_model(b.landmark_source, clip, targets.cpu().numpy(), seed)
+            lips = fit_mouth_model(b.landmark_source, clip, targets.cpu().numpy(), seed, b.lip_weights)
             if lips is not None:
                 build["lips"] = lips
         model = self._build(build).to(dev)

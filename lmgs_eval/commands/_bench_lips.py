@@ -154,7 +154,7 @@ def run(args: argparse.Namespace) -> dict:
             if args.clip and rec.name not in args.clip:
                 continue
             a = time.perf_counter()
-            others = [r for r in real if r.speaker != rec.speaker]
+            others = lip_corpus.without_speakers(real, [rec.name])
             model = lip_corpus.adapt(base, others, generated)
             rows.append(evaluate_clip(rec, model, base))
             print(f"bench lips: {rec.name} held out: generic {rows[-1]['generic_mm']:.2f} mm, fine-tuned {rows[-1]['tuned_mm']:.2f}, "

@@ -35,6 +35,11 @@ class Recording:
     audio: np.ndarray
     lms68: np.ndarray
     speaker: str
+    sha256: str = ""  # of the video file a real recording was tracked from
+
+    def provenance(self) -> dict:
+        """What a lip model's provenance lists of a real recording it was adapted on (:func:`lmgs.lips.adapted_on`)."""
+        return {"clip": self.name, "sha256": self.sha256, "frames": int(len(self.lms68))}
 
 
 def template68() -> np.ndarray:
@@ -102,12 +107,13 @@ def speaker_of(name: str) -> str:
 
 def real_recordings(folder: str | Path, progress=None) -> list[Recording]:
     """The lip tracks of every ``*.mp4`` in ``folder`` (cached by :func:`lmgs_eval.data.ingest.lips.cached_track`)."""
+    from lmgs.fileio import sha256_file
     from lmgs_eval.data.ingest.lips import cached_track
 
     out = []
     for p in sorted(Path(folder).glob("*.mp4")):
         tr = cached_track(p)
-        out.append(Recording(p.stem, tr.audio, tr.lms68, speaker_of(p.stem)))
+        out.append(Recording(p.stem, tr.audio, tr.lms68, speaker_of(p.stem), sha256_file(p)))
         if progress is not None:
             progress(p.name)
     return out
@@ -162,6 +168,17 @@ def pretrain(generated: list[Recording], progress=None):
     seqs = [s for r in generated for s in sequences(r)]
     model = new_model(template68(), SEED)
     return train_lip_model(model, seqs, seed=SEED, progress=progress, **PRETRAIN)
+
+
+def without_speakers(real: list[Recording], clips) -> list[Recording]:
+    """``real`` without the recordings of the speakers of ``clips`` (names of recordings in ``real``); a name that
+    is none of them is a ``ValueError``."""
+    names = {r.name: r.speaker for r in real}
+    unknown = [c for c in clips if c not in names]
+    if unknown:
+        raise ValueError(f"{', '.join(unknown)}: no such clip (the clips: {', '.join(sorted(names))})")
+    gone = {names[c] for c in clips}
+    return [r for r in real if r.speaker not in gone]
 
 
 def adapt(pretrained, real: list[Recording], generated: list[Recording], progress=None):
