@@ -409,3 +409,75 @@ def test_without_speakers():
     assert [r.name for r in without_speakers(recs, ["a2"])] == ["b"]
     with pytest.raises(ValueError, match="zz: no such clip"):
         without_speakers(recs, ["zz"])
+
+
+SENTENCES_A = ["Bright copper kettles hum along the quiet harbour road.",
+               "Maybe the painter will open a window before the evening rain.",
+               "Seven narrow boats drift past the old stone mill at dawn.",
+               "Nobody expected the library to stay open through the storm."]
+
+
+def _spoken(texts, voice, seed):
+    """A generator voice reading ``texts`` (sentences outside the training corpus) and the 68 points of the mouth the
+    generator animates for it on a bundled head ``[N, 68, 3]``: speech with lips that follow it."""
+    from lmgs_eval.data.bundled import articulation as art_mod, speech as sp_mod
+    from lmgs_eval.data.bundled.generator import head_model
+
+    head = head_model("astronaut", 256)
+    sp = sp_mod.synthesize(texts, voice)
+    n = len(sp.audio) // 640
+    art = art_mod.articulation(sp.phones, n, 25, np.random.default_rng(seed))
+    audio = sp.audio[: n * 640] + 1e-3 * np.random.default_rng(seed).standard_normal(n * 640).astype(np.float32)
+    return audio, np.stack([head.deform(a)[:68] for a in art])
+
+
+# Measured (shipped weights): in sync r 0.94 at lag 0, z 9.6; shifted 60 frames: found at +60, z 5.8; another
+# utterance's mouth: z 1.4 near lag 0, its best far lag z 2.9.
+@pytest.mark.skipif(importlib.util.find_spec("espeakng_loader") is None, reason="espeak-ng (the generator's voices) not installed")
+def test_speech_coherence_tells_lips_that_follow_from_offset_and_unrelated_ones():
+    """The generator's mouth follows its speech; shifted 2.4 s later it is found at that lag (an offset audio track);
+    another utterance's mouth is not shown to follow; a clip under 100 frames is too short to tell."""
+    audio, lms = _spoken(SENTENCES_A, "espeak:en-us+m3", 0)
+    n = len(lms)
+    assert n >= 250
+    ok = lips.speech_coherence(audio, lms)
+    assert ok["verdict"] == "follows" and abs(ok["lag"]) <= 1 and ok["z"] > 5, ok
+    late = lips.speech_coherence(audio, np.roll(lms, 60, axis=0))  # the mouth 60 frames after its sound
+    assert late["verdict"] == "offset" and abs(late["best_far_lag"] - 60) <= 2, late
+    other_audio, _ = _spoken(["Quietly the orchestra tuned while the crowd found its seats.",
+                              "A small green lizard rested on the warm garden wall.",
+                              "Please remember to water the tomatoes every second morning.",
+                              "The harbour lights flickered as the ferry turned for home."], "espeak:en-gb-x-rp+f4", 1)
+    m = min(n, len(other_audio) // 640)
+    unrelated = lips.speech_coherence(other_audio[: m * 640], lms[:m])
+    assert unrelated["verdict"] == "not shown" and unrelated["z"] < lips.COHERENT_Z, unrelated
+    assert lips.speech_coherence(audio[: 90 * 640], lms[:90])["verdict"] == "too short"
+
+
+@pytest.mark.skipif(importlib.util.find_spec("espeakng_loader") is None, reason="espeak-ng (the generator's voices) not installed")
+def test_ingest_says_whether_the_lips_follow_the_speech(tmp_path):
+    """The ingest's check: a note where the lips follow the speech, a flag naming the lag where the audio is offset,
+    and the generated-only lip model for a video the shipped model was adapted on."""
+    from types import SimpleNamespace
+
+    from lmgs_eval.data.ingest.stages import speech_lips
+
+    audio, lms = _spoken(SENTENCES_A, "espeak:en-us+m3", 0)
+
+    def ctx_for(points):
+        sub = tmp_path / f"s{len(list(tmp_path.iterdir()))}"
+        sub.mkdir()
+        np.save(sub / "lms3d.npy", points.astype(np.float32))
+        flags = {}
+        return SimpleNamespace(sub=sub, video=Path("clip.mp4"), log=[], flags=flags, timings={},
+                               warn=flags.__setitem__, timed=lambda *a: None)
+
+    ctx = ctx_for(lms)
+    coh = speech_lips(ctx, audio, {"input_sha256": "0" * 64})
+    assert coh["verdict"] == "follows" and coh["weights"] == lips.DEFAULT
+    assert any("follows the speech (r " in line for line in ctx.log) and not ctx.flags
+    ctx = ctx_for(np.roll(lms, 60, axis=0))
+    assert speech_lips(ctx, audio, {"input_sha256": "0" * 64})["verdict"] == "offset"
+    assert "60 frames (2.40 s) later than the audio" in ctx.flags["av_offset"]
+    seen = lips.adapted_on(lips.DEFAULT)[0]["sha256"]
+    assert speech_lips(ctx_for(lms), audio, {"input_sha256": seen})["weights"] == "lips_generated.pt"

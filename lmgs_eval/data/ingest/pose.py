@@ -240,12 +240,12 @@ def _into_template_world(obj: np.ndarray, lms: np.ndarray, rv_t: np.ndarray, tv_
     R_s = (Rm.inv() * Rt).mean()
     t_s = np.median(Rm.inv().apply(sig * tv_t[ok] - mp.tv[ok]), axis=0)
     sub = ok[np.linspace(0, len(ok) - 1, min(SIMILARITY_FRAMES, len(ok))).round().astype(int)]
-    Rsub, tsub, img = Rotation.from_rotvec(mp.rv[sub]), mp.tv[sub], lms[sub][:, RIGID]
+    Msub, tsub, img = Rotation.from_rotvec(mp.rv[sub]).as_matrix(), mp.tv[sub], lms[sub][:, RIGID]
     pts = obj[RIGID]
 
     def residuals(x):
         p = np.exp(x[6]) * Rotation.from_rotvec(x[:3]).apply(pts) + x[3:6]  # [P, 3] in the shape's world
-        cam = np.stack([Rsub[k].apply(p) for k in range(len(sub))]) + tsub[:, None]
+        cam = np.einsum("kij,pj->kpi", Msub, p) + tsub[:, None]  # [K, P, 3]: every sampled frame's camera
         uv = focal * cam[..., :2] / cam[..., 2:3] + (w / 2, h / 2)
         return (uv - img).ravel()
 

@@ -255,6 +255,34 @@ def composites(ctx, sel) -> None:
     ctx.timed("composites", t0, n)
 
 
+def speech_lips(ctx, aud: np.ndarray, key: dict) -> dict:
+    """Whether the clip's mouth opening follows its speech (:func:`lmgs.lips.speech_coherence` on the written landmarks
+    and audio), with the shipped lip model, or the one trained on generated speech alone where the shipped one was
+    adapted on this very video; a note (or a flag, for an offset audio track) says what it means for the clip's LMD."""
+    from lmgs import lips
+
+    t0 = time.perf_counter()
+    seen = {c.get("sha256") for c in lips.adapted_on(lips.DEFAULT) or ()}
+    weights = "lips_generated.pt" if key["input_sha256"] in seen else lips.DEFAULT
+    lms3d = np.load(ctx.sub / "lms3d.npy")
+    coh = lips.speech_coherence(aud, lms3d, weights)
+    v = coh["verdict"]
+    if v in ("follows", "not shown"):
+        how = (f"r {coh['r']:.2f} at lag {coh['lag']:+d} within +-{coh['near_lag']} frames; chance {coh['chance_mean']:.2f} "
+               f"+- {coh['chance_sd']:.2f}, from lags of {coh['far_lag']} frames and more; lip model {weights}")
+        ctx.log.append(f"speech and lips: the mouth's opening follows the speech ({how})" if v == "follows" else
+                       f"speech and lips: the mouth's opening follows the speech no better than chance ({how}): on this clip "
+                       "LMD measures expression (smiles, a mouth open in pauses) as much as lip sync, unless the clip is too "
+                       "short to show it")
+    elif v == "offset":
+        ctx.warn("av_offset", f"{ctx.video}: the mouth's opening follows the speech best {abs(coh['best_far_lag'])} frames "
+                 f"({abs(coh['best_far_lag']) / 25:.2f} s) {'later' if coh['best_far_lag'] > 0 else 'earlier'} than the "
+                 f"audio (r {coh['best_far_r']:.2f}; at lag 0 +- {coh['near_lag']}: {coh['r']:.2f}): the audio track seems "
+                 "offset from the video; sync metrics and audio-driven training read it as it is")
+    ctx.timed("speech_lips", t0, len(lms3d))
+    return coh
+
+
 def finish(ctx, info: decode.VideoInfo, sel, audio: np.ndarray, source: str, key: dict) -> None:
     """Audio, action units, the 25 fps video, meta.json and manifest.json."""
     t0 = time.perf_counter()
@@ -312,5 +340,6 @@ def finish(ctx, info: decode.VideoInfo, sel, audio: np.ndarray, source: str, key
         "notes": ctx.log,
         "timings": ctx.timings,
     }
+    manifest["speech_lips"] = speech_lips(ctx, aud, key)
     manifest["files"] = file_hashes(ctx.sub)
     write_json(ctx.sub / "manifest.json", manifest)
