@@ -30,14 +30,35 @@ def shift_audio(audio: np.ndarray, frames: int, fps: int = 25, sr: int = 16000) 
     return np.roll(np.asarray(audio, np.float32), int(round(frames * sr / fps)))
 
 
-def control_clips(gt: np.ndarray, audio: np.ndarray, other_audio: np.ndarray) -> list[tuple[str, str, dict, np.ndarray, np.ndarray]]:
+def best_still_frame(gt_lms: np.ndarray, block: int = 64) -> int | None:
+    """The ground-truth frame whose mouth, held on every frame, scores the lowest LMD against the clip: the index
+    ``k`` minimising the mean over frames ``t`` of LMD(frame k, frame t) (the mouth points 48-67 of ``gt_lms``
+    ``[T, 68, 2]``, each set mean-centred, as LMD takes them); None when no frame has landmarks."""
+    from lmgs_eval.metrics.landmarks import MOUTH
+
+    lms = np.asarray(gt_lms, np.float64)
+    ok = np.nonzero(np.isfinite(lms).all(axis=(1, 2)))[0]
+    if not len(ok):
+        return None
+    m = lms[ok][:, MOUTH]
+    m = m - m.mean(axis=1, keepdims=True)
+    cost = np.concatenate([np.linalg.norm(m[a:a + block, None] - m[None], axis=-1).mean(axis=(1, 2))
+                           for a in range(0, len(m), block)])
+    return int(ok[int(np.argmin(cost))])
+
+
+def control_clips(gt: np.ndarray, audio: np.ndarray, other_audio: np.ndarray,
+                  best_still: int | None = None) -> list[tuple[str, str, dict, np.ndarray, np.ndarray]]:
     """The negative controls: ``(name, display, control, frames, audio)``.
 
     * ground truth with its audio shifted by -10, -5, +5, +10 frames: LSE-D/LSE-C take the
       best of +-15 offsets by definition, so these target the AV offset;
     * ground truth with audio from elsewhere in the recording (same voice, other words):
       targets LSE-D, LSE-C and the AV offset;
-    * the first ground-truth frame repeated, with the true audio: targets LMD and LSE.
+    * the first ground-truth frame repeated, with the true audio: targets LMD and LSE;
+    * with ``best_still`` (:func:`best_still_frame`), that ground-truth frame repeated: the frozen mouth nearest
+      the whole clip's, chosen by reading the test frames (an oracle, like the head on the plate); a method whose
+      LMD is not below it moves no mouth better than the best single frame of the truth would. Targets LMD.
     """
     n = len(audio)
     other = np.asarray(other_audio, np.float32)
@@ -52,14 +73,26 @@ def control_clips(gt: np.ndarray, audio: np.ndarray, other_audio: np.ndarray) ->
                 gt, other))
     still = np.repeat(gt[:1], len(gt), axis=0)
     out.append(("control:still-frame", "Still frame", {"kind": "still-frame", "targets": ["lmd", "lse_d", "lse_c"]}, still, audio))
+    if best_still is not None:
+        out.append(("control:best-still-frame", "Best still frame (oracle)",
+                    {"kind": "best-still-frame", "frame": int(best_still), "targets": ["lmd"]},
+                    np.repeat(gt[best_still:best_still + 1], len(gt), axis=0), audio))
     return out
+
+
+def _best_still(cfg: RunConfig, gt: np.ndarray) -> int | None:
+    """:func:`best_still_frame` on the ground truth's landmarks as the run's LMD finds them (cached on disk)."""
+    from lmgs_eval.metrics.landmarks import cached_landmarks
+
+    lmd = cfg.suite.metric("lmd")
+    return best_still_frame(cached_landmarks(lmd.gt_backend, gt))
 
 
 def run_controls(cfg: RunConfig, truth: RunId, gt: np.ndarray, audio: np.ndarray, other_audio: np.ndarray) -> list[store.Record]:
     """Score the calibration controls of the ground truth's run ``truth``: each is recorded as that run with the
     control's method, under protocol ``calibration``; those in the store are skipped."""
     controls = []
-    for name, display, control, frames, aud in control_clips(gt, audio, other_audio):
+    for name, display, control, frames, aud in control_clips(gt, audio, other_audio, _best_still(cfg, gt)):
         info = MethodInfo(name, display, "control", f"negative control: {display} (targets {', '.join(control['targets'])})",
                           config={"control": control, "version": CONTROLS_VERSION}, config_hash=f"controls-v{CONTROLS_VERSION}")
         run = dataclasses.replace(truth, info=info, protocol="calibration")
