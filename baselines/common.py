@@ -208,15 +208,21 @@ def check_landmark_source(budget, method: str, reads_landmarks: bool) -> None:
                          "(geneface and ip_lap do, as lmgs does)")
     weights = getattr(budget, "lip_weights", None)
     if weights is not None:
-        from lmgs.lips import DEFAULT, check_weights
+        check_lip_weights(weights, source)
 
-        if weights != DEFAULT and source == "subject":
-            raise InputError(f"--set lip_weights={weights}: the lip model is read only with --set "
-                             "landmark_source=generic or generic-tuned")
-        try:
-            check_weights(weights)
-        except InputError as exc:
-            raise InputError(f"--set lip_weights: {exc}") from None
+
+def check_lip_weights(weights: str, source: str, prefix: str = "") -> None:
+    """A lip model's weights setting (``{prefix}lip_weights``) names weights lmgs has, and differs from the shipped
+    ones only where the generic mouth is read (``{prefix}landmark_source`` other than ``subject``)."""
+    from lmgs.lips import DEFAULT, check_weights
+
+    if weights != DEFAULT and source == "subject":
+        raise InputError(f"--set {prefix}lip_weights={weights}: the lip model is read only with --set "
+                         f"{prefix}landmark_source=generic or generic-tuned")
+    try:
+        check_weights(weights)
+    except InputError as exc:
+        raise InputError(f"--set {prefix}lip_weights: {exc}") from None
 
 
 def lip_weights_read(source: str, weights: str | None) -> str | None:

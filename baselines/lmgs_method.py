@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from baselines.common import cost_of
+from baselines.common import check_lip_weights, cost_of
 from baselines.protocol import MethodInfo, register
 from lmgs.checkpoint import load_model, save_model
 from lmgs.config import override
@@ -26,19 +26,6 @@ FRONTEND_STANDINS = {  # front ends computed here in place of the paper's WavLM;
 GENERIC_MOUTH_STANDIN = ("mouth landmarks (48-67): the project's generic lip model (lmgs.lips: pretrained on generated "
                          "voices, adapted on about 100 s of real speakers' lip tracks), retargeted to the subject, in place "
                          "of GeneFace's model trained on LRS3")
-
-
-def check_lip_weights(t) -> None:
-    """``train.lip_weights`` names a lip model lmgs has, and is set only where the generic mouth is read."""
-    from lmgs.lips import DEFAULT, check_weights
-
-    if t.lip_weights != DEFAULT and t.landmark_source == "subject":
-        raise InputError(f"--set train.lip_weights={t.lip_weights}: the lip model is read only with --set "
-                         "train.landmark_source=generic or generic-tuned")
-    try:
-        check_weights(t.lip_weights)
-    except InputError as exc:
-        raise InputError(f"--set train.lip_weights: {exc}") from None
 
 
 def generic_mouth_standin(weights: str) -> str:
@@ -121,7 +108,7 @@ class LMGSMethod:
             raise
         except ValueError as exc:  # a config's own check of a value (e.g. a fraction outside [0, 1])
             raise InputError(f"--set: a value lmgs does not take ({exc})") from None
-        check_lip_weights(self.cfg.train)
+        check_lip_weights(self.cfg.train.lip_weights, self.cfg.train.landmark_source, "train.")
         self.device = device
         self.model = None
         self.report = None
