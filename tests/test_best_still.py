@@ -30,8 +30,24 @@ def test_it_is_the_frame_a_brute_force_lmd_picks():
     lms[[5, 17]] = np.nan  # frames without a face are never chosen and never counted
     ok = np.isfinite(lms).all(axis=(1, 2))
     cost = [np.nanmean(lmd_per_frame(np.repeat(lms[k:k + 1], 60, 0)[ok], lms[ok])) if ok[k] else np.inf for k in range(60)]
-    assert best_still_frame(lms, block=7) == int(np.argmin(cost))
+    assert best_still_frame(lms) == int(np.argmin(cost))
     assert best_still_frame(np.full((4, 68, 2), np.nan)) is None
+
+
+def test_the_frame_is_chosen_as_the_scoring_will_see_it_held():
+    """A held frame's landmarks found again by the detector decide among the shortlist: a frame best by the clip's
+    own landmarks but found elsewhere when held loses to the next best."""
+    rng = np.random.default_rng(3)
+    lms = _faces([3.0, 0.0, 1.0, 2.0, 10.0, 2.5], rng)
+    assert best_still_frame(lms) == 3
+
+    def detect(ks):
+        out = lms[ks].copy()
+        out[[i for i, k in enumerate(ks) if k == 3], 48:68] += 4.0 * rng.standard_normal((20, 2))
+        return out
+
+    assert best_still_frame(lms, detect=detect) == 5
+    assert best_still_frame(lms, detect=lambda ks: np.full((len(ks), 68, 2), np.nan)) == 3  # none found: the clip's choice
 
 
 def test_the_control_holds_that_frame_with_the_true_audio():

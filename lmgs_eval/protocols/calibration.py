@@ -30,21 +30,42 @@ def shift_audio(audio: np.ndarray, frames: int, fps: int = 25, sr: int = 16000) 
     return np.roll(np.asarray(audio, np.float32), int(round(frames * sr / fps)))
 
 
-def best_still_frame(gt_lms: np.ndarray, block: int = 64) -> int | None:
-    """The ground-truth frame whose mouth, held on every frame, scores the lowest LMD against the clip: the index
-    ``k`` minimising the mean over frames ``t`` of LMD(frame k, frame t) (the mouth points 48-67 of ``gt_lms``
-    ``[T, 68, 2]``, each set mean-centred, as LMD takes them); None when no frame has landmarks."""
+def still_costs(held: np.ndarray, gt_lms: np.ndarray, block: int = 64) -> np.ndarray:
+    """Per held frame ``held`` ``[K, 68, 2]``, the LMD of holding it on every frame of ``gt_lms`` ``[T, 68, 2]``: the
+    mean over the frames with landmarks of the mouth points' (48-67, each set mean-centred) mean distance; inf for a
+    held frame without landmarks."""
     from lmgs_eval.metrics.landmarks import MOUTH
 
+    def centred(x):
+        m = np.asarray(x, np.float64)[:, MOUTH]
+        return m - m.mean(axis=1, keepdims=True)
+
+    g = centred(gt_lms)
+    g = g[np.isfinite(g).all(axis=(1, 2))]
+    h = centred(held)
+    out = np.full(len(h), np.inf)
+    if not len(g):
+        return out
+    for a in range(0, len(h), block):
+        out[a:a + block] = np.linalg.norm(h[a:a + block, None] - g[None], axis=-1).mean(axis=(1, 2))
+    return np.where(np.isfinite(h).all(axis=(1, 2)), out, np.inf)
+
+
+def best_still_frame(gt_lms: np.ndarray, detect=None, shortlist: int = 16) -> int | None:
+    """The ground-truth frame whose mouth, held on every frame, scores the lowest LMD against the clip (landmarks
+    ``gt_lms`` ``[T, 68, 2]``); None when no frame has landmarks. The clip's landmarks are tracked, and a detector
+    finds a held frame's points again from its own face box, a few tenths of a pixel elsewhere: with ``detect``
+    (frame indices -> ``[K, 68, 2]`` as the scoring will find them on those frames held) the ``shortlist`` frames
+    best by the clip's own landmarks are scored as they will be, and the best of those is taken."""
     lms = np.asarray(gt_lms, np.float64)
-    ok = np.nonzero(np.isfinite(lms).all(axis=(1, 2)))[0]
-    if not len(ok):
+    cost = still_costs(lms, lms)
+    if not np.isfinite(cost).any():
         return None
-    m = lms[ok][:, MOUTH]
-    m = m - m.mean(axis=1, keepdims=True)
-    cost = np.concatenate([np.linalg.norm(m[a:a + block, None] - m[None], axis=-1).mean(axis=(1, 2))
-                           for a in range(0, len(m), block)])
-    return int(ok[int(np.argmin(cost))])
+    if detect is None:
+        return int(np.argmin(cost))
+    cand = [int(k) for k in np.argsort(cost)[:shortlist] if np.isfinite(cost[k])]
+    held = still_costs(np.asarray(detect(cand), np.float64), lms)
+    return cand[int(np.argmin(held))] if np.isfinite(held).any() else int(np.argmin(cost))
 
 
 def control_clips(gt: np.ndarray, audio: np.ndarray, other_audio: np.ndarray,
@@ -85,7 +106,8 @@ def _best_still(cfg: RunConfig, gt: np.ndarray) -> int | None:
     from lmgs_eval.metrics.landmarks import cached_landmarks
 
     lmd = cfg.suite.metric("lmd")
-    return best_still_frame(cached_landmarks(lmd.gt_backend, gt))
+    return best_still_frame(cached_landmarks(lmd.gt_backend, gt),
+                            detect=lambda ks: np.stack([lmd.backend.landmarks(gt[k:k + 1])[0] for k in ks]))
 
 
 def run_controls(cfg: RunConfig, truth: RunId, gt: np.ndarray, audio: np.ndarray, other_audio: np.ndarray) -> list[store.Record]:
