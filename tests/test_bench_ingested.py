@@ -71,10 +71,13 @@ def test_bench_ingested_puts_the_two_folders_side_by_side(tmp_path):
     assert true["generator"] == pytest.approx(full["generator"], abs=0.01)  # the generator's ground truth is its frames
     assert 20 < true["ingested"] and true["ingested - decoded"] == pytest.approx(true["ingested"] - true["decoded"])
     # measured: the full frame and away from the outlines (16 % of the pixels left out) each 1.2 dB
-    # from the generator's (with the earlier focal search's 5-width camera the full frame was 4.3 dB
-    # short, 0.4 away from the outlines): at these short schedules the ingest's frames and cameras
-    # train about as well as the generator's
-    assert abs(full["ingested - generator"]) < 2.5 and abs(away["ingested - generator"]) < 2.5
+    # from the generator's on a host whose torch runs AVX2 kernels; on one running AVX-512 kernels
+    # (2026-11-28, the same code) the full frame 2.57 dB short and away from the outlines 1.40 dB
+    # ahead: at these short schedules the outlines' few pixels move the full frame's figure by more
+    # than a dB between hosts. With the earlier focal search's 5-width camera the full frame was 4.3
+    # dB short (0.4 away from the outlines), which the full frame's bound still catches: the
+    # ingest's frames and cameras train about as well as the generator's
+    assert abs(full["ingested - generator"]) < 3.5 and abs(away["ingested - generator"]) < 2.5
     assert "% of the test pixels left out" in away["note"]
     assert "head IoU" in got["ingest accuracy"]
     assert not Path(got["ingested"].split(" (")[0]).exists()  # the ingest is temporary
