@@ -145,6 +145,7 @@ class LMGSConfig:
             # they do not change the hash either (TalkingGaussian's records stay valid)
             d["train"].pop("landmark_folds", None)
             d["train"].pop("landmark_source", None)
+            d["train"].pop("lip_weights", None)
         if not self.guidance.se:
             # the cap only bounds what SE selects: without SE it changes no weight (lmgs-no-se's and
             # TalkingGaussian's hashes stay those of their records)

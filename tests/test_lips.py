@@ -238,6 +238,7 @@ def test_landmark_source_key():
     assert on.to_dict()["train"]["landmark_source"] == "generic" and on.hash() != base.hash()
     off = base.replace(**{"guidance.se": False, "guidance.lc": False})
     assert off.replace(**{"train.landmark_source": "generic"}).hash() == off.hash()  # nothing reads the landmarks
+    assert off.replace(**{"train.landmark_source": "generic", "train.lip_weights": "lips_generated.pt"}).hash() == off.hash()
     with pytest.raises(ValueError, match="landmark_source"):
         base.replace(**{"train.landmark_source": "geneface"})
 
