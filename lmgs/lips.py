@@ -315,11 +315,6 @@ def load(name_or_path: str | Path = DEFAULT, *, check: bool = True) -> LipModel:
     return m
 
 
-def weights_path(name_or_path: str | Path) -> Path:
-    """The file of a shipped model's name (a key of :data:`WEIGHTS`) or of a path."""
-    return FOLDER / str(name_or_path) if str(name_or_path) in WEIGHTS else Path(name_or_path)
-
-
 def weights_sha256(name_or_path: str | Path) -> str:
     """The sha256 of a lip model's weights: the recorded one for a shipped name, the file's own for a path."""
     from lmgs.fileio import sha256_file
@@ -351,35 +346,31 @@ def describe_weights(name_or_path: str | Path) -> str:
 
 def held_out(name_or_path: str | Path) -> list[str]:
     """The clips a lip model's weights file was adapted without, by its ``<file>.json`` ([] where it names none)."""
-    import json
-
-    f = Path(str(name_or_path) + ".json")
-    if str(name_or_path) in WEIGHTS or not f.is_file():
-        return []
-    try:
-        return [str(c) for c in json.loads(f.read_text()).get("held_out", [])]
-    except (OSError, ValueError):
-        return []
+    entry = _provenance(name_or_path)
+    return [str(c) for c in (entry or {}).get("held_out", [])]
 
 
 def adapted_on(name_or_path: str | Path) -> list[dict] | None:
     """The real recordings a lip model was adapted on (``clip``, ``sha256`` of the video file, ``frames``), from
     :data:`PROVENANCE` beside the shipped files or ``<file>.json`` beside another; None where nothing says."""
+    clips = (_provenance(name_or_path) or {}).get("adapted_on")
+    return None if clips is None else [dict(c) for c in clips]
+
+
+def _provenance(name_or_path: str | Path) -> dict | None:
+    """A lip model's provenance entry: its key in :data:`PROVENANCE` for a shipped name, else ``<file>.json``; None
+    where there is none."""
     import json
 
-    if str(name_or_path) in WEIGHTS:
-        f, key = FOLDER / PROVENANCE, str(name_or_path)
-    else:
-        f, key = Path(str(name_or_path) + ".json"), None
+    name = str(name_or_path)
+    f = FOLDER / PROVENANCE if name in WEIGHTS else Path(name + ".json")
     if not f.is_file():
         return None
     try:
         doc = json.loads(f.read_text())
     except (OSError, ValueError) as exc:
         raise InputError(f"{f}: not a lip model provenance file ({exc})") from None
-    entry = doc.get(key, {}) if key else doc
-    clips = entry.get("adapted_on")
-    return None if clips is None else [dict(c) for c in clips]
+    return doc.get(name, {}) if name in WEIGHTS else doc
 
 
 def write_provenance(path: str | Path, clips: Sequence[dict], held_out: Sequence[str] = ()) -> None:
