@@ -90,3 +90,63 @@ def test_gcv_smoother_removes_noise_and_keeps_fast_motion():
     assert np.sqrt(((flattened[:, 0] - shake[:, 0]) ** 2).mean()) > 0.3
     short = np.ones((4, 2))
     assert np.array_equal(pose_mod.smooth_gcv(short)[0], short)
+
+
+def test_unrefined_frames_carry_their_neighbours_correction():
+    """Frames the texture cannot refine keep their own pose's motion and take the refined
+    frames' offset, interpolated in time (held at the ends); refined frames stay as refined."""
+    from scipy.spatial.transform import Rotation
+
+    from lmgs_eval.data.ingest.align import carry
+
+    rng = np.random.default_rng(0)
+    n = 40
+    rv = Rotation.from_euler("y", np.linspace(-25, 25, n)[:, None], degrees=True).as_rotvec() + rng.normal(0, 0.01, (n, 3))
+    tv = np.column_stack([rng.normal(0, 0.01, n), rng.normal(0, 0.01, n), np.full(n, 1.5)])
+    # the truth's correction grows with the frame index: 0 -> 6 deg about x, and a shift in x
+    angle = np.linspace(0.0, 6.0, n)
+    d = Rotation.from_euler("x", angle[:, None], degrees=True)
+    e = np.column_stack([np.linspace(0.0, 0.02, n), np.zeros(n), np.zeros(n)])
+    rv_true, tv_true = (d * Rotation.from_rotvec(rv)).as_rotvec(), d.apply(tv) + e
+    used = np.zeros(n, bool)
+    used[5:30:3] = True  # refined frames in the middle only
+    r, t = carry(rv, tv, np.where(used[:, None], rv_true, rv), np.where(used[:, None], tv_true, tv), used)
+    assert np.array_equal(r[used], rv_true[used]) and np.array_equal(t[used], tv_true[used])
+    inside = ~used & (np.arange(n) > 5) & (np.arange(n) < 29)
+    err = np.degrees((Rotation.from_rotvec(r) * Rotation.from_rotvec(rv_true).inv()).magnitude())
+    assert err[inside].max() < 1e-6  # a correction linear in time is interpolated exactly
+    assert np.abs(t[inside] - tv_true[inside]).max() < 1e-9
+    # beyond the last refined frame (29, 4.46 deg) the correction is held, so the error is what it grew since
+    assert abs(err[-1] - (6.0 - angle[29])) < 1e-6
+    # their own motion stays theirs: frame-to-frame rotation of a carried run equals the input's where the correction is held
+    step_in = (Rotation.from_rotvec(rv[31:]) * Rotation.from_rotvec(rv[30:-1]).inv()).magnitude()
+    step_out = (Rotation.from_rotvec(r[31:]) * Rotation.from_rotvec(r[30:-1]).inv()).magnitude()
+    assert np.allclose(step_in, step_out, atol=1e-9)
+    # nothing refined, or all: returned as given
+    r0, t0 = carry(rv, tv, rv, tv, np.zeros(n, bool))
+    assert np.array_equal(r0, rv) and np.array_equal(t0, tv)
+
+
+def test_roughness_reads_pose_noise_not_smooth_motion():
+    """The gate on the texture refinement: a smooth turn is not rough, white noise of sd s
+    (radians, per axis) reads as its second difference's mean norm, sqrt(6) s E|chi_3|."""
+    from scipy.spatial.transform import Rotation
+
+    from lmgs_eval.data.ingest.align import roughness
+
+    n = 500
+    t = np.arange(n) / 25.0
+    turn = Rotation.from_euler("yx", np.column_stack([20 * np.sin(2 * np.pi * 0.3 * t), 8 * np.sin(2 * np.pi * 0.2 * t)]),
+                               degrees=True).as_rotvec()
+    every = np.ones(n, bool)
+    assert roughness(turn, every) < 0.1  # degrees: a +-20 deg turn at 0.3 Hz
+    s = np.radians(0.5)
+    noisy = (Rotation.from_rotvec(np.random.default_rng(1).normal(0, s, (n, 3))) * Rotation.from_rotvec(turn)).as_rotvec()
+    want = np.degrees(np.sqrt(6) * s * 2 * np.sqrt(2 / np.pi))  # E|chi_3| = 2 sqrt(2 / pi)
+    assert abs(roughness(noisy, every) - want) < 0.1 * want, (roughness(noisy, every), want)
+    # only where three frames in a row are selected: the noisy half alone
+    half = np.where(np.arange(n)[:, None] < n // 2, noisy, turn)
+    first = np.arange(n) < n // 2
+    assert abs(roughness(half, first) - roughness(noisy[: n // 2], np.ones(n // 2, bool))) < 0.05 * want
+    assert roughness(half, ~first) < 0.1
+    assert np.isnan(roughness(turn, np.arange(n) % 2 == 0))  # no three in a row

@@ -47,10 +47,14 @@ about 250 frames a second.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from lmgs_eval.data.geometry import RELIEF
+
+if TYPE_CHECKING:
+    from lmgs_eval.data.ingest.align import Refined
 
 JAW_WIDTH = 0.135  # metres between landmarks 0 and 16 (an adult face; the bundled heads use the same)
 GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -79,9 +83,9 @@ class PoseFit:
         euler: ``[N, 3]`` head (pitch, yaw, roll) in radians, relative to facing the camera.
         trans: ``[N, 3]`` head translation in the camera frame (OpenGL axes), metres.
         reproj_px: ``[N]`` mean reprojection error of the rigid points after smoothing.
-        aligned: ``[N]`` bool, the frames whose pose the images refined (:mod:`align`), or None.
-        reference: the frame the others were tracked from (-1 without images).
-        refinable: how many frames the images could refine (all are, or none: ``align.MIN_SHARE``).
+        texture: the refinement by tracked texture (:class:`align.Refined`: which frames it
+            refined, from which reference, how many could be and how many carry the correction),
+            or None without images.
     """
 
     template: np.ndarray
@@ -91,11 +95,19 @@ class PoseFit:
     euler: np.ndarray
     trans: np.ndarray
     reproj_px: np.ndarray
-    aligned: np.ndarray | None = None
-    reference: int = -1
-    refinable: int = 0
+    texture: Refined | None = None
     source: str = "landmarks"
     mesh_reproj_px: np.ndarray | None = None
+
+    @property
+    def aligned(self) -> np.ndarray | None:
+        """``[N]`` bool, the frames whose pose the images refined, or None without images."""
+        return None if self.texture is None else self.texture.used
+
+    @property
+    def reference(self) -> int:
+        """The frame the others were tracked from (-1 without images)."""
+        return -1 if self.texture is None else self.texture.reference
 
 
 def _similarity(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -320,12 +332,12 @@ def fit_poses(lms: np.ndarray, w: int, h: int, *, focal: float, sigma: float | N
         if np.isfinite(mp.rv[:, 0]).sum() >= 3:
             rv, tv = _into_template_world(obj, lms, rv, tv, mp, focal, w, h)
             source, mesh_err = "mesh", mp.reproj_px
-    aligned, ref, refinable = None, -1, 0
+    texture = None
     if frames is not None and n > 1:
         from lmgs_eval.data.ingest.align import refine
 
-        rf = refine(frames, lms, rv, tv, focal, w, h, obj, RIGID)
-        rv, tv, aligned, ref, refinable = rf.rv, rf.tv, rf.used, rf.reference, rf.refinable
+        texture = refine(frames, lms, rv, tv, focal, w, h, obj, RIGID)
+        rv, tv = texture.rv, texture.tv
     # smooth rotations as small rotations about their mean (no wrap-around at +-pi)
     rots = Rotation.from_rotvec(rv)
     mean = rots.mean()
@@ -345,7 +357,7 @@ def fit_poses(lms: np.ndarray, w: int, h: int, *, focal: float, sigma: float | N
     euler = np.stack([euler_pyr(flip @ R[i]) for i in range(n)])
     trans = (flip @ tv.T).T
     err = np.array([_reproj(obj, lms[i], w2c[i], focal, w, h) for i in range(n)])
-    return PoseFit(obj, float(focal), w2c, c2w, euler, trans, err, aligned, ref, refinable, source, mesh_err)
+    return PoseFit(obj, float(focal), w2c, c2w, euler, trans, err, texture, source, mesh_err)
 
 
 def project(pts: np.ndarray, w2c: np.ndarray, f: float, w: int, h: int) -> tuple[np.ndarray, np.ndarray]:

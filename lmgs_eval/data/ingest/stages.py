@@ -161,11 +161,18 @@ def pose(ctx, sel) -> None:
                              runs=track_mod.segments(src), mesh=sel["mesh"] if ctx.cfg.pose_from == "mesh" else None)
     ref = int(src[fit.reference])  # in the source's frame numbers
     kind = "dense-mesh" if fit.source == "mesh" else "landmark"
-    if fit.aligned is not None and fit.aligned.any():
-        ctx.log.append(f"pose: {int(fit.aligned.sum())} of {len(lms)} frames refined by the upper head's texture tracked "
-                       f"from frame {ref} (the rest keep their {kind} pose)")
-    elif fit.aligned is not None:
-        ctx.log.append(f"pose: the {kind} poses are kept: the upper head's texture could refine {fit.refinable} of {len(lms)} "
+    tex = fit.texture
+    if tex is not None and tex.used.any():
+        ctx.log.append(f"pose: {int(tex.used.sum())} of {len(lms)} frames refined by the upper head's texture tracked "
+                       f"from frame {ref}" + (f"; the other {tex.carried} keep their {kind} pose's motion, corrected as their "
+                                              "refined neighbours were (turned too far from that frame, or too little texture "
+                                              "followed)" if tex.carried else ""))
+    elif tex is not None and tex.refinable >= MIN_SHARE * len(lms):
+        ctx.log.append(f"pose: the {kind} poses are kept: the upper head's texture could refine {tex.refinable} of {len(lms)} "
+                       f"frames, but its poses turn less smoothly than the {kind} poses (second differences "
+                       f"{tex.roughness[1]:.2f} deg against {tex.roughness[0]:.2f}): it would add noise, not take it out")
+    elif tex is not None:
+        ctx.log.append(f"pose: the {kind} poses are kept: the upper head's texture could refine {tex.refinable} of {len(lms)} "
                        f"frames, fewer than {100 * MIN_SHARE:.0f} % (the head turns too far from frame {ref}, or too little "
                        "texture follows)")
     write_transforms(ctx.sub, fit.c2w, fit.focal, s, s)
@@ -185,7 +192,10 @@ def pose(ctx, sel) -> None:
     writer.save_npz(ctx.work / "pose.npz", w2c=fit.w2c, c2w=fit.c2w, euler=fit.euler, trans=fit.trans, template=fit.template,
              focal=fit.focal, reproj=fit.reproj_px, focal_fit=json.dumps(ff.to_json(s) if ff is not None else {"method": "--focal"}),
              scale=json.dumps(sc.to_json()), source=fit.source,
-             mesh_reproj=fit.mesh_reproj_px if fit.mesh_reproj_px is not None else np.full(len(lms), np.nan))
+             mesh_reproj=fit.mesh_reproj_px if fit.mesh_reproj_px is not None else np.full(len(lms), np.nan),
+             texture=json.dumps({} if tex is None else
+                                {"reference_frame": ref, "refinable": tex.refinable, "refined": int(tex.used.sum()),
+                                 "carried": tex.carried, "roughness_deg": [round(x, 4) if np.isfinite(x) else None for x in tex.roughness]}))
     ctx.timed("pose", t0, len(lms))
 
 
@@ -334,6 +344,7 @@ def finish(ctx, info: decode.VideoInfo, sel, audio: np.ndarray, source: str, key
                  "source": POSE_SOURCES.get(str(pz["source"]), str(pz["source"])) if "source" in pz.files else POSE_SOURCES["landmarks"],
                  **({"mesh_reprojection_px_mean": round(float(np.nanmean(pz["mesh_reproj"])), 3)}
                     if "mesh_reproj" in pz.files and np.isfinite(pz["mesh_reproj"]).any() else {}),
+                 **({"texture_refinement": json.loads(str(pz["texture"]))} if "texture" in pz.files and str(pz["texture"]) != "{}" else {}),
                  "pitch_yaw_roll_deg_min": eul.min(0).round(2).tolist(), "pitch_yaw_roll_deg_max": eul.max(0).round(2).tolist(),
                  "scale": json.loads(str(pz["scale"]))},
         "flags": ctx.flags,
