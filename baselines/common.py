@@ -214,7 +214,7 @@ def check_landmark_source(budget, method: str, reads_landmarks: bool) -> None:
 def check_lip_weights(weights: str, source: str, prefix: str = "") -> None:
     """A lip model's weights setting (``{prefix}lip_weights``) names weights lmgs has, and differs from the shipped
     ones only where the generic mouth is read (``{prefix}landmark_source`` other than ``subject``)."""
-    from lmgs.lips import DEFAULT, check_weights
+    from lmgs.lips_weights import DEFAULT, check_weights
 
     if weights != DEFAULT and source == "subject":
         raise InputError(f"--set {prefix}lip_weights={weights}: the lip model is read only with --set "
@@ -351,7 +351,7 @@ class Adapter:
         standins = self.standins
         source = getattr(self.cfg, "landmark_source", "subject")
         if source != "subject":
-            from lmgs.lips import describe_weights
+            from lmgs.lips_weights import describe_weights
 
             standins = standins + (
                 f"mouth landmarks (48-67): lmgs's generic lip model ({describe_weights(self.lip_weights())}), retargeted "

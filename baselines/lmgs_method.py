@@ -30,7 +30,7 @@ GENERIC_MOUTH_STANDIN = ("mouth landmarks (48-67): the project's generic lip mod
 
 def generic_mouth_standin(weights: str) -> str:
     """The stand-in line of the generic lip model under ``train.lip_weights`` = ``weights``."""
-    from lmgs.lips import DEFAULT, describe_weights
+    from lmgs.lips_weights import DEFAULT, describe_weights
 
     if weights == DEFAULT:
         return GENERIC_MOUTH_STANDIN

@@ -18,7 +18,7 @@ metres, OpenCV axes; the model carries it as ``template``), :math:`\\tilde M` th
 mouth is :math:`A^{-1}(\\tilde M + w\\, \\hat\\delta_t)` with the subject's own neutral mouth, width and
 frame (:class:`RetargetedLips`).
 
-The shipped weights (``lips_models/``, :data:`WEIGHTS`, their sha256 checked on load) are made by
+The shipped weights (``lips_models/``, :data:`lmgs.lips_weights.WEIGHTS`, their sha256 checked on load) are made by
 ``scripts/train_lip_model.py``: pretrained on clips of the bundled generator (its synthetic voices
 reading its corpus, the mouth the generator animates as the target), then adapted on lip tracks of
 real speakers (about 100 s of eleven people's development footage, tracked with the dense face
@@ -27,7 +27,6 @@ mesh). They are a model of those recordings, not the recordings.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,6 +36,7 @@ import torch
 from torch import nn
 
 from lmgs.errors import InputError
+from lmgs.lips_weights import DEFAULT, WEIGHTS, weights_file, weights_sha256
 
 MOUTH = slice(48, 68)  # the mouth's 20 points of the 68
 N_MOUTH = 20
@@ -48,18 +48,6 @@ CORNERS = (0, 6)  # outer lip corners (48, 54)
 IN_CHANNELS, WINDOW = 80, 16  # lmgs's default log-mel front end (AudioConfig())
 CLIP_Z = 6.0  # standardised features are clipped to +-this
 
-FOLDER = Path(__file__).with_name("lips_models")
-# file -> (what it is, sha256); written by scripts/train_lip_model.py
-WEIGHTS = {
-    "lips_generated.pt": ("the lip model pretrained on the bundled generator's clips",
-                          "d678bdec71957153c94da1304a40bf9319806d0d7fd42948dd1648963bd68a2d"),
-    "lips_generic.pt": ("the lip model adapted on real speakers' lip tracks",
-                        "edaa71ed0db72f39a033f3070ae66993d150d581106fc1c430a9955d29740425"),
-}
-DEFAULT = "lips_generic.pt"
-# Which real recordings each shipped file was adapted on (clip name, the video file's sha256, frames), written by
-# scripts/train_lip_model.py beside the weights; a weights file elsewhere carries the same as ``<file>.json``.
-PROVENANCE = "provenance.json"
 GAIN_MIN, GAIN_MAX = 0.05, 2.0  # the calibrated gain's range (see RetargetedLips.fit)
 TUNE_STEPS = 400  # fine-tuning steps on a subject's own training split (train.landmark_source = generic-tuned)
 
@@ -293,94 +281,13 @@ def save(model: LipModel, path: str | Path) -> None:
 
 
 def load(name_or_path: str | Path = DEFAULT, *, check: bool = True) -> LipModel:
-    """A shipped model (a key of :data:`WEIGHTS`, its sha256 checked) or a weights file."""
-    from lmgs.fileio import sha256_file
-
-    p = Path(name_or_path)
-    if str(name_or_path) in WEIGHTS:
-        what, sha = WEIGHTS[str(name_or_path)]
-        p = FOLDER / str(name_or_path)
-        if not p.is_file():
-            raise InputError(f"{p}: {what} is missing (reinstall lmgs)")
-        if check:
-            got = sha256_file(p)
-            if got != sha:
-                raise InputError(f"{p}: {what} is altered (sha256 {got[:12]}..., expected {sha[:12]}...)")
-    elif not p.is_file():
-        raise InputError(f"{p}: no such lip model file")
+    """A shipped model (a key of :data:`lmgs.lips_weights.WEIGHTS`, its sha256 checked) or a weights file."""
+    p = weights_file(name_or_path, check=check)
     blob = torch.load(p, map_location="cpu", weights_only=True)
     m = LipModel(**blob["args"])
     m.load_state_dict(blob["state"])
     m.eval()
     return m
-
-
-def weights_sha256(name_or_path: str | Path) -> str:
-    """The sha256 of a lip model's weights: the recorded one for a shipped name, the file's own for a path."""
-    from lmgs.fileio import sha256_file
-
-    if str(name_or_path) in WEIGHTS:
-        return WEIGHTS[str(name_or_path)][1]
-    p = Path(name_or_path)
-    if not p.is_file():
-        raise InputError(f"{p}: no such lip model file")
-    return sha256_file(p)
-
-
-def check_weights(name_or_path: str | Path) -> None:
-    """A lip model name lmgs can load: a shipped name, or a file that exists (one line otherwise)."""
-    if str(name_or_path) not in WEIGHTS and not Path(name_or_path).is_file():
-        raise InputError(f"{name_or_path}: no such lip model file (the shipped ones: {', '.join(WEIGHTS)})")
-
-
-def describe_weights(name_or_path: str | Path) -> str:
-    """What a lip model's weights are, in a few words (a record's stand-in line)."""
-    if str(name_or_path) == DEFAULT:
-        return "pretrained on generated voices, adapted on real speakers' lip tracks"
-    if str(name_or_path) in WEIGHTS:
-        return WEIGHTS[str(name_or_path)][0]
-    held = held_out(name_or_path)
-    return (f"weights {Path(name_or_path).name}, sha256 {weights_sha256(name_or_path)[:12]}..."
-            + (f", adapted with {', '.join(held)} held out" if held else ""))
-
-
-def held_out(name_or_path: str | Path) -> list[str]:
-    """The clips a lip model's weights file was adapted without, by its ``<file>.json`` ([] where it names none)."""
-    entry = _provenance(name_or_path)
-    return [str(c) for c in (entry or {}).get("held_out", [])]
-
-
-def adapted_on(name_or_path: str | Path) -> list[dict] | None:
-    """The real recordings a lip model was adapted on (``clip``, ``sha256`` of the video file, ``frames``), from
-    :data:`PROVENANCE` beside the shipped files or ``<file>.json`` beside another; None where nothing says."""
-    clips = (_provenance(name_or_path) or {}).get("adapted_on")
-    return None if clips is None else [dict(c) for c in clips]
-
-
-def _provenance(name_or_path: str | Path) -> dict | None:
-    """A lip model's provenance entry: its key in :data:`PROVENANCE` for a shipped name, else ``<file>.json``; None
-    where there is none."""
-    import json
-
-    name = str(name_or_path)
-    f = FOLDER / PROVENANCE if name in WEIGHTS else Path(name + ".json")
-    if not f.is_file():
-        return None
-    try:
-        doc = json.loads(f.read_text())
-    except (OSError, ValueError) as exc:
-        raise InputError(f"{f}: not a lip model provenance file ({exc})") from None
-    return doc.get(name, {}) if name in WEIGHTS else doc
-
-
-def write_provenance(path: str | Path, clips: Sequence[dict], held_out: Sequence[str] = ()) -> None:
-    """``<path>.json``: the recordings a weights file at ``path`` was adapted on and the clips held out of it."""
-    import json
-
-    from lmgs.fileio import atomic_write
-
-    doc = {"adapted_on": [dict(c) for c in clips], "held_out": list(held_out)}
-    atomic_write(Path(str(path) + ".json"), (json.dumps(doc, indent=1, sort_keys=True) + "\n").encode())
 
 
 # ----------------------------------------------------------------------------- a subject's mouth
@@ -392,11 +299,14 @@ class RetargetedLips:
 
     def __init__(self, model: LipModel, frame: Frame, neutral: np.ndarray, width: float,
                  stats: tuple[np.ndarray, np.ndarray], name: str = DEFAULT, tuned_frames: int = 0,
-                 offset: np.ndarray | None = None, gain: np.ndarray | None = None):
+                 offset: np.ndarray | None = None, gain: np.ndarray | None = None, sha256: str | None = None):
         self.model, self.frame, self.neutral, self.width = model, frame, np.asarray(neutral, np.float64), float(width)
         self.stats, self.name, self.tuned_frames = stats, str(name), int(tuned_frames)
-        # the weights' sha256 (shipped or a file); "" for a model handed over in memory under a label
-        self.sha256 = weights_sha256(name) if str(name) in WEIGHTS or Path(name).is_file() else ""
+        # the weights' sha256 (shipped or a file; given when the caller has it already); "" for a model handed over in
+        # memory under a label
+        if sha256 is None:
+            sha256 = weights_sha256(name) if str(name) in WEIGHTS or Path(name).is_file() else ""
+        self.sha256 = sha256
         self.offset = np.zeros((N_MOUTH, 3)) if offset is None else np.asarray(offset, np.float64)
         self.gain = np.ones(3) if gain is None else np.asarray(gain, np.float64)
 
@@ -446,6 +356,7 @@ class RetargetedLips:
 
     @classmethod
     def from_state(cls, st: dict) -> "RetargetedLips":
+        have = None
         if st.get("state") is not None:
             model = LipModel(**st["args"])
             model.load_state_dict(st["state"])
@@ -459,7 +370,7 @@ class RetargetedLips:
         frame = Frame(float(st["s"]), np.asarray(st["R"], np.float64), np.asarray(st["t"], np.float64))
         stats = (np.asarray(st["stats"][0], np.float32), np.asarray(st["stats"][1], np.float32))
         return cls(model, frame, np.asarray(st["neutral"]), float(st["width"]), stats, st["name"], st.get("tuned_frames", 0),
-                   np.asarray(st["offset"]), np.asarray(st["gain"]))
+                   np.asarray(st["offset"]), np.asarray(st["gain"]), sha256=have)
 
     def deltas(self, feats) -> np.ndarray:
         """Calibrated deltas ``[N, 20, 3]`` (units of the neutral width, canonical axes)."""
@@ -508,71 +419,3 @@ def retarget_for(source: str, audio, n_frames: int, landmarks3d, seed: int = 0,
         return None
     return RetargetedLips.fit(logmel(audio, n_frames), np.asarray(landmarks3d, np.float32), name=str(weights),
                               tune_steps=TUNE_STEPS if source == "generic-tuned" else 0, seed=seed)
-
-
-# speech_coherence: the lags that count as "in sync" (the lip model's own lag, a tracker's, a frame of AV offset) and
-# the shortest lag of the chance level (half a second and more: another syllable, another word).
-NEAR_LAG, FAR_LAG, MAX_FAR_LAG = 3, 25, 150
-COHERENT_Z = 3.0  # the near peak this many chance-level spreads above the chance level: the lips follow the speech
-OFFSET_Z = 4.0  # a far peak this far above it, where the near one is not: the audio is offset from the video
-MIN_COHERENCE_FRAMES = 100
-
-
-def speech_coherence(audio, landmarks3d, weights: str | Path = DEFAULT) -> dict:
-    """How far a clip's mouth opening follows its speech: the lip model's predicted inner-lip gap (retargeted to the clip,
-    ``weights``) against the tracked one (68 landmarks ``[N, 68, 3]`` of a 16 kHz waveform's ``N`` frames), correlated at
-    every lag up to :data:`MAX_FAR_LAG` frames (at most a third of the clip). The correlation within +-:data:`NEAR_LAG`
-    frames is the clip's; lags of :data:`FAR_LAG` frames and more pair each frame with other words and give its chance
-    level (its median, and its spread as the scaled median absolute deviation). ``verdict``: ``follows`` (near peak at least :data:`COHERENT_Z` spreads above chance),
-    ``offset`` (not so, but a far lag :data:`OFFSET_Z` spreads above: the audio is shifted by ``best_far_lag`` frames),
-    ``not shown`` (no better than chance: lips that move with expression more than with speech, such as smiles or an
-    open mouth in pauses, or dubbing; or a clip too short, or a model too weak, to show it), or ``too short`` (fewer
-    than :data:`MIN_COHERENCE_FRAMES` frames). A model that was trained on the
-    clip itself follows it better than it would a new one: pass weights that never saw it."""
-    y = np.asarray(landmarks3d, np.float64)
-    n = len(y)
-    out: dict = {"weights": str(weights), "frames": int(n), "near_lag": NEAR_LAG, "far_lag": FAR_LAG}
-    max_lag = min(MAX_FAR_LAG, n // 3)
-    if n < MIN_COHERENCE_FRAMES or max_lag < FAR_LAG + 10:
-        return {**out, "verdict": "too short"}
-    ok = np.isfinite(y).all(axis=(1, 2))
-    if ok.sum() < MIN_COHERENCE_FRAMES:
-        return {**out, "verdict": "too short"}
-    y = np.where(ok[:, None, None], y, np.nanmedian(y, axis=0))  # untracked frames hold the median face
-    feats = logmel(audio, n)
-    ret = RetargetedLips.fit(feats[ok], y[ok], name=str(weights))
-    pred = lip_gap(ret.predict(feats))
-    track = lip_gap(y[:, MOUTH])
-    c = correlation_at_lags(pred, track, max_lag)
-    near = {k: v for k, v in c.items() if abs(k) <= NEAR_LAG and np.isfinite(v)}
-    far = {k: v for k, v in c.items() if abs(k) >= FAR_LAG and np.isfinite(v)}
-    if not near or len(far) < 10:
-        return {**out, "verdict": "too short"}
-    # the chance level's centre and spread robustly (median, scaled median absolute deviation): an offset track's own
-    # peak, and its neighbours, are among the far lags and would widen a plain standard deviation
-    fv = np.asarray(list(far.values()))
-    mu = float(np.median(fv))
-    sd = float(1.4826 * np.median(np.abs(fv - mu)))
-    lag = max(near, key=lambda k: near[k])
-    best = max(far, key=lambda k: far[k])
-    z_near = (near[lag] - mu) / max(sd, 1e-6)
-    z_far = (far[best] - mu) / max(sd, 1e-6)
-    verdict = "follows" if z_near >= COHERENT_Z else "offset" if z_far >= OFFSET_Z else "not shown"
-    return {**out, "verdict": verdict, "r": round(float(near[lag]), 3), "lag": int(lag), "chance_mean": round(mu, 3),
-            "chance_sd": round(sd, 3), "z": round(float(z_near), 2), "best_far_lag": int(best),
-            "best_far_r": round(float(far[best]), 3), "best_far_z": round(float(z_far), 2)}
-
-
-def correlation_at_lags(a: np.ndarray, b: np.ndarray, max_lag: int = 5) -> dict[int, float]:
-    """Pearson correlation of ``a[t]`` with ``b[t + lag]`` for every lag in ``[-max_lag, max_lag]`` (overlap only)."""
-    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
-    out = {}
-    for lag in range(-max_lag, max_lag + 1):
-        x, y = (a, b[lag:]) if lag >= 0 else (a[-lag:], b)
-        m = min(len(x), len(y))
-        x, y = x[:m], y[:m]
-        if len(x) < 3 or x.std() == 0 or y.std() == 0:
-            out[lag] = math.nan
-        else:
-            out[lag] = float(np.corrcoef(x, y)[0, 1])
-    return out

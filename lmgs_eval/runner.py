@@ -86,7 +86,7 @@ def source_sha256(folder) -> set[str]:
 
 def check_lips_held_out(method, subject) -> None:
     """A method that reads the generic lip model must not be scored on a clip the model was adapted on: its test
-    split would not be held out. The weights' provenance (:func:`lmgs.lips.adapted_on`) lists the video files by
+    split would not be held out. The weights' provenance (:func:`lmgs.lips_weights.adapted_on`) lists the video files by
     sha256; a match with the subject's source is a :class:`UserError` naming the way out (weights made without
     the clip). A re-encoded copy of a clip is not caught: the guard compares files, not content."""
     read = getattr(method, "lip_weights", None)
@@ -94,7 +94,7 @@ def check_lips_held_out(method, subject) -> None:
     root = getattr(subject, "root", None)
     if weights is None or root is None:
         return
-    from lmgs.lips import adapted_on
+    from lmgs.lips_weights import adapted_on
 
     ours = source_sha256(root)
     hit = [c for c in adapted_on(weights) or () if c.get("sha256") in ours]

@@ -18,7 +18,7 @@ written to ``DIR/lips_generic.pt`` with ``DIR/lips_generic.pt.json`` (what it wa
 lmgs reads them with ``--set train.landmark_source=generic --set train.lip_weights=DIR/lips_generic.pt``.
 
 Deterministic: one thread, fixed seeds, torch's deterministic algorithms; the files' bytes depend on the
-weights only. The sha256 of each file written is printed beside the one :data:`lmgs.lips.WEIGHTS` records;
+weights only. The sha256 of each file written is printed beside the one :data:`lmgs.lips_weights.WEIGHTS` records;
 ``--check`` exits 1 where they differ. A few minutes on one core (pretraining is most of it).
 """
 
@@ -41,7 +41,7 @@ def main(argv=None) -> int:
 
     import torch
 
-    from lmgs import lips
+    from lmgs import lips, lips_weights
     from lmgs.fileio import sha256_file
     from lmgs_eval.data import lip_corpus
 
@@ -49,10 +49,10 @@ def main(argv=None) -> int:
     if not (footage.is_dir() and any(footage.glob("*.mp4"))):
         print(f"train_lip_model: error: {footage}: no talking clips (*.mp4) to adapt on (--footage FOLDER)", file=sys.stderr)
         return 2
-    out = Path(args.out) if args.out else lips.FOLDER
-    if args.hold_out and (args.out is None or out.resolve() == lips.FOLDER.resolve()):
+    out = Path(args.out) if args.out else lips_weights.FOLDER
+    if args.hold_out and (args.out is None or out.resolve() == lips_weights.FOLDER.resolve()):
         print("train_lip_model: error: --hold-out writes weights that are not the shipped ones: pass --out DIR "
-              f"(not {lips.FOLDER})", file=sys.stderr)
+              f"(not {lips_weights.FOLDER})", file=sys.stderr)
         return 2
     if args.hold_out and args.check:
         print("train_lip_model: error: --check compares the shipped weights; held-out weights have no recorded sha256",
@@ -73,11 +73,11 @@ def main(argv=None) -> int:
     say(f"{len(real)} real clips, {sum(len(r.lms68) for r in real) / 1500:.1f} min, {len({r.speaker for r in real})} speakers")
     final = lip_corpus.adapt(pre, real, generated, progress=lambda s, l: say(f"adapt step {s} loss {l:.2e}") if s % 200 == 0 else None)
     lips.save(final, out / "lips_generic.pt")
-    write_json(out / lips.PROVENANCE, {"lips_generated.pt": {"adapted_on": []},
+    write_json(out / lips_weights.PROVENANCE, {"lips_generated.pt": {"adapted_on": []},
                                         "lips_generic.pt": {"adapted_on": [r.provenance() for r in real]}})
     same = True
     for name in ("lips_generated.pt", "lips_generic.pt"):
-        got, want = sha256_file(out / name), lips.WEIGHTS[name][1]
+        got, want = sha256_file(out / name), lips_weights.WEIGHTS[name][1]
         same &= got == want
         print(f"{out / name}: sha256 {got} ({'as recorded' if got == want else 'recorded: ' + (want or 'none')})")
     say(f"done; {lips.n_parameters(final)} parameters")
@@ -94,7 +94,7 @@ def write_json(path: Path, doc: dict) -> None:
 
 def hold_out(clips: list[str], footage: Path, out: Path, say) -> int:
     """The shipped pretrained model adapted without ``clips``' speakers, into ``out/lips_generic.pt`` (+ ``.json``)."""
-    from lmgs import lips
+    from lmgs import lips, lips_weights
     from lmgs.errors import InputError
     from lmgs.fileio import sha256_file
     from lmgs_eval.data import lip_corpus
@@ -117,7 +117,7 @@ def hold_out(clips: list[str], footage: Path, out: Path, say) -> int:
     path = out / "lips_generic.pt"
     out.mkdir(parents=True, exist_ok=True)
     lips.save(final, path)
-    lips.write_provenance(path, [r.provenance() for r in kept], held_out=sorted(clips))
+    lips_weights.write_provenance(path, [r.provenance() for r in kept], held_out=sorted(clips))
     print(f"{path}: sha256 {sha256_file(path)}")
     say("done")
     return 0

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from lmgs import lips
+from lmgs import lips, lips_check, lips_weights
 from lmgs.errors import InputError
 from lmgs.fileio import sha256_file
 
@@ -24,19 +24,19 @@ def _rotation(rng) -> np.ndarray:
     return q * np.sign(np.linalg.det(q))
 
 
-@pytest.mark.parametrize("name", sorted(lips.WEIGHTS))
+@pytest.mark.parametrize("name", sorted(lips_weights.WEIGHTS))
 def test_shipped_weights_match_their_sha256(name):
-    path = lips.FOLDER / name
+    path = lips_weights.FOLDER / name
     assert path.stat().st_size < 4 << 20  # a few MB at most
-    assert sha256_file(path) == lips.WEIGHTS[name][1]
+    assert sha256_file(path) == lips_weights.WEIGHTS[name][1]
     model = lips.load(name)
     assert model.template.abs().sum() > 0  # the canonical face travels with the weights
 
 
 def test_altered_weights_are_refused(tmp_path, monkeypatch):
     bad = tmp_path / "lips_generic.pt"
-    bad.write_bytes((lips.FOLDER / "lips_generic.pt").read_bytes()[:-8] + b"\0" * 8)
-    monkeypatch.setattr(lips, "FOLDER", tmp_path)
+    bad.write_bytes((lips_weights.FOLDER / "lips_generic.pt").read_bytes()[:-8] + b"\0" * 8)
+    monkeypatch.setattr(lips_weights, "FOLDER", tmp_path)
     with pytest.raises(InputError, match="altered"):
         lips.load("lips_generic.pt")
 
@@ -57,7 +57,7 @@ def test_save_is_byte_stable(tmp_path):
     model = lips.load()
     lips.save(model, tmp_path / "a.pt")
     lips.save(lips.load(tmp_path / "a.pt"), tmp_path / "b.pt")
-    assert sha256_file(tmp_path / "a.pt") == sha256_file(tmp_path / "b.pt") == lips.WEIGHTS[lips.DEFAULT][1]
+    assert sha256_file(tmp_path / "a.pt") == sha256_file(tmp_path / "b.pt") == lips_weights.WEIGHTS[lips_weights.DEFAULT][1]
 
 
 def test_retargeting_maps_a_neutral_mouth_to_the_subjects():
@@ -135,7 +135,7 @@ R_GENERATED = 0.6
 
 def test_correlation_at_lags_finds_a_shift():
     x = np.sin(np.linspace(0, 12, 200)) + 0.1 * np.random.default_rng(0).standard_normal(200)
-    c = lips.correlation_at_lags(x[3:], x[:-3], 5)  # the first leads the second by 3 frames
+    c = lips_check.correlation_at_lags(x[3:], x[:-3], 5)  # the first leads the second by 3 frames
     assert max(c, key=c.get) == 3 and c[3] > 0.99
 
 
@@ -273,7 +273,7 @@ def test_lmgs_trains_and_renders_with_the_generic_mouth(tmp_path):
     cfg = cfg.replace(train=dataclasses.replace(cfg.train, static_steps=10, dynamic_steps=10, landmark_steps=10,
                                                 densify_every=20, landmark_source="generic"))
     model, _ = fit(clip, cfg, seed=0, progress=False)
-    assert model.lips is not None and model.lips.describe()["weights"] == lips.DEFAULT
+    assert model.lips is not None and model.lips.describe()["weights"] == lips_weights.DEFAULT
     drive = DrivingAudio(audio=clip.audio, w2c=clip.w2c)
     video = model.render(drive)
     save_model(model, tmp_path / "m.pt")
@@ -291,15 +291,15 @@ def _weights_file(tmp_path, clips=(), held=()) -> Path:
     path = tmp_path / "held" / "lips_generic.pt"
     path.parent.mkdir(parents=True, exist_ok=True)
     lips.save(model, path)
-    lips.write_provenance(path, list(clips), held_out=list(held))
+    lips_weights.write_provenance(path, list(clips), held_out=list(held))
     return path
 
 
 def test_shipped_provenance_names_what_each_file_was_adapted_on():
     """The pretrained file saw no real recording; the shipped model names each real clip it was adapted on by its
     video file's sha256 (what the toolkit's guard compares)."""
-    assert lips.adapted_on("lips_generated.pt") == []
-    seen = lips.adapted_on(lips.DEFAULT)
+    assert lips_weights.adapted_on("lips_generated.pt") == []
+    seen = lips_weights.adapted_on(lips_weights.DEFAULT)
     assert seen and all(len(c["sha256"]) == 64 and c["frames"] > 0 and c["clip"] for c in seen)
     assert len({c["sha256"] for c in seen}) == len(seen)
     if FOOTAGE.is_dir():  # where the development footage is, the recorded sha256 are its files'
@@ -318,12 +318,12 @@ def test_a_weights_file_is_named_by_its_sha256_and_checked_on_reload(tmp_path):
     feats = rng.standard_normal((20, lips.WINDOW, lips.IN_CHANNELS)).astype(np.float32)
     ret = lips.retarget_for("generic", rng.standard_normal(20 * 640).astype(np.float32), 20, world, weights=str(path))
     state = ret.to_state()
-    assert state["name"] == str(path) and state["sha256"] == sha256_file(path) != lips.WEIGHTS[lips.DEFAULT][1]
+    assert state["name"] == str(path) and state["sha256"] == sha256_file(path) != lips_weights.WEIGHTS[lips_weights.DEFAULT][1]
     assert ret.describe()["weights_sha256"] == sha256_file(path)
     np.testing.assert_allclose(lips.RetargetedLips.from_state(state).predict(feats), ret.predict(feats), atol=1e-6)
     shipped = lips.retarget_for("generic", rng.standard_normal(20 * 640).astype(np.float32), 20, world)
     assert np.abs(shipped.model.predict(feats) - ret.model.predict(feats)).max() > 1e-4  # the file's weights are used
-    assert "b held out" in lips.describe_weights(path) and lips.adapted_on(path)[0]["clip"] == "a"
+    assert "b held out" in lips_weights.describe_weights(path) and lips_weights.adapted_on(path)[0]["clip"] == "a"
     path.write_bytes(path.read_bytes()[:-8] + b"\0" * 8)
     with pytest.raises(InputError, match="not the one there now"):
         lips.RetargetedLips.from_state(state)
@@ -400,7 +400,7 @@ def test_a_clip_the_lip_model_was_adapted_on_is_not_scored(tmp_path, method, opt
     check_lips_held_out(plain, subject)
     if FOOTAGE.is_dir() and (FOOTAGE / "anchor_de_20s.mp4").is_file():  # the shipped model saw the footage
         with pytest.raises(UserError, match="anchor_de_20s"):
-            check_lips_held_out(build(lips.DEFAULT), _ingested(tmp_path / "a", sha256_file(FOOTAGE / "anchor_de_20s.mp4")))
+            check_lips_held_out(build(lips_weights.DEFAULT), _ingested(tmp_path / "a", sha256_file(FOOTAGE / "anchor_de_20s.mp4")))
 
 
 def test_without_speakers():
@@ -441,18 +441,18 @@ def test_speech_coherence_tells_lips_that_follow_from_offset_and_unrelated_ones(
     audio, lms = _spoken(SENTENCES_A, "espeak:en-us+m3", 0)
     n = len(lms)
     assert n >= 250
-    ok = lips.speech_coherence(audio, lms)
+    ok = lips_check.speech_coherence(audio, lms)
     assert ok["verdict"] == "follows" and abs(ok["lag"]) <= 1 and ok["z"] > 5, ok
-    late = lips.speech_coherence(audio, np.roll(lms, 60, axis=0))  # the mouth 60 frames after its sound
+    late = lips_check.speech_coherence(audio, np.roll(lms, 60, axis=0))  # the mouth 60 frames after its sound
     assert late["verdict"] == "offset" and abs(late["best_far_lag"] - 60) <= 2, late
     other_audio, _ = _spoken(["Quietly the orchestra tuned while the crowd found its seats.",
                               "A small green lizard rested on the warm garden wall.",
                               "Please remember to water the tomatoes every second morning.",
                               "The harbour lights flickered as the ferry turned for home."], "espeak:en-gb-x-rp+f4", 1)
     m = min(n, len(other_audio) // 640)
-    unrelated = lips.speech_coherence(other_audio[: m * 640], lms[:m])
-    assert unrelated["verdict"] == "not shown" and unrelated["z"] < lips.COHERENT_Z, unrelated
-    assert lips.speech_coherence(audio[: 90 * 640], lms[:90])["verdict"] == "too short"
+    unrelated = lips_check.speech_coherence(other_audio[: m * 640], lms[:m])
+    assert unrelated["verdict"] == "not shown" and unrelated["z"] < lips_check.COHERENT_Z, unrelated
+    assert lips_check.speech_coherence(audio[: 90 * 640], lms[:90])["verdict"] == "too short"
 
 
 @pytest.mark.skipif(importlib.util.find_spec("espeakng_loader") is None, reason="espeak-ng (the generator's voices) not installed")
@@ -475,10 +475,10 @@ def test_ingest_says_whether_the_lips_follow_the_speech(tmp_path):
 
     ctx = ctx_for(lms)
     coh = speech_lips(ctx, audio, {"input_sha256": "0" * 64})
-    assert coh["verdict"] == "follows" and coh["weights"] == lips.DEFAULT
+    assert coh["verdict"] == "follows" and coh["weights"] == lips_weights.DEFAULT
     assert any("follows the speech (r " in line for line in ctx.log) and not ctx.flags
     ctx = ctx_for(np.roll(lms, 60, axis=0))
     assert speech_lips(ctx, audio, {"input_sha256": "0" * 64})["verdict"] == "offset"
     assert "60 frames (2.40 s) later than the audio" in ctx.flags["av_offset"]
-    seen = lips.adapted_on(lips.DEFAULT)[0]["sha256"]
+    seen = lips_weights.adapted_on(lips_weights.DEFAULT)[0]["sha256"]
     assert speech_lips(ctx_for(lms), audio, {"input_sha256": seen})["weights"] == "lips_generated.pt"

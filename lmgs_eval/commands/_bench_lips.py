@@ -52,7 +52,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _gap_stats(pred_mouth: np.ndarray, true_mouth: np.ndarray) -> tuple[float, int, float]:
-    from lmgs.lips import correlation_at_lags, lip_gap
+    from lmgs.lips import lip_gap
+    from lmgs.lips_check import correlation_at_lags
 
     c = correlation_at_lags(lip_gap(pred_mouth), lip_gap(true_mouth), MAX_LAG)
     finite = {k: v for k, v in c.items() if np.isfinite(v)}

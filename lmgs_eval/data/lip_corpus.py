@@ -38,7 +38,7 @@ class Recording:
     sha256: str = ""  # of the video file a real recording was tracked from
 
     def provenance(self) -> dict:
-        """What a lip model's provenance lists of a real recording it was adapted on (:func:`lmgs.lips.adapted_on`)."""
+        """What a lip model's provenance lists of a real recording it was adapted on (:func:`lmgs.lips_weights.adapted_on`)."""
         return {"clip": self.name, "sha256": self.sha256, "frames": int(len(self.lms68))}
 
 

@@ -266,16 +266,17 @@ def composites(ctx, sel) -> None:
 
 
 def speech_lips(ctx, aud: np.ndarray, key: dict) -> dict:
-    """Whether the clip's mouth opening follows its speech (:func:`lmgs.lips.speech_coherence` on the written landmarks
-    and audio), with the shipped lip model, or the one trained on generated speech alone where the shipped one was
-    adapted on this very video; a note (or a flag, for an offset audio track) says what it means for the clip's LMD."""
-    from lmgs import lips
+    """Whether the clip's mouth opening follows its speech (:func:`lmgs.lips_check.speech_coherence` on the written
+    landmarks and audio), with the shipped lip model, or the one trained on generated speech alone where the shipped one
+    was adapted on this very video; a note (or a flag, for an offset audio track) says what it means for the clip's LMD."""
+    from lmgs.lips_check import speech_coherence
+    from lmgs.lips_weights import DEFAULT, adapted_on
 
     t0 = time.perf_counter()
-    seen = {c.get("sha256") for c in lips.adapted_on(lips.DEFAULT) or ()}
-    weights = "lips_generated.pt" if key["input_sha256"] in seen else lips.DEFAULT
+    seen = {c.get("sha256") for c in adapted_on(DEFAULT) or ()}
+    weights = "lips_generated.pt" if key["input_sha256"] in seen else DEFAULT
     lms3d = np.load(ctx.sub / "lms3d.npy")
-    coh = lips.speech_coherence(aud, lms3d, weights)
+    coh = speech_coherence(aud, lms3d, weights)
     v = coh["verdict"]
     if v in ("follows", "not shown"):
         how = (f"r {coh['r']:.2f} at lag {coh['lag']:+d} within +-{coh['near_lag']} frames; chance {coh['chance_mean']:.2f} "
