@@ -105,9 +105,19 @@ def _provenance(name_or_path: str | Path) -> dict | None:
 
 def write_provenance(path: str | Path, clips: Sequence[dict], held_out: Sequence[str] = ()) -> None:
     """``<path>.json``: the recordings a weights file at ``path`` was adapted on and the clips held out of it."""
+    _write_json(Path(str(path) + ".json"), {"adapted_on": [dict(c) for c in clips], "held_out": list(held_out)})
+
+
+def write_shipped_provenance(folder: str | Path, clips: Sequence[dict]) -> None:
+    """:data:`PROVENANCE` in ``folder`` for the shipped pair: ``lips_generated.pt`` adapted on nothing real,
+    ``lips_generic.pt`` on ``clips``."""
+    _write_json(Path(folder) / PROVENANCE, {"lips_generated.pt": {"adapted_on": []},
+                                            "lips_generic.pt": {"adapted_on": [dict(c) for c in clips]}})
+
+
+def _write_json(path: Path, doc: dict) -> None:
     import json
 
     from lmgs.fileio import atomic_write
 
-    doc = {"adapted_on": [dict(c) for c in clips], "held_out": list(held_out)}
-    atomic_write(Path(str(path) + ".json"), (json.dumps(doc, indent=1, sort_keys=True) + "\n").encode())
+    atomic_write(path, (json.dumps(doc, indent=1, sort_keys=True) + "\n").encode())

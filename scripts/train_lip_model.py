@@ -73,8 +73,7 @@ def main(argv=None) -> int:
     say(f"{len(real)} real clips, {sum(len(r.lms68) for r in real) / 1500:.1f} min, {len({r.speaker for r in real})} speakers")
     final = lip_corpus.adapt(pre, real, generated, progress=lambda s, l: say(f"adapt step {s} loss {l:.2e}") if s % 200 == 0 else None)
     lips.save(final, out / "lips_generic.pt")
-    write_json(out / lips_weights.PROVENANCE, {"lips_generated.pt": {"adapted_on": []},
-                                        "lips_generic.pt": {"adapted_on": [r.provenance() for r in real]}})
+    lips_weights.write_shipped_provenance(out, [r.provenance() for r in real])
     same = True
     for name in ("lips_generated.pt", "lips_generic.pt"):
         got, want = sha256_file(out / name), lips_weights.WEIGHTS[name][1]
@@ -82,14 +81,6 @@ def main(argv=None) -> int:
         print(f"{out / name}: sha256 {got} ({'as recorded' if got == want else 'recorded: ' + (want or 'none')})")
     say(f"done; {lips.n_parameters(final)} parameters")
     return 1 if args.check and not same else 0
-
-
-def write_json(path: Path, doc: dict) -> None:
-    import json
-
-    from lmgs.fileio import atomic_write
-
-    atomic_write(path, (json.dumps(doc, indent=1, sort_keys=True) + "\n").encode())
 
 
 def hold_out(clips: list[str], footage: Path, out: Path, say) -> int:

@@ -482,3 +482,14 @@ def test_ingest_says_whether_the_lips_follow_the_speech(tmp_path):
     assert "60 frames (2.40 s) later than the audio" in ctx.flags["av_offset"]
     seen = lips_weights.adapted_on(lips_weights.DEFAULT)[0]["sha256"]
     assert speech_lips(ctx_for(lms), audio, {"input_sha256": seen})["weights"] == "lips_generated.pt"
+
+
+def test_shipped_provenance_is_what_the_script_writes(tmp_path):
+    """The committed ``provenance.json`` is byte for byte what ``scripts/train_lip_model.py`` writes for the clips it
+    lists (so a re-run can be compared with ``cmp``)."""
+    import json
+
+    doc = json.loads((lips_weights.FOLDER / lips_weights.PROVENANCE).read_text())
+    assert doc["lips_generated.pt"]["adapted_on"] == [] and len(doc["lips_generic.pt"]["adapted_on"]) == 11
+    lips_weights.write_shipped_provenance(tmp_path, doc["lips_generic.pt"]["adapted_on"])
+    assert (tmp_path / lips_weights.PROVENANCE).read_bytes() == (lips_weights.FOLDER / lips_weights.PROVENANCE).read_bytes()
