@@ -84,6 +84,28 @@ def test_tracked_texture_refines_the_landmark_pose(truth, ingested):
     assert rot_written < 0.5, (rot_written, rot_refined)
     man = json.loads((folder / "manifest.json").read_text())
     assert any(n.startswith(f"pose: {e.n_frames} of {e.n_frames} frames refined") for n in man["notes"]), man["notes"]
+    tex = man["pose"]["texture_refinement"]
+    assert tex["refined"] == e.n_frames and tex["carried"] == 0
+    # what the refinement is for: the refined poses turn more smoothly than the ones it started from
+    assert refined.texture.roughness[1] < refined.texture.roughness[0], refined.texture.roughness
+
+
+def test_texture_refinement_that_roughens_the_poses_is_not_kept(ingested, monkeypatch):
+    """The refinement is kept only where it makes the poses smoother (``align.MAX_ROUGHER``); asked for ten times as
+    smooth, this clip's refinement is refused and every frame keeps its own pose. (Measured: the refined poses'
+    roughness 0.16 deg against the landmark poses' 0.80.)"""
+    from lmgs_eval.data.ingest import align, pose
+    from lmgs_eval.data.layout import read_subject
+
+    folder, _ = ingested
+    e = read_subject(folder)
+    frames = [folder / "ori_imgs" / f"{i}.jpg" for i in range(e.n_frames)]
+    plain = pose.fit_poses(e.landmarks, SIZE, SIZE, focal=e.focal)
+    monkeypatch.setattr(align, "MAX_ROUGHER", 0.1)
+    refused = pose.fit_poses(e.landmarks, SIZE, SIZE, focal=e.focal, frames=frames)
+    assert refused.texture.refinable > 0.9 * e.n_frames and not refused.aligned.any()
+    assert refused.texture.roughness[1] > 0.1 * refused.texture.roughness[0]
+    assert np.allclose(refused.c2w, plain.c2w)
 
 
 def test_ingested_subject_reads_and_is_complete(ingested):
