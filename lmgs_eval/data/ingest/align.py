@@ -32,9 +32,11 @@ it does: where the refined poses' rotation is no rougher than the poses it start
 :data:`MAX_ROUGHER` times theirs). On the generator's turning heads and on a still studio clip
 it is smoother (0.86-0.95 and 0.87 times the dense mesh's); on a hand-held phone clip whose head
 turns +-20 deg it was 1.66 times rougher (the camera moves the head's texture against the
-ellipsoid the corners sit on), and every frame keeps its own pose. What it gives up: the corners' depth is the ellipsoid's, not the
-face's (a pose error that is the same in every frame, which a method absorbs), and the region is
-drawn from landmarks, so a fringe over the forehead or a hand over the face enters it.
+ellipsoid the corners sit on), and every frame keeps its own pose.
+
+What it gives up: the corners' depth is the ellipsoid's, not the face's (a pose error that is the
+same in every frame, which a method absorbs), and the region is drawn from landmarks, so a fringe
+over the forehead or a hand over the face enters it.
 """
 
 from __future__ import annotations
