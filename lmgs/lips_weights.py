@@ -51,10 +51,7 @@ def weights_sha256(name_or_path: str | Path) -> str:
 
     if str(name_or_path) in WEIGHTS:
         return WEIGHTS[str(name_or_path)][1]
-    p = Path(name_or_path)
-    if not p.is_file():
-        raise InputError(f"{p}: no such lip model file")
-    return sha256_file(p)
+    return sha256_file(weights_file(name_or_path))
 
 
 def check_weights(name_or_path: str | Path) -> None:

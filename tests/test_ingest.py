@@ -103,7 +103,7 @@ def test_texture_refinement_that_roughens_the_poses_is_not_kept(ingested, monkey
     plain = pose.fit_poses(e.landmarks, SIZE, SIZE, focal=e.focal)
     monkeypatch.setattr(align, "MAX_ROUGHER", 0.1)
     refused = pose.fit_poses(e.landmarks, SIZE, SIZE, focal=e.focal, frames=frames)
-    assert refused.texture.refinable > 0.9 * e.n_frames and not refused.aligned.any()
+    assert refused.texture.refinable > 0.9 * e.n_frames and not refused.aligned.any() and refused.texture.refused == "rough"
     assert refused.texture.roughness[1] > 0.1 * refused.texture.roughness[0]
     assert np.allclose(refused.c2w, plain.c2w)
 

@@ -61,8 +61,9 @@ class Refined:
     """Per frame: rotation and translation vectors (OpenCV), whether the images set them, how
     many corners did; the reference frame, how many frames could be refined (none is when fewer
     than :data:`MIN_SHARE` could, or when the refined poses are rougher than the input's), how many
-    carry their refined neighbours' correction, and the roughness (:func:`roughness`) of the
-    input's and of the refined poses."""
+    carry their refined neighbours' correction, the roughness (:func:`roughness`) of the
+    input's and of the refined poses, and why none was kept where none was (``"few"``: under
+    :data:`MIN_SHARE` refinable; ``"rough"``: rougher than the input; ``""`` otherwise)."""
 
     rv: np.ndarray
     tv: np.ndarray
@@ -72,6 +73,7 @@ class Refined:
     refinable: int = 0
     carried: int = 0
     roughness: tuple[float, float] = (float("nan"), float("nan"))
+    refused: str = ""
 
 
 def upper_head_mask(lms: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -120,7 +122,7 @@ def refine(frame_paths: list[Path], lms: np.ndarray, rv: np.ndarray, tv: np.ndar
     scale = max(h, w) / 256.0
     corners = cv2.goodFeaturesToTrack(g_ref, MAX_CORNERS, 0.01, max(2.0, 3 * scale), mask=(depth > 0).astype(np.uint8),
                                       blockSize=max(3, int(round(5 * scale)) | 1))
-    out = Refined(rv.copy(), tv.copy(), np.zeros(n, bool), np.zeros(n, int), ref)
+    out = Refined(rv.copy(), tv.copy(), np.zeros(n, bool), np.zeros(n, int), ref, refused="few")
     if corners is None or len(corners) < MIN_TRACKED:
         return out
     p_ref = corners[:, 0].astype(np.float32)  # OpenCV pixel coordinates (a pixel's centre at its index)
@@ -158,7 +160,9 @@ def refine(frame_paths: list[Path], lms: np.ndarray, rv: np.ndarray, tv: np.ndar
         out.rv[i], out.tv[i], out.used[i], out.tracked[i] = r.ravel(), t.ravel(), True, int(keep.sum())
     out.refinable = int(out.used.sum())
     out.roughness = (roughness(rv, out.used), roughness(out.rv, out.used))
-    if out.refinable < MIN_SHARE * n or out.roughness[1] > MAX_ROUGHER * out.roughness[0]:
+    out.refused = ("few" if out.refinable < MIN_SHARE * n else
+                   "rough" if out.roughness[1] > MAX_ROUGHER * out.roughness[0] else "")
+    if out.refused:
         out.rv, out.tv, out.used[:] = rv.copy(), tv.copy(), False
     elif out.refinable < n:
         out.rv, out.tv = carry(rv, tv, out.rv, out.tv, out.used)

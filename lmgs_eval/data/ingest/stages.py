@@ -167,7 +167,7 @@ def pose(ctx, sel) -> None:
                        f"from frame {ref}" + (f"; the other {tex.carried} keep their {kind} pose's motion, corrected as their "
                                               "refined neighbours were (turned too far from that frame, or too little texture "
                                               "followed)" if tex.carried else ""))
-    elif tex is not None and tex.refinable >= MIN_SHARE * len(lms):
+    elif tex is not None and tex.refused == "rough":
         ctx.log.append(f"pose: the {kind} poses are kept: the upper head's texture could refine {tex.refinable} of {len(lms)} "
                        f"frames, but its poses turn less smoothly than the {kind} poses (second differences "
                        f"{tex.roughness[1]:.2f} deg against {tex.roughness[0]:.2f}): it would add noise, not take it out")
