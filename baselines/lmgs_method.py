@@ -80,17 +80,24 @@ VARIANTS: dict[str, dict] = {
 def components(cfg) -> dict:
     """The parts of an lmgs config that its variants switch, as records and Table III/IV read them.
 
-    A part switched off reports its neutral setting (no cap without SE, no folds without SE or LC),
-    as the config hash leaves those settings out.
+    A part switched off reports its neutral setting (no cap without SE, no folds without SE, LC or the
+    mouth state), as the config hash leaves those settings out; ``mouth_state`` is there only when on.
     """
     g, t, a = cfg.guidance, cfg.train, cfg.audio
     return {
         "se": bool(g.se), "lc": bool(g.lc), "gr": bool(cfg.gr), "theta": float(g.theta),
         "se_cap": float(g.select_fraction) if g.se else 0.0,
-        "landmark_folds": int(t.landmark_folds) if (g.se or g.lc) else 0,
+        "landmark_folds": int(t.landmark_folds) if reads_landmarks(cfg) else 0,
         "gr_reduce": str(t.normal_reduce), "gr_weight": float(t.lambda_normal),
         "audio_frontend": a.frontend, "audio_encoder": bool(a.use_encoder),
+        **({"mouth_state": True} if g.mouth_state else {}),
     }
+
+
+def reads_landmarks(cfg) -> bool:
+    """Whether the model reads the audio-predicted landmarks (SE, LC or the mouth state)."""
+    g = cfg.guidance
+    return bool(g.se or g.lc or g.mouth_state)
 
 
 class LMGSMethod:
@@ -142,24 +149,27 @@ class LMGSMethod:
         if g.se:
             parts.append(f"SE capped at {g.select_fraction:.0%} of the points per frame" if g.select_fraction
                          else "SE by theta alone (no cap on the points selected)")
-        if (g.se or g.lc) and t.landmark_folds:
+        if g.mouth_state:
+            parts.append("the deformations read the mouth's opening and width from the landmarks")
+        reads = reads_landmarks(self.cfg)
+        if reads and t.landmark_folds:
             parts.append(f"out-of-fold training landmarks ({t.landmark_folds} folds)")
         generic = None  # the landmark source in the display name, when not the per-subject predictor
-        if (g.se or g.lc) and t.landmark_source != "subject":
+        if reads and t.landmark_source != "subject":
             parts.append("mouth landmarks from the generic lip model" + (", fine-tuned on the subject"
                                                                           if t.landmark_source == "generic-tuned" else ""))
             generic = "generic mouth" + (", tuned" if t.landmark_source == "generic-tuned" else "")
         return MethodInfo(
             name=self.variant,
-            display_name=(("Ours (lmgs)" if generic is None else f"Ours (lmgs, {generic})") if self.variant == "lmgs"
-                          else f"lmgs ({', '.join(parts)})"),
+            display_name=(f"Ours (lmgs{''.join(', ' + x for x in (generic, 'mouth state' if g.mouth_state else None) if x)})"
+                          if self.variant == "lmgs" else f"lmgs ({', '.join(parts)})"),
             family="3DGS",
             description=(
                 "The paper's method on TalkingGaussian's face/mouth decomposition, trained on a CPU schedule "
                 f"({self.cfg.train.static_steps} static + {self.cfg.train.dynamic_steps} dynamic steps, preset "
                 f"'{self.cfg.preset}'); {', '.join(parts)}"
                 + (f"; the landmarks guiding training are out-of-fold predictions ({t.landmark_folds} folds), as wrong "
-                   "as at test time, as a pretrained predictor's would be" if (g.se or g.lc) and t.landmark_folds else "")
+                   "as at test time, as a pretrained predictor's would be" if reads and t.landmark_folds else "")
                 + (f"; the GR weights ramp in over the first {t.gr_warmup} dynamic steps" if self.cfg.gr and t.gr_warmup else "")
                 + ("; not the paper's GR form: the normal term per pixel at 2DGS's weight (the paper's sum at 1e-4 "
                    "collapsed training on bundled data)." if self.cfg.gr and t.normal_reduce != "sum" else ".")
@@ -172,10 +182,9 @@ class LMGSMethod:
         )
 
     def lip_weights(self) -> str | None:
-        """The generic lip model's weights this configuration reads (None where SE and LC read the per-subject
-        predictor, or neither is on)."""
-        g, t = self.cfg.guidance, self.cfg.train
-        return t.lip_weights if (g.se or g.lc) and t.landmark_source != "subject" else None
+        """The generic lip model's weights this configuration reads (None where the landmarks come from the
+        per-subject predictor, or nothing reads them)."""
+        return self.cfg.train.lip_weights if reads_landmarks(self.cfg) and self.cfg.train.landmark_source != "subject" else None
 
     def cost(self) -> dict:
         if self.model is None:

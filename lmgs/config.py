@@ -247,6 +247,14 @@ class GuidanceConfig:
             that uncapped SE did worse than without SE on astronaut; 0 leaves
             :math:`\\theta` alone (variant ``lmgs-uncapped``, the records made before the cap).
             An :func:`added_option`.
+        mouth_state: the face and mouth deformations also read the frame's mouth state, two numbers
+            from the same 68 landmarks SE and LC read (the inner lips' opening, 62-66, and the
+            mouth's width, 48-54, each over the outer eye corners' distance, 36-45; centred and
+            scaled by their spread over the training frames), through the expression input and its
+            region attention, as the blink is read. SE and LC reach the landmarks through the
+            tri-plane's features of their 3D positions, in which a lip opening of a few
+            millimetres is a small, irregular change; this is the opening itself. Not in the
+            paper; an :func:`added_option` (off).
     """
 
     se: bool = True
@@ -257,6 +265,7 @@ class GuidanceConfig:
     hidden: int = 32
     tau_activation: Literal["sigmoid", "tanh"] = "sigmoid"
     select_fraction: float = added_option(0.0, 0.2)
+    mouth_state: bool = added_option(False)
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.select_fraction < 1.0:

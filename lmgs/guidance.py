@@ -104,6 +104,21 @@ def spatial_enhance(f: torch.Tensor, g: torch.Tensor, theta: float = 0.6, max_fr
     return EnhanceResult(features, selected, match, best)
 
 
+MOUTH_STATE_DIM = 2  # inner-lip opening, mouth width
+
+
+def mouth_state(landmarks: torch.Tensor) -> torch.Tensor:
+    """The mouth's state ``[..., 2]`` from 68 landmarks ``[..., 68, 2 or 3]``: the inner lips' opening
+    (points 62 and 66) and the mouth's width (48 and 54), each over the distance between the outer
+    eye corners (36 and 45), so that neither the head's distance nor its pose changes them."""
+    if landmarks.shape[-2] != 68:
+        raise InputError(f"the mouth state reads 68 landmarks, got {landmarks.shape[-2]}")
+    eyes = (landmarks[..., 36, :] - landmarks[..., 45, :]).norm(dim=-1).clamp_min(1e-8)
+    gap = (landmarks[..., 62, :] - landmarks[..., 66, :]).norm(dim=-1)
+    width = (landmarks[..., 48, :] - landmarks[..., 54, :]).norm(dim=-1)
+    return torch.stack([gap / eyes, width / eyes], dim=-1)
+
+
 def _mlp(d_in: int, hidden: int, d_out: int) -> nn.Sequential:
     return nn.Sequential(nn.Linear(d_in, hidden), nn.ReLU(), nn.Linear(hidden, d_out))
 

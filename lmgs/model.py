@@ -16,6 +16,7 @@ Structure (paper, Method; TalkingGaussian's face/mouth decomposition):
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 
@@ -29,6 +30,7 @@ from lmgs.clipdata import as_image
 from lmgs.config import GuidanceConfig
 from lmgs.deform import DeformNet
 from lmgs.errors import InputError
+from lmgs.guidance import MOUTH_STATE_DIM, mouth_state
 from lmgs.gaussians import GaussianSet
 from lmgs.render import rasterize
 from lmgs.render._projection import first_non_finite
@@ -104,10 +106,14 @@ def render_branches(
     )
 
 
-def prepared_params(gs: GaussianSet, deform, prep, audio: torch.Tensor, landmarks, blink) -> tuple[tuple[torch.Tensor, ...], float | None]:
+def prepared_params(gs: GaussianSet, deform, prep, audio: torch.Tensor, landmarks, blink, exp=None) -> tuple[tuple[torch.Tensor, ...], float | None]:
     """:meth:`LMGSModel.branch_params` of a dynamic branch at inference, from ``deform.prepare``'s parts."""
-    out = deform.forward_prepared(prep, audio, landmarks, blink)
+    out = deform.forward_prepared(prep, audio, landmarks, blink, exp)
     return (gs.means + out.d_xyz, gs.quats + out.d_rot, gs.log_scales + out.d_scale, gs.opacity_logits, gs.colors()), out.se_fraction
+
+
+# 1 % of the eye corners' distance: under a pixel of lip motion on a 512 px head
+MOUTH_STATE_MIN_SPREAD = 0.01
 
 
 class LMGSModel(nn.Module):
@@ -129,10 +135,18 @@ class LMGSModel(nn.Module):
         self.face = face
         self.mouth = mouth
         self.audio_net = AudioNet(in_channels, window, cfg.audio)
-        self.face_deform = DeformNet(self.audio_net.out_dim, cfg.deform_face, cfg.triplane, cfg.guidance, box_min, box_max)
+        face_cfg, mouth_cfg = cfg.deform_face, cfg.deform_mouth
+        if cfg.guidance.mouth_state:  # both branches read it as (more) expression input
+            face_cfg = dataclasses.replace(face_cfg, exp_dim=face_cfg.exp_dim + MOUTH_STATE_DIM)
+            mouth_cfg = dataclasses.replace(mouth_cfg, exp_dim=mouth_cfg.exp_dim + MOUTH_STATE_DIM)
+            if cfg.deform_face.exp_dim or cfg.deform_mouth.exp_dim:
+                raise InputError("guidance.mouth_state fills the expression input: it cannot be combined with deform_*.exp_dim")
+            # centre and spread of the training frames' mouth state (set by :meth:`fit_mouth_state`)
+            self.register_buffer("mouth_state_norm", torch.tensor([[0.0] * MOUTH_STATE_DIM, [1.0] * MOUTH_STATE_DIM]))
+        self.face_deform = DeformNet(self.audio_net.out_dim, face_cfg, cfg.triplane, cfg.guidance, box_min, box_max)
         # The mouth branch is driven by audio alone (TalkingGaussian); guidance is the face's.
         no_guidance = GuidanceConfig(se=False, lc=False, theta=cfg.guidance.theta)
-        self.mouth_deform = DeformNet(self.audio_net.out_dim, cfg.deform_mouth, cfg.triplane, no_guidance, box_min, box_max)
+        self.mouth_deform = DeformNet(self.audio_net.out_dim, mouth_cfg, cfg.triplane, no_guidance, box_min, box_max)
         self.predictor = None  # LandmarkPredictor, fitted per subject when SE or LC is on
         self.lips = None  # lmgs.lips.RetargetedLips: the mouth landmarks under train.landmark_source = generic*
         self.intrinsics = tuple(float(v) for v in intrinsics)
@@ -141,7 +155,26 @@ class LMGSModel(nn.Module):
 
     @property
     def uses_landmarks(self) -> bool:
-        return bool(self.cfg.guidance.se or self.cfg.guidance.lc)
+        g = self.cfg.guidance
+        return bool(g.se or g.lc or g.mouth_state)
+
+    def fit_mouth_state(self, landmarks: torch.Tensor) -> None:
+        """Centre (median) and spread (standard deviation) of the mouth state over the training
+        frames' landmarks ``[T, 68, 3]``, kept with the model. The spread is floored at
+        :data:`MOUTH_STATE_MIN_SPREAD`: a mouth that hardly moves is not blown up into one that does."""
+        s = mouth_state(landmarks.detach().float())
+        spread = s.std(dim=0).clamp_min(MOUTH_STATE_MIN_SPREAD) if len(s) > 1 else torch.ones_like(s[0])
+        self.mouth_state_norm.copy_(torch.stack([s.median(dim=0).values, spread]).to(self.mouth_state_norm))
+
+    def mouth_states(self, landmarks: torch.Tensor | None) -> torch.Tensor | None:
+        """The normalised mouth state ``[T, 2]`` the deformations read, from landmarks ``[T, 68, 3]``
+        (None when the model does not read it)."""
+        if not self.cfg.guidance.mouth_state:
+            return None
+        if landmarks is None:
+            raise InputError("guidance.mouth_state is on: the frames' landmarks are needed")
+        norm = self.mouth_state_norm
+        return (mouth_state(landmarks.to(norm)) - norm[0]) / norm[1]
 
     def n_gaussians(self) -> int:
         return len(self.face) + len(self.mouth)
@@ -152,23 +185,24 @@ class LMGSModel(nn.Module):
 
     # ------------------------------------------------------------------ per frame
     def branch_params(
-        self, gs: GaussianSet, deform, dynamic: bool, audio: torch.Tensor | None, landmarks, blink, point_features=None
+        self, gs: GaussianSet, deform, dynamic: bool, audio: torch.Tensor | None, landmarks, blink, point_features=None, exp=None
     ) -> tuple[tuple[torch.Tensor, ...], float | None]:
         """Deformed (means, quats, log_scales, opacity_logits, colors) of one branch for one frame."""
         if not dynamic:
             return (gs.means, gs.quats, gs.log_scales, gs.opacity_logits, gs.colors()), None
-        out = deform(gs.means, audio, landmarks, blink, point_features=point_features)
+        out = deform(gs.means, audio, landmarks, blink, exp=exp, point_features=point_features)
         return (gs.means + out.d_xyz, gs.quats + out.d_rot, gs.log_scales + out.d_scale, gs.opacity_logits, gs.colors()), out.se_fraction
 
     def render_frame(
         self, w2c: torch.Tensor, background: torch.Tensor, *, dynamic: bool = True, audio=None, landmarks=None, blink=None,
-        face_features=None, mouth_features=None, check_values: bool = True,
+        face_features=None, mouth_features=None, check_values: bool = True, mouth=None,
     ) -> FrameRender:
-        """One frame, differentiable (training). ``check_values=False`` leaves out the rasterizer's
-        finiteness check, a read-back from the device per branch (the training step's own loss
-        check catches parameters gone non-finite)."""
-        face_p, frac = self.branch_params(self.face, self.face_deform, dynamic, audio, landmarks, blink, face_features)
-        mouth_p, _ = self.branch_params(self.mouth, self.mouth_deform, dynamic, audio, None, None, mouth_features)
+        """One frame, differentiable (training). ``mouth``: the frame's normalised mouth state
+        ``[2]`` (:meth:`mouth_states`) when the model reads it. ``check_values=False`` leaves out the
+        rasterizer's finiteness check, a read-back from the device per branch (the training step's
+        own loss check catches parameters gone non-finite)."""
+        face_p, frac = self.branch_params(self.face, self.face_deform, dynamic, audio, landmarks, blink, face_features, mouth)
+        mouth_p, _ = self.branch_params(self.mouth, self.mouth_deform, dynamic, audio, None, None, mouth_features, mouth)
         r = render_branches(face_p, mouth_p, self.camera(w2c), background, check_values=check_values)
         r.se_fraction = float("nan") if frac is None else frac
         return r
@@ -209,6 +243,7 @@ class LMGSModel(nn.Module):
         lms = self.predictor.predict(feats).to(dev) if (self.uses_landmarks and self.predictor is not None) else None
         if lms is not None and self.lips is not None:
             lms = self.lips.replace_mouth(lms, driving.audio, n)
+        mouths = self.mouth_states(lms)
         t_audio = time.perf_counter() - t0
         face_prep = self.face_deform.prepare(self.face.means)
         mouth_prep = self.mouth_deform.prepare(self.mouth.means)
@@ -233,11 +268,12 @@ class LMGSModel(nn.Module):
                 w2c = w2cs[k] if w2cs is not None else self.train_w2c[t % len(self.train_w2c)]
                 bg = as_image(bgs[k]) if bgs is not None else self.default_background
                 a = time.perf_counter()
+                m = None if mouths is None else mouths[t]
                 face_p, frac = prepared_params(self.face, self.face_deform, face_prep, fa[t], None if lms is None else lms[t],
-                                               blinks[k])
+                                               blinks[k], m)
                 if frac is not None:
                     fracs.append(frac)
-                mouth_p, _ = prepared_params(self.mouth, self.mouth_deform, mouth_prep, fa[t], None, None)
+                mouth_p, _ = prepared_params(self.mouth, self.mouth_deform, mouth_prep, fa[t], None, None, m)
                 b = time.perf_counter()
                 r = render_branches(face_p, mouth_p, self.camera(w2c), bg, geometry=False, check_values=on_host)
                 frames[k] = (r.rgb.clamp(0, 1) * 255 + 0.5).to(torch.uint8)

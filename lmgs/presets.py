@@ -140,8 +140,8 @@ class LMGSConfig:
 
     def to_dict(self) -> dict:
         d = config_dict(self)
-        if not (self.guidance.se or self.guidance.lc):
-            # without SE and LC nothing reads the landmarks: the folds change no weight, so
+        if not (self.guidance.se or self.guidance.lc or self.guidance.mouth_state):
+            # without SE, LC and the mouth state nothing reads the landmarks: the folds change no weight, so
             # they do not change the hash either (TalkingGaussian's records stay valid)
             d["train"].pop("landmark_folds", None)
             d["train"].pop("landmark_source", None)
