@@ -147,7 +147,7 @@ class LMGSModel(nn.Module):
         # The mouth branch is driven by audio alone (TalkingGaussian); guidance is the face's.
         no_guidance = GuidanceConfig(se=False, lc=False, theta=cfg.guidance.theta)
         self.mouth_deform = DeformNet(self.audio_net.out_dim, mouth_cfg, cfg.triplane, no_guidance, box_min, box_max)
-        self.predictor = None  # LandmarkPredictor, fitted per subject when SE or LC is on
+        self.predictor = None  # LandmarkPredictor, fitted per subject when SE, LC or the mouth state read landmarks
         self.lips = None  # lmgs.lips.RetargetedLips: the mouth landmarks under train.landmark_source = generic*
         self.intrinsics = tuple(float(v) for v in intrinsics)
         self.register_buffer("train_w2c", torch.zeros(0, 4, 4))
