@@ -87,17 +87,11 @@ def components(cfg) -> dict:
     return {
         "se": bool(g.se), "lc": bool(g.lc), "gr": bool(cfg.gr), "theta": float(g.theta),
         "se_cap": float(g.select_fraction) if g.se else 0.0,
-        "landmark_folds": int(t.landmark_folds) if reads_landmarks(cfg) else 0,
+        "landmark_folds": int(t.landmark_folds) if g.reads_landmarks else 0,
         "gr_reduce": str(t.normal_reduce), "gr_weight": float(t.lambda_normal),
         "audio_frontend": a.frontend, "audio_encoder": bool(a.use_encoder),
         **({"mouth_state": True} if g.mouth_state else {}),
     }
-
-
-def reads_landmarks(cfg) -> bool:
-    """Whether the model reads the audio-predicted landmarks (SE, LC or the mouth state)."""
-    g = cfg.guidance
-    return bool(g.se or g.lc or g.mouth_state)
 
 
 class LMGSMethod:
@@ -151,7 +145,7 @@ class LMGSMethod:
                          else "SE by theta alone (no cap on the points selected)")
         if g.mouth_state:
             parts.append("the deformations read the mouth's opening and width from the landmarks")
-        reads = reads_landmarks(self.cfg)
+        reads = g.reads_landmarks
         if reads and t.landmark_folds:
             parts.append(f"out-of-fold training landmarks ({t.landmark_folds} folds)")
         generic = None  # the landmark source in the display name, when not the per-subject predictor
@@ -184,7 +178,8 @@ class LMGSMethod:
     def lip_weights(self) -> str | None:
         """The generic lip model's weights this configuration reads (None where the landmarks come from the
         per-subject predictor, or nothing reads them)."""
-        return self.cfg.train.lip_weights if reads_landmarks(self.cfg) and self.cfg.train.landmark_source != "subject" else None
+        g, t = self.cfg.guidance, self.cfg.train
+        return t.lip_weights if g.reads_landmarks and t.landmark_source != "subject" else None
 
     def cost(self) -> dict:
         if self.model is None:

@@ -267,6 +267,11 @@ class GuidanceConfig:
     select_fraction: float = added_option(0.0, 0.2)
     mouth_state: bool = added_option(False)
 
+    @property
+    def reads_landmarks(self) -> bool:
+        """Whether the model reads the audio-predicted landmarks (SE, LC or the mouth state)."""
+        return bool(self.se or self.lc or self.mouth_state)
+
     def __post_init__(self) -> None:
         if not 0.0 <= self.select_fraction < 1.0:
             raise ValueError(f"guidance.select_fraction must be in [0, 1), not {self.select_fraction!r}")

@@ -155,8 +155,7 @@ class LMGSModel(nn.Module):
 
     @property
     def uses_landmarks(self) -> bool:
-        g = self.cfg.guidance
-        return bool(g.se or g.lc or g.mouth_state)
+        return self.cfg.guidance.reads_landmarks
 
     def fit_mouth_state(self, landmarks: torch.Tensor) -> None:
         """Centre (median) and spread (standard deviation) of the mouth state over the training

@@ -140,7 +140,7 @@ class LMGSConfig:
 
     def to_dict(self) -> dict:
         d = config_dict(self)
-        if not (self.guidance.se or self.guidance.lc or self.guidance.mouth_state):
+        if not self.guidance.reads_landmarks:
             # without SE, LC and the mouth state nothing reads the landmarks: the folds change no weight, so
             # they do not change the hash either (TalkingGaussian's records stay valid)
             d["train"].pop("landmark_folds", None)
