@@ -153,10 +153,10 @@ class LMGSMethod:
             parts.append("mouth landmarks from the generic lip model" + (", fine-tuned on the subject"
                                                                           if t.landmark_source == "generic-tuned" else ""))
             generic = "generic mouth" + (", tuned" if t.landmark_source == "generic-tuned" else "")
+        tags = [x for x in (generic, "mouth state" if g.mouth_state else None) if x]  # in the display name
         return MethodInfo(
             name=self.variant,
-            display_name=(f"Ours (lmgs{''.join(', ' + x for x in (generic, 'mouth state' if g.mouth_state else None) if x)})"
-                          if self.variant == "lmgs" else f"lmgs ({', '.join(parts)})"),
+            display_name=(f"Ours ({', '.join(['lmgs', *tags])})" if self.variant == "lmgs" else f"lmgs ({', '.join(parts)})"),
             family="3DGS",
             description=(
                 "The paper's method on TalkingGaussian's face/mouth decomposition, trained on a CPU schedule "

@@ -25,19 +25,15 @@ import time
 import numpy as np
 
 
-def opening(lms: np.ndarray) -> np.ndarray:
-    """The inner lips' opening ``[T]`` in pixels: the distance between dlib's points 62 and 66."""
-    return np.linalg.norm(lms[:, 62] - lms[:, 66], axis=-1)
-
-
 def motion_row(name: str, rendered: np.ndarray, truth: np.ndarray) -> dict:
     """LMD and the inner-lip opening of ``rendered`` against ``truth`` (both ``[T, H, W, 3]`` uint8)."""
+    from lmgs.lips import MOUTH, lip_gap
     from lmgs_eval.metrics.landmarks import create_backend, lmd_per_frame
 
     backend = create_backend("dlib")
     lp, lt = backend.landmarks(rendered), backend.landmarks(truth)
     ok = np.isfinite(lp).all(axis=(1, 2)) & np.isfinite(lt).all(axis=(1, 2))
-    gp, gt = opening(lp[ok]), opening(lt[ok])
+    gp, gt = lip_gap(lp[ok][:, MOUTH]), lip_gap(lt[ok][:, MOUTH])  # points 62 and 66, in pixels
     r = float(np.corrcoef(gp, gt)[0, 1]) if ok.sum() > 2 and gp.std() > 0 and gt.std() > 0 else float("nan")
     return {"frames": name, "n": int(ok.sum()), "lmd": float(np.mean(lmd_per_frame(lp[ok], lt[ok]))),
             "opening_render": [float(gp.mean()), float(gp.std())], "opening_truth": [float(gt.mean()), float(gt.std())],
@@ -87,7 +83,8 @@ def main(argv: list[str] | None = None) -> int:
         if truth.dtype != np.uint8:
             truth = np.clip(np.rint(truth * 255), 0, 255).astype(np.uint8)
         rows.append(motion_row(name, method.render(driving_from_clip(clip)), truth))
-    out = {"subject": args.subject, "method": method.describe().display_name, "config_hash": method.describe().config_hash,
+    info = method.describe()
+    out = {"subject": args.subject, "method": info.display_name, "config_hash": info.config_hash,
            "seed": args.seed, "fit_or_load_s": round(fit_s, 1), "rows": rows}
     if args.json:
         print(json.dumps(out))

@@ -136,11 +136,11 @@ class LMGSModel(nn.Module):
         self.mouth = mouth
         self.audio_net = AudioNet(in_channels, window, cfg.audio)
         face_cfg, mouth_cfg = cfg.deform_face, cfg.deform_mouth
-        if cfg.guidance.mouth_state:  # both branches read it as (more) expression input
-            face_cfg = dataclasses.replace(face_cfg, exp_dim=face_cfg.exp_dim + MOUTH_STATE_DIM)
-            mouth_cfg = dataclasses.replace(mouth_cfg, exp_dim=mouth_cfg.exp_dim + MOUTH_STATE_DIM)
-            if cfg.deform_face.exp_dim or cfg.deform_mouth.exp_dim:
+        if cfg.guidance.mouth_state:  # both branches read it as their expression input
+            if face_cfg.exp_dim or mouth_cfg.exp_dim:
                 raise InputError("guidance.mouth_state fills the expression input: it cannot be combined with deform_*.exp_dim")
+            face_cfg = dataclasses.replace(face_cfg, exp_dim=MOUTH_STATE_DIM)
+            mouth_cfg = dataclasses.replace(mouth_cfg, exp_dim=MOUTH_STATE_DIM)
             # centre and spread of the training frames' mouth state (set by :meth:`fit_mouth_state`)
             self.register_buffer("mouth_state_norm", torch.tensor([[0.0] * MOUTH_STATE_DIM, [1.0] * MOUTH_STATE_DIM]))
         self.face_deform = DeformNet(self.audio_net.out_dim, face_cfg, cfg.triplane, cfg.guidance, box_min, box_max)
