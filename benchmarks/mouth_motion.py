@@ -27,13 +27,13 @@ import numpy as np
 
 def motion_row(name: str, rendered: np.ndarray, truth: np.ndarray) -> dict:
     """LMD and the inner-lip opening of ``rendered`` against ``truth`` (both ``[T, H, W, 3]`` uint8)."""
-    from lmgs.lips import MOUTH, lip_gap
+    from lmgs.lips import lip_gap
     from lmgs_eval.metrics.landmarks import create_backend, lmd_per_frame
 
     backend = create_backend("dlib")
     lp, lt = backend.landmarks(rendered), backend.landmarks(truth)
     ok = np.isfinite(lp).all(axis=(1, 2)) & np.isfinite(lt).all(axis=(1, 2))
-    gp, gt = lip_gap(lp[ok][:, MOUTH]), lip_gap(lt[ok][:, MOUTH])  # points 62 and 66, in pixels
+    gp, gt = lip_gap(lp[ok]), lip_gap(lt[ok])  # points 62 and 66, in pixels
     r = float(np.corrcoef(gp, gt)[0, 1]) if ok.sum() > 2 and gp.std() > 0 and gt.std() > 0 else float("nan")
     return {"frames": name, "n": int(ok.sum()), "lmd": float(np.mean(lmd_per_frame(lp[ok], lt[ok]))),
             "opening_render": [float(gp.mean()), float(gp.std())], "opening_truth": [float(gt.mean()), float(gt.std())],

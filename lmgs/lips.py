@@ -107,9 +107,14 @@ def neutral_mouth(mouth: np.ndarray) -> tuple[np.ndarray, float]:
     return n, w
 
 
-def lip_gap(mouth) -> np.ndarray:
-    """Inner-lip gap per frame ``[T]``: the distance between the inner-lip midpoints (62, 66) of ``[T, 20, 3]``."""
-    m = np.asarray(mouth, np.float64)
+def lip_gap(points) -> np.ndarray:
+    """Inner-lip gap per frame ``[T]``: the distance between the inner-lip midpoints (62, 66), read from the
+    mouth's 20 points ``[T, 20, D]`` or from all 68 ``[T, 68, D]`` (D = 2 or 3; a missing face's NaN stays NaN)."""
+    m = np.asarray(points, np.float64)
+    if m.ndim == 3 and m.shape[1] == 68:
+        m = m[:, MOUTH]
+    if m.ndim != 3 or m.shape[1] != N_MOUTH:
+        raise InputError(f"lip_gap reads [T, 20, D] mouth points or [T, 68, D] landmarks, got shape {m.shape}")
     return np.linalg.norm(m[:, GAP[0]] - m[:, GAP[1]], axis=-1)
 
 

@@ -131,7 +131,7 @@ class _Run:
     last_psnr: float = float("nan")
     last_frac: float = float("nan")
     lip_boxes: np.ndarray | None = None
-    mouth: torch.Tensor | None = None  # [T, 2] the training frames' normalised mouth state (guidance.mouth_state)
+    mouth_states: torch.Tensor | None = None  # [T, 2] the training frames' normalised mouth state (guidance.mouth_state)
     use_geo: bool = False
     data: ClipTensors | None = None
 
@@ -252,7 +252,7 @@ def _fit_landmarks(run: _Run, seed: int) -> None:
         run.lms_pred = model.lips.replace_mouth(run.lms_pred, clip.audio, n)
     if run.cfg.guidance.mouth_state:  # from the landmarks that guide training, as at test time from the predicted ones
         model.fit_mouth_state(run.lms_pred)
-        run.mouth = model.mouth_states(run.lms_pred)
+        run.mouth_states = model.mouth_states(run.lms_pred)
     run.t_lms = time.perf_counter() - a
     how = f"{folds}-fold out-of-fold" if folds >= 2 else "in-sample"
     if model.lips is not None:
@@ -296,13 +296,13 @@ def _frame_loss(run: _Run, step: int, i: int, dynamic: bool):
     audio = model.audio_net(run.feats, index=data.index(i))[0] if dynamic else None
     lm = run.lms_pred[i] if (dynamic and run.lms_pred is not None) else None
     on_host = run.dev.type == "cpu"  # on a GPU nothing in the step reads a value back (see lmgs.clipdata)
-    mouth_now = run.mouth[i] if (dynamic and run.mouth is not None) else None
-    r = model.render_frame(model.train_w2c[i], bg, dynamic=dynamic, audio=audio, landmarks=lm, blink=data.blink(i), mouth=mouth_now,
+    state = run.mouth_states[i] if (dynamic and run.mouth_states is not None) else None
+    r = model.render_frame(model.train_w2c[i], bg, dynamic=dynamic, audio=audio, landmarks=lm, blink=data.blink(i), mouth=state,
                            check_values=on_host)
     loss = losses.photometric(r.rgb, gt, t.lambda_dssim)
-    mouth = data.mouth_pixels(i) if dynamic else None
-    if mouth is not None:
-        loss = loss + t.lambda_mouth * r.face_alpha[..., 0].reshape(-1)[mouth].mean()
+    mouth_px = data.mouth_pixels(i) if dynamic else None
+    if mouth_px is not None:
+        loss = loss + t.lambda_mouth * r.face_alpha[..., 0].reshape(-1)[mouth_px].mean()
     if run.use_geo and dynamic:
         ramp = gr_ramp(step - t.static_steps, t.gr_warmup)
         loss = loss + losses.geometry(r.depth, r.normal, r.face_alpha, data.depth(i), data.normal(i), ramp * t.lambda_depth,

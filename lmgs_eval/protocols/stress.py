@@ -33,6 +33,7 @@ import torch
 from tqdm import tqdm
 
 from baselines import protocol as methods
+from lmgs.lips import lip_gap
 from lmgs.types import DrivingAudio
 from lmgs_eval import results as store
 from lmgs_eval.convert import driving_from_clip, subject_to_clip
@@ -83,7 +84,7 @@ def silence_open_result(lms: np.ndarray, spans, fps: float = 25.0) -> MetricResu
     sel = np.zeros(len(lms), bool)
     for a, b in spans:
         sel |= (t >= a) & (t < b)
-    opening = np.linalg.norm(np.asarray(lms, np.float64)[:, 66] - np.asarray(lms, np.float64)[:, 62], axis=-1)[sel]
+    opening = lip_gap(lms)[sel]
     ok = np.isfinite(opening)
     val = float(opening[ok].mean()) if ok.any() else None
     return MetricResult(SILENCE_OPEN_SPEC, val, {"silence_open": val}, opening, int(sel.sum()), int(ok.sum()),

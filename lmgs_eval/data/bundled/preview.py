@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lmgs.lips import lip_gap
 from lmgs_eval.data.audio import load_audio
 from lmgs_eval.data.images import read_rgb_u8, write_rgb
 from lmgs_eval.data.video import write_video
@@ -34,7 +35,7 @@ def _pick(root: Path, n: int) -> list[tuple[int, str]]:
     meta = json.loads((root / "meta.json").read_text())
     cols = meta["articulation_columns"]
     lms = np.stack([np.loadtxt(root / "ori_imgs" / f"{i}.lms") for i in range(n)])
-    gap = np.linalg.norm(lms[:, 62] - lms[:, 66], axis=1)
+    gap = lip_gap(lms)
     phones = json.loads((root / "phonemes.json").read_text())
     chosen: list[tuple[int, str]] = []
 

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from lmgs.fileio import atomic_path
+from lmgs.lips import lip_gap
 
 AU_COLUMNS = ("AU25_r", "AU26_r", "AU45_r")
 
@@ -38,7 +39,7 @@ def action_units(lms: np.ndarray) -> dict[str, np.ndarray]:
     ear = eye_openness(lms)
     open_ = max(float(np.percentile(ear, 90)), 1e-6)
     au45 = np.clip(5.0 * (1.0 - ear / open_), 0, 5)
-    gap = np.linalg.norm(lms[:, 62] - lms[:, 66], axis=1) / (np.linalg.norm(lms[:, 60] - lms[:, 64], axis=1) + 1e-9)
+    gap = lip_gap(lms) / (np.linalg.norm(lms[:, 60] - lms[:, 64], axis=1) + 1e-9)
     au25 = np.clip(10.0 * gap, 0, 5)
     fh = np.linalg.norm(lms[:, 8] - lms[:, 27], axis=1) + 1e-9
     jaw = np.linalg.norm(lms[:, 8] - lms[:, 33], axis=1) / fh
