@@ -8,6 +8,8 @@ the test frames, and gives for each block LMD and the inner lips' opening (dlib'
 in pixels) of the render and of the truth: their mean and spread over the frames, and the
 correlation of the two over time. A mouth that moves with the truth has a spread near the truth's
 and a correlation near 1; one fitted as a still average has a small spread on training frames too.
+For lmgs it also gives the share of face points Spatial Enhancement selected on each block (the
+paper reports about 20 %).
 
     python benchmarks/mouth_motion.py --subject anchor_de_20s --method lmgs [--set KEY=VALUE ...] [--seed N]
 
@@ -18,6 +20,7 @@ trained by ``self`` is only loaded); the scoring is dlib on about 140 frames.
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import sys
 import time
@@ -82,7 +85,10 @@ def main(argv: list[str] | None = None) -> int:
         truth = np.asarray(clip.frames)
         if truth.dtype != np.uint8:
             truth = np.clip(np.rint(truth * 255), 0, 255).astype(np.uint8)
-        rows.append(motion_row(name, method.render(driving_from_clip(clip)), truth))
+        timings: dict = {}  # lmgs fills in the share of face points Spatial Enhancement selected
+        kw = {"timings": timings} if "timings" in inspect.signature(method.render).parameters else {}
+        rows.append(motion_row(name, method.render(driving_from_clip(clip), **kw), truth))
+        rows[-1]["se_share"] = timings.get("se_fraction")
     info = method.describe()
     out = {"subject": args.subject, "method": info.display_name, "config_hash": info.config_hash,
            "seed": args.seed, "fit_or_load_s": round(fit_s, 1), "rows": rows}
@@ -90,10 +96,11 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(out))
         return 0
     print(f"{out['method']} ({out['config_hash']}, seed {args.seed}) on {args.subject}; inner-lip opening in px")
-    print(f"{'frames':30s} {'n':>3s} {'LMD':>6s} {'render':>12s} {'truth':>12s} {'r':>6s}")
+    print(f"{'frames':30s} {'n':>3s} {'LMD':>6s} {'render':>12s} {'truth':>12s} {'r':>6s} {'SE':>6s}")
     for r in rows:
+        se = "" if r["se_share"] is None else f"{100 * r['se_share']:5.1f}%"
         print(f"{r['frames']:30s} {r['n']:3d} {r['lmd']:6.2f} {r['opening_render'][0]:6.2f}+-{r['opening_render'][1]:<4.2f} "
-              f"{r['opening_truth'][0]:6.2f}+-{r['opening_truth'][1]:<4.2f} {r['opening_r']:6.2f}")
+              f"{r['opening_truth'][0]:6.2f}+-{r['opening_truth'][1]:<4.2f} {r['opening_r']:6.2f} {se:>6s}")
     return 0
 
 
