@@ -26,6 +26,21 @@ def _isolated_cache(tmp_path_factory):
         yield
 
 
+@pytest.fixture(scope="module")
+def one_thread():
+    """torch and numba on one thread for a module's tests (``pytestmark = pytest.mark.usefixtures("one_thread")``):
+    frames of tens of pixels gain nothing from threads, and on shared cores extra threads only wait."""
+    import numba
+    import torch
+
+    before = torch.get_num_threads(), numba.get_num_threads()
+    torch.set_num_threads(1)
+    numba.set_num_threads(1)
+    yield
+    torch.set_num_threads(before[0])
+    numba.set_num_threads(before[1])
+
+
 def write_pcm_wav(path: Path, x: np.ndarray, sr: int) -> None:
     """Write float audio ``[S]`` or ``[S, C]`` as 16-bit PCM with the stdlib (an outside writer)."""
     x = np.asarray(x, np.float64)

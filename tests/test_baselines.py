@@ -26,18 +26,7 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.mean(10 * np.log10(1.0 / np.maximum(mse, 1e-12))))
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _one_thread():
-    # 48x48 frames are too small to gain from threads; on shared cores extra threads only wait.
-    import numba
-    import torch
-
-    before = torch.get_num_threads(), numba.get_num_threads()
-    torch.set_num_threads(1)
-    numba.set_num_threads(1)
-    yield
-    torch.set_num_threads(before[0])
-    numba.set_num_threads(before[1])
+pytestmark = pytest.mark.usefixtures("one_thread")  # 48x48 frames: one thread (conftest.one_thread)
 
 
 @pytest.fixture(scope="module")

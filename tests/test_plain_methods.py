@@ -51,18 +51,7 @@ def _feature_file(name: str) -> str | None:
     return _FEATURE_FILES.get(audio.get("frontend")) if isinstance(audio, dict) else None
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _one_thread():
-    # 64x64 frames gain nothing from threads; on shared cores extra threads only wait.
-    import numba
-    import torch
-
-    before = torch.get_num_threads(), numba.get_num_threads()
-    torch.set_num_threads(1)
-    numba.set_num_threads(1)
-    yield
-    torch.set_num_threads(before[0])
-    numba.set_num_threads(before[1])
+pytestmark = pytest.mark.usefixtures("one_thread")  # 64x64 frames: one thread (conftest.one_thread)
 
 
 @pytest.fixture(scope="module")
