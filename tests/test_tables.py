@@ -341,6 +341,19 @@ def test_table4_has_the_papers_audio_rows_first():
     md4d = table_ablation(recs + [oof]).markdown()
     assert _row(md4d, "Training landmarks out of fold (5 folds)")[1:4] == ["✓", "✓", "✓"]
     assert table_theta(recs + [oof]).markdown() == table_theta(recs).markdown()
+    # lmgs with the mouth state and the generic lip model's tuned mouth (dotted --set keys, the method's name
+    # unchanged) is not called the full model: its row names both, beside the folds
+    mouth = copy.deepcopy(oof)
+    mouth["method"].update(name="lmgs", display_name="Ours (lmgs, generic mouth, tuned, mouth state)", variant=None)
+    mouth["config"] = {**mouth["config"], "guidance": {**mouth["config"]["guidance"], "mouth_state": True},
+                       "train": {**mouth["config"]["train"], "landmark_source": "generic-tuned"}}
+    mouth["config_hash"] = "f" * 16
+    md4m = table_ablation(recs + [mouth]).markdown()
+    both = ("Mouth state read by the deformations, Mouth from the generic lip model, fine-tuned on the subject, "
+            "Training landmarks out of fold (5 folds)")
+    assert _row(md4m, both + " [ffffffff]")[1:4] == ["✓", "✓", "✓"]  # two configs of `lmgs`: each row says its hash
+    rows = [ln.split("|")[1].strip() for ln in md4m.splitlines() if ln.startswith("| ")]
+    assert rows[-1].startswith("Full model [") and rows.index(both + " [ffffffff]") < len(rows) - 1  # the full model last
     # SE capped at a share of the points, against a full model by θ alone, likewise
     cap20 = copy.deepcopy(next(x for x in recs if x["method"]["name"] == "lmgs"))
     cap20["method"].update(name="lmgs-cap20", display_name="lmgs-cap20", variant="cap20")

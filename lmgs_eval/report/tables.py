@@ -38,7 +38,7 @@ import numpy as np
 from lmgs_eval.report.cells import (COST_COLUMNS, by_subject, common_notes, components_of, fill_row, is_ok, is_variant,
                                     make_rows, metric_columns, rank_section, row_order, subject_title, with_custom_keys)
 from lmgs_eval.report.diagnostics import paper_order_agreement, table_calibration, table_stability, table_status
-from lmgs_eval.report.table_model import METRICS, OURS, UNRANKED, Cell, Column, Record, Section, Table
+from lmgs_eval.report.table_model import METRICS, OURS, UNRANKED, Cell, Column, Record, Row, Section, Table
 from lmgs_eval.results.store import se_fraction
 
 __all__ = ["all_tables", "paper_order_agreement", "table_ablation", "table_calibration", "table_cross", "table_self",
@@ -151,6 +151,13 @@ def _se_cap(r: Record) -> float:
     return float(components_of(r)["se_cap"])
 
 
+def _landmark_source(r: Record) -> str:
+    """Where a record's guiding landmarks came from (``train.landmark_source``): ``subject`` (the per-subject
+    predictor, the default, which the config leaves out, as it does when nothing reads the landmarks),
+    ``generic`` or ``generic-tuned`` (the generic lip model's mouth)."""
+    return str((r.config.get("train") or {}).get("landmark_source", "subject"))
+
+
 def _ablation_label(r: Record, full_frontend: str | None = None, full_gr: tuple | None = None,
                     full_cap: float | None = None) -> str:
     """The row of Table IV: the audio rows of the paper, then what of SE / LC / GR is off."""
@@ -169,6 +176,11 @@ def _ablation_label(r: Record, full_frontend: str | None = None, full_gr: tuple 
     cap = _se_cap(r)
     if c["se"] and cap != (full_cap or 0.0):  # SE selects another share than the full model's
         parts.append(f"SE capped at {cap:.0%} of the points" if cap else "SE by θ alone (uncapped)")
+    if c.get("mouth_state"):
+        parts.append("Mouth state read by the deformations")
+    source = _landmark_source(r)
+    if source != "subject":
+        parts.append("Mouth from the generic lip model" + (", fine-tuned on the subject" if source == "generic-tuned" else ""))
     folds = c["landmark_folds"]
     if folds:
         parts.append(f"Training landmarks out of fold ({folds} folds)")
@@ -179,6 +191,11 @@ def _ablation_label(r: Record, full_frontend: str | None = None, full_gr: tuple 
     if parts:
         return ", ".join(parts)
     return "Full model" if not is_variant(r) else (r.method.display_name or r.method.name)
+
+
+def _full_model(row: Row) -> bool:
+    """Is this Table IV's full-model row (its label carries the config hash where two configs share the name)?"""
+    return row.label == "Full model" or row.label.startswith("Full model [")
 
 
 def table_ablation(records: Sequence[Record], metrics: Sequence[str] = ("lmd", "lpips", "lse_d", "lse_c")) -> Table:
@@ -196,14 +213,13 @@ def table_ablation(records: Sequence[Record], metrics: Sequence[str] = ("lmd", "
         if len({label(r) for r in recs}) < 2:
             continue
         order = {"Replacing Audio Net with DS": 0, "w/o Audio Encoder": 1, "w/o SE": 2, "w/o LC": 3, "w/o GR": 4}
-        rows = sorted(make_rows(recs, label=label),
-                      key=lambda row: (row.label == "Full model", order.get(row.label, 5), row.label))
+        rows = sorted(make_rows(recs, label=label), key=lambda row: (_full_model(row), order.get(row.label, 5), row.label))
         for row in rows:
             fill_row(row, cols)
             c = components_of(row.records[0])
             for cid in ("se", "lc", "gr"):
                 row.cells[cid] = Cell(text="✓" if c[cid] else "✗")
-            row.rule_before = row.label == "Full model"
+            row.rule_before = _full_model(row)
         sec = Section(f"{subject_title(recs)}, θ = {theta:g}", rows)
         rank_section(sec, cols)
         sections.append(sec)

@@ -27,14 +27,15 @@ def lmgs_components(config: dict[str, Any]) -> dict[str, Any] | None:
     if not isinstance(g, dict) or "theta" not in g:
         return None
     train, audio = config.get("train") or {}, config.get("audio") or {}
-    se, lc = bool(g.get("se", True)), bool(g.get("lc", True))
+    se, lc, mouth = bool(g.get("se", True)), bool(g.get("lc", True)), bool(g.get("mouth_state", False))
     return {
         "se": se, "lc": lc, "gr": bool(config.get("gr", True)), "theta": float(g["theta"]),
         # the config leaves out what a switched-off part would use (its hash stays that of before)
         "se_cap": float(g.get("select_fraction", 0.0)) if se else 0.0,
-        "landmark_folds": int(train.get("landmark_folds", 0)) if (se or lc) else 0,
+        "landmark_folds": int(train.get("landmark_folds", 0)) if (se or lc or mouth) else 0,
         "gr_reduce": str(train.get("normal_reduce", "sum")), "gr_weight": float(train.get("lambda_normal", 1e-4)),
         "audio_frontend": audio.get("frontend"), "audio_encoder": bool(audio.get("use_encoder", True)),
+        **({"mouth_state": True} if mouth else {}),  # as baselines.lmgs_method.components declares it
     }
 
 
