@@ -160,7 +160,8 @@ def _landmark_source(r: Record) -> str:
 
 def _ablation_label(r: Record, full_frontend: str | None = None, full_gr: tuple | None = None,
                     full_cap: float | None = None) -> str:
-    """The row of Table IV: the audio rows of the paper, then what of SE / LC / GR is off."""
+    """The row of Table IV: the audio rows of the paper, then what of SE / LC / GR is off, then what else differs
+    from the full model (SE's cap, the mouth state, where the guiding landmarks come from, their folds, GR's form)."""
     c = components_of(r)
     parts = []
     frontend = c["audio_frontend"]
