@@ -20,7 +20,6 @@ trained by ``self`` is only loaded); the scoring is dlib on about 140 frames.
 from __future__ import annotations
 
 import argparse
-import inspect
 import json
 import sys
 import time
@@ -60,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     from lmgs_eval.data.registry import find_subject
     from lmgs_eval.errors import UserError
     from lmgs_eval.results.records import RunId
-    from lmgs_eval.runner import RunConfig, build_method
+    from lmgs_eval.runner import RunConfig, build_method, takes_timings
 
     try:
         subject = find_subject(args.subject, args.data_root, progress=False)
@@ -86,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
         if truth.dtype != np.uint8:
             truth = np.clip(np.rint(truth * 255), 0, 255).astype(np.uint8)
         timings: dict = {}  # lmgs fills in the share of face points Spatial Enhancement selected
-        kw = {"timings": timings} if "timings" in inspect.signature(method.render).parameters else {}
+        kw = {"timings": timings} if takes_timings(method) else {}
         rows.append(motion_row(name, method.render(driving_from_clip(clip), **kw), truth))
         rows[-1]["se_share"] = timings.get("se_fraction")
     info = method.describe()

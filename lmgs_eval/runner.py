@@ -153,6 +153,12 @@ def head_of(driving: DrivingAudio, k: int) -> DrivingAudio:
     )
 
 
+def takes_timings(method) -> bool:
+    """Whether a method's ``render`` takes ``timings=`` (a dict it fills in: seconds per stage, and for lmgs the
+    share of face points Spatial Enhancement selected)."""
+    return "timings" in inspect.signature(method.render).parameters
+
+
 def timed_render(method, driving: DrivingAudio, timings: dict | None = None,
                  repeats: int = REPEATS) -> tuple[np.ndarray, dict]:
     """Render after a short warm-up; FPS is audio in to frames out, I/O outside the timer.
@@ -161,7 +167,7 @@ def timed_render(method, driving: DrivingAudio, timings: dict | None = None,
     :data:`REPEAT_BUDGET_S`) and the median run is reported (``repeats`` in the result). A method whose ``render`` takes
     ``timings=`` fills in seconds per stage (audio, network, raster) of that run.
     """
-    kw = {"timings": timings} if timings is not None and "timings" in inspect.signature(method.render).parameters else {}
+    kw = {"timings": timings} if timings is not None and takes_timings(method) else {}
     n = driving.n_frames
     warm = head_of(driving, WARMUP_FRAMES)
     t0 = time.perf_counter()
