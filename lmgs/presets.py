@@ -197,12 +197,23 @@ def preset(name: str) -> LMGSConfig:
 
 
 def config_from_dict(d: dict) -> LMGSConfig:
-    """Rebuild a config from :meth:`LMGSConfig.to_dict` (checkpoints, results files)."""
-    def make(cls, v):
-        fields = {f.name for f in dataclasses.fields(cls)}
-        return cls(**{k: tuple(x) if isinstance(x, list) else x for k, x in v.items() if k in fields})
+    """Rebuild a config from :meth:`LMGSConfig.to_dict` (checkpoints, results files).
 
-    return LMGSConfig(
+    A field the dict leaves out that :func:`lmgs.config.added_option` made takes its neutral value,
+    which is what leaving it out means (the dict of a config with ``guidance.select_fraction = 0``,
+    made before the cap, rebuilds uncapped, not at the cap's default); any other field left out
+    takes its default."""
+    def make(cls, v):
+        out = {}
+        for f in dataclasses.fields(cls):
+            if f.name in v:
+                x = v[f.name]
+                out[f.name] = tuple(x) if isinstance(x, list) else x
+            elif "omit_when" in f.metadata:
+                out[f.name] = f.metadata["omit_when"]
+        return cls(**out)
+
+    cfg = LMGSConfig(
         preset=d.get("preset", "quick"),
         audio=make(AudioConfig, d["audio"]),
         triplane=make(TriplaneConfig, d["triplane"]),
@@ -213,3 +224,8 @@ def config_from_dict(d: dict) -> LMGSConfig:
         gr=d.get("gr", True),
         size=d.get("size", 256),
     )
+    if not cfg.guidance.se and "select_fraction" not in d["guidance"]:
+        # to_dict leaves the cap out wherever SE is off (it bounds nothing then), whatever its value
+        default = next(f.default for f in dataclasses.fields(GuidanceConfig) if f.name == "select_fraction")
+        cfg = cfg.replace(**{"guidance.select_fraction": default})
+    return cfg

@@ -204,6 +204,23 @@ def test_ablation_switches_are_configs(clip):
     assert config_from_dict(cfg.to_dict()) == cfg and cfg.hash() != _tiny_cfg().hash()
 
 
+def test_a_config_rebuilt_from_its_dict_is_the_same_config():
+    """What a checkpoint or record holds rebuilds the config it came from, the options added after
+    records existed included: left out of the dict at their neutral value, they must come back at
+    it, not at a newer default (an uncapped model loaded from the cache would render capped)."""
+    from lmgs.presets import paper
+
+    for cfg in (quick(), paper(), _tiny_cfg(),
+                quick().replace(**{"guidance.select_fraction": 0.0}),  # SE uncapped: the cap's neutral, not its default
+                quick().replace(**{"train.gr_warmup": 0}),
+                quick().replace(**{"guidance.se": False}),
+                quick().replace(**{"guidance.mouth_state": True, "train.landmark_folds": 5,
+                                   "train.landmark_source": "generic-tuned"})):
+        again = config_from_dict(cfg.to_dict())
+        assert again == cfg and again.hash() == cfg.hash()
+    assert "select_fraction" not in quick().replace(**{"guidance.select_fraction": 0.0}).to_dict()["guidance"]
+
+
 def test_ds_front_end_drives_the_model_from_the_subjects_features(clip):
     """The paper's "Replacing Audio Net with DS" row: the model reads aud_ds.npy, not the waveform."""
     cfg = _tiny_cfg(**{"audio.frontend": "ds"})
