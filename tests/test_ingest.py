@@ -51,13 +51,32 @@ def test_ingest_matches_the_generators_truth(truth, ingested):
     assert got["person_iou"] > 0.95
     assert got["blink_corr"] > 0.7
     assert got["audio_snr_db"] > 30.0  # the video's own AAC track, decoded and resampled
-    # the depth / normal priors (a posed ellipsoid, and the sheet through its outline where the
-    # head mask reaches beyond it) against the rendered head's maps: measured 3.9 % median depth
-    # error, 14.1 deg mean normal error, 98 % of the head covered (the ellipsoid alone: 4.5 %,
-    # 9.5 deg over the 70 % it covers)
-    assert got["depth_rel"] < 0.06
-    assert got["normal_deg"] < 18.0
+    # the depth / normal priors (the tracked face mesh over the face; beyond it the posed
+    # ellipsoid, moved to meet the mesh, and the sheet through its outline) against the rendered
+    # head's maps: measured 2.4 % median depth error, 21.0 deg mean normal error, all but 0.4 % of
+    # the head covered. The posed ellipsoid alone (ingest version 10): 3.9 %, 14.1 deg. The
+    # generator's head is an ellipsoid with bumps at the landmarks, not a face: the mesh's relief
+    # (nose, eye sockets, lips) is nearer its depth and further from its normals than the ellipsoid
+    assert got["depth_rel"] < 0.035
+    assert got["normal_deg"] < 24.0
     assert got["geometry_cover"] > 0.9
+
+
+def test_depth_priors_carry_the_faces_relief(truth, ingested):
+    """The priors' depth at the nose tip against the eye corners' (landmarks 30; 36, 39, 42, 45,
+    read at the truth's landmarks): measured 3.6-3.8 cm where the truth's head has 3.8-3.9 cm; the
+    posed ellipsoid (ingest version 10) gave 0.7-0.9 cm on the 60 s astronaut."""
+    from lmgs_eval.data.layout import read_subject
+
+    folder, _ = ingested
+    t, e = read_subject(truth), read_subject(folder)
+
+    def relief(s, i):
+        d, lm = s.depth(i), t.landmarks[i].astype(int)
+        return np.mean([d[lm[k, 1], lm[k, 0]] for k in (36, 39, 42, 45)]) - d[lm[30, 1], lm[30, 0]]
+
+    for i in (0, t.n_frames // 2, t.n_frames - 1):
+        assert relief(e, i) == pytest.approx(relief(t, i), rel=0.15), i
 
 
 def test_tracked_texture_refines_the_landmark_pose(truth, ingested):

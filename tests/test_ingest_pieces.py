@@ -181,6 +181,100 @@ def test_depth_prior_is_the_ellipsoid_and_beyond_it_the_sheet_through_its_outlin
     assert abs(row[last + 1] - row[last]) < abs(row[last] - row[last - 1])
 
 
+def _sphere_mesh(r: float, centre, rows: int = 48, cols: int = 96):
+    """A latitude-longitude triangulation of a sphere: vertices ``[V, 3]``, triangles ``[F, 3]``."""
+    th = np.linspace(0, np.pi, rows + 1)[:, None]
+    ph = np.linspace(0, 2 * np.pi, cols, endpoint=False)[None, :]
+    v = np.stack([np.sin(th) * np.cos(ph), np.cos(th) + 0 * ph, np.sin(th) * np.sin(ph)], -1).reshape(-1, 3) * r + np.asarray(centre)
+    a = np.arange(rows)[:, None] * cols + np.arange(cols)[None, :]
+    b = np.arange(rows)[:, None] * cols + (np.arange(cols)[None, :] + 1) % cols
+    tri = np.concatenate([np.stack([a, a + cols, b], -1).reshape(-1, 3), np.stack([b, a + cols, b + cols], -1).reshape(-1, 3)])
+    return v, tri
+
+
+def test_a_triangle_mesh_renders_as_the_surface_it_approximates():
+    """A sphere of radius 0.1 m, 1 m away, triangulated (48 x 96) and rendered by
+    :func:`render_mesh`, against the sphere itself ray-cast exactly (:func:`render_prior`; its
+    own test above checks it by hand): the same pixels but at the outline, depth within the
+    triangulation's sag, normals facing the camera whichever way the triangles wind; nearer
+    triangles hide farther ones; a triangle behind the camera is left out."""
+    from lmgs_eval.data.geometry import render_mesh, render_prior
+
+    f, w, r, c = 300.0, 96, 0.1, np.array([0.02, -0.01, 1.0])
+    v, tri = _sphere_mesh(r, c)
+    exact, n_exact = render_prior(np.eye(4), f, w, w, c, np.full(3, r), np.ones((w, w), bool), rim=False)
+    for faces in (tri, tri[:, ::-1]):  # both windings
+        depth, normal = render_mesh(v, faces, f, w, w)
+        both = (depth > 0) & (exact > 0)
+        assert both.sum() >= 0.97 * (exact > 0).sum() and both.sum() >= 0.95 * (depth > 0).sum()
+        inner = both & (n_exact[..., 2] < -0.6)  # away from the outline, where the facets' sag is small
+        # the most a facet lies inside the sphere, along its normal: its circumradius (half a
+        # latitude step's diagonal) squared over the diameter; along a ray at most twice that here
+        sag = r * (np.pi / 48) ** 2 / 4
+        assert np.abs(depth[inner] - exact[inner]).max() <= 2 * sag
+        angle = np.degrees(np.arccos(np.clip((normal[inner] * n_exact[inner]).sum(-1), -1, 1)))
+        assert angle.mean() < 1.5 and angle.max() < 5.0
+        assert (normal[depth > 0][:, 2] < 0).mean() > 0.99  # facing the camera (OpenCV: -z)
+    # a square between the camera and the sphere hides it, whichever is listed first; a square with
+    # corners behind the camera is not drawn
+    sq = np.array([[-0.02, -0.02, 0.85], [0.02, -0.02, 0.85], [0.02, 0.02, 0.85], [-0.02, 0.02, 0.85]])
+    two = np.array([[0, 1, 2], [0, 2, 3]])
+    depth, _ = render_mesh(np.concatenate([v, sq]), np.concatenate([tri, len(v) + two]), f, w, w)
+    first, _ = render_mesh(np.concatenate([sq, v]), np.concatenate([two, 4 + tri]), f, w, w)
+    assert depth[w // 2, w // 2] == pytest.approx(0.85, rel=1e-6) and np.array_equal(depth, first)
+    assert (depth == np.float32(0.85)).sum() == pytest.approx((0.04 * f / 0.85) ** 2, rel=0.1)
+    behind = sq * np.array([1.0, 1.0, -1.0]) + np.array([0.0, 0.0, 0.8])  # z = -0.05 at two corners
+    behind[:2, 2] = 0.9
+    depth, _ = render_mesh(np.concatenate([v, behind]), np.concatenate([tri, len(v) + two]), f, w, w)
+    np.testing.assert_array_equal(depth, render_mesh(v, tri, f, w, w)[0])
+
+
+def test_the_tracked_mesh_is_lifted_onto_its_rays_at_the_posed_templates_depth():
+    """:func:`pose.lift_mesh` on a synthetic track: the canonical face posed 0.9 m from a camera
+    (focal 600, 256 px), seen in pixels with z in the same pixels (as the tracker gives it:
+    relative to the face, scaled like x and y), and a template (68 points) posed with it. The
+    lifted vertices project back onto the tracked pixels, their depth relief is the face's (the
+    tracker's z times depth over focal length), and the template's inner points meet them."""
+    from lmgs_eval.data.ingest.focal import canonical_face
+    from lmgs_eval.data.ingest.lips import MESH_TO_68
+    from lmgs_eval.data.ingest.pose import lift_mesh
+
+    f, w = 600.0, 256
+    face = canonical_face()  # metres, OpenCV axes
+    cam = face + np.array([0.01, -0.02, 0.9])  # camera coordinates: the face 0.9 m away
+    uv = f * cam[:, :2] / cam[:, 2:] + w / 2
+    template = cam[list(MESH_TO_68)]  # world = camera
+    # the tracker's relative z: its zero is its own, its pixels those of x and y at the head's depth
+    z_px = (cam[:, 2] - cam[:, 2].mean()) * f / np.median(template[:, 2])
+    mesh = np.concatenate([np.concatenate([uv, z_px[:, None]], 1), np.full((10, 3), 5.0)])[None]  # + 10 iris points
+    got = lift_mesh(template, np.eye(4)[None], f, mesh, w, w)[0]
+    assert got.shape == (468, 3)
+    np.testing.assert_allclose(f * got[:, :2] / got[:, 2:] + w / 2, uv, atol=1e-6)
+    np.testing.assert_allclose(got, cam, atol=1e-9)
+    # a template 1 cm behind the face places the face 1 cm back: the inner points decide, not the mean
+    back = lift_mesh(template + np.array([0.0, 0.0, 0.01]), np.eye(4)[None], f, mesh, w, w)[0]
+    np.testing.assert_allclose(back[:, 2] - cam[:, 2], 0.01, atol=1e-3)  # within a mm: the relief scales with the depth
+    assert np.all(np.isnan(lift_mesh(template, np.eye(4)[None], f, np.full((1, 478, 3), np.nan), w, w)))
+
+
+def test_the_head_ellipsoid_is_moved_to_meet_the_face_meshs_outline():
+    """:func:`meet_mesh`: the "face" a cap of a sphere 1 m from the camera, the "head" the same
+    sphere 3 cm further back, in a world whose +z faces the camera (as the ingest's template's):
+    the head is moved the 3 cm forward, within the sphere's own slope across the few pixels between
+    the mesh's edge and the ring beside it."""
+    from lmgs_eval.data.geometry import meet_mesh
+
+    f, w, r = 1200.0, 192, 0.1
+    w2c = np.array([[1.0, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 1.0], [0, 0, 0, 1]])  # world origin 1 m ahead, +z to the camera
+    v, tri = _sphere_mesh(r, np.array([0.0, 0.0, 1.0]))  # camera coordinates
+    cap = tri[(v[tri][:, :, 2] < 0.91).all(1)]  # facing the camera, where the sphere is not yet steep
+    centre, step = meet_mesh(np.array([0.0, 0.0, -0.03]), np.full(3, r), w2c[None], v[None], cap, f, w, w)
+    assert step == pytest.approx(0.03, abs=0.002)
+    np.testing.assert_allclose(centre, [0.0, 0.0, -0.03 + step])
+    same, none = meet_mesh(np.zeros(3), np.full(3, r), w2c[None], np.full((1, len(v), 3), np.nan), tri, f, w, w)
+    assert none == 0.0 and np.array_equal(same, np.zeros(3))
+
+
 def _die(a, b):  # a chunk whose worker process ends without a Python error, as one killed for memory
     import os
 

@@ -8,7 +8,8 @@ the bundled heads use), ray-cast per pixel of the head mask. Hair and ears reach
 ellipsoid's outline; their pixels take the sheet through that outline (facing the camera), so
 the whole head mask has a depth and the methods place Gaussians on all of it. It has no nose,
 lips or hair shape; it tells the methods where the head is and which way its surface faces, no
-more.
+more. Where a face mesh is tracked (the ingest's), :func:`render_mesh` draws the face itself over
+it, and :func:`meet_mesh` moves the ellipsoid so that the two meet at the face's outline.
 """
 
 from __future__ import annotations
@@ -81,3 +82,93 @@ def render_prior(w2c: np.ndarray, focal: float, w: int, h: int, centre: np.ndarr
     depth[ys[sel], xs[sel]] = tt
     normal[ys[sel], xs[sel]] = n_c
     return depth, normal
+
+
+def render_mesh(verts: np.ndarray, faces: np.ndarray, focal: float, w: int, h: int, *,
+                cx: float | None = None, cy: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Depth ``[H, W]`` (camera z, 0 where no triangle) and unit normals ``[H, W, 3]`` (OpenCV
+    camera axes, turned to face the camera) of a triangle mesh: at each pixel whose centre some
+    triangle covers, the nearest such triangle.
+
+    ``verts [V, 3]``: camera coordinates (OpenCV: x right, y down, z away); ``faces [F, 3]``:
+    vertex indices. A triangle with a vertex that is not finite or not in front of the camera, or
+    seen edge-on, is left out. Within a triangle depth is interpolated perspective-correctly
+    (``1/z`` linear in the image) and the normal from the vertices' area-weighted normals, so the
+    surface is smooth across edges. Every (triangle, pixel of its bounding box) pair is tested at
+    once: a face mesh of about 900 triangles at 512 px takes milliseconds."""
+    cx = w / 2 if cx is None else cx
+    cy = h / 2 if cy is None else cy
+    depth = np.zeros((h, w), np.float32)
+    normal = np.zeros((h, w, 3), np.float32)
+    v = np.asarray(verts, np.float64)
+    f = np.asarray(faces, np.int64)
+    z = v[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = np.stack([focal * v[:, 0] / z + cx, focal * v[:, 1] / z + cy], 1)
+    tri = uv[f]  # [F, 3, 2]
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    ok = np.isfinite(tri).all((1, 2)) & (z[f] > 0).all(1) & (np.abs(det) > 1e-9)
+    lo = np.floor(np.where(ok[:, None], tri.min(1), 0) - 0.5).astype(np.int64) + 1  # first pixel centre (i + 0.5) inside
+    hi = np.floor(np.where(ok[:, None], tri.max(1), -1) - 0.5).astype(np.int64)
+    lo = np.maximum(lo, 0)
+    hi = np.minimum(hi, [w - 1, h - 1])
+    nx, ny = np.maximum(hi[:, 0] - lo[:, 0] + 1, 0), np.maximum(hi[:, 1] - lo[:, 1] + 1, 0)
+    count = np.where(ok, nx * ny, 0)
+    if count.sum() == 0:
+        return depth, normal
+    k = np.repeat(np.arange(len(f)), count)  # one row per (triangle, pixel of its box)
+    j = np.arange(len(k)) - np.repeat(np.cumsum(count) - count, count)
+    xs, ys = lo[k, 0] + j % nx[k], lo[k, 1] + j // nx[k]
+    px, py = xs + 0.5 - tri[k, 0, 0], ys + 0.5 - tri[k, 0, 1]
+    l1 = (px * e2[k, 1] - py * e2[k, 0]) / det[k]
+    l2 = (e1[k, 0] * py - e1[k, 1] * px) / det[k]
+    lam = np.stack([1.0 - l1 - l2, l1, l2], 1)
+    inside = (lam >= -1e-9).all(1)  # a centre on an edge both triangles share belongs to both
+    k, xs, ys, lam = k[inside], xs[inside], ys[inside], lam[inside]
+    zk = 1.0 / (lam / z[f[k]]).sum(1)
+    order = np.lexsort((zk, ys * w + xs))  # by pixel, nearest first
+    first = order[np.unique((ys * w + xs)[order], return_index=True)[1]]
+    k, xs, ys, lam, zk = k[first], xs[first], ys[first], lam[first], zk[first]
+    # vertex normals: area-weighted sums of the faces' normals, by the winding (turned below)
+    fn = np.zeros((len(f), 3))
+    fn[ok] = np.cross(v[f[ok, 1]] - v[f[ok, 0]], v[f[ok, 2]] - v[f[ok, 0]])
+    vn = np.zeros_like(v)
+    for c in range(3):
+        np.add.at(vn, f[ok, c], fn[ok])
+    n = (lam[..., None] * vn[f[k]]).sum(1)
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    if (fn[k] * v[f[k]].mean(1)).sum() > 0:  # the winding's normals face away from the camera where it sees the mesh
+        n = -n
+    depth[ys, xs] = zk
+    normal[ys, xs] = n
+    return depth, normal
+
+
+def meet_mesh(centre: np.ndarray, axes: np.ndarray, w2c: np.ndarray, verts: np.ndarray, faces: np.ndarray, focal: float,
+              w: int, h: int) -> tuple[np.ndarray, float]:
+    """The ellipsoid's centre moved along the head's forward axis (the world's +z) so that its
+    surface meets the mesh's outline: the median, over the frames given (``w2c [N, 4, 4]``,
+    ``verts [N, V, 3]`` in each camera's coordinates), of the depth step from the mesh's edge to
+    the ellipsoid just outside it. Returns ``(centre, step)``, the step in metres (positive: the
+    ellipsoid lay behind the mesh). Without a frame that shows both, the centre is unchanged."""
+    import cv2
+
+    ring_k = np.ones((5, 5), np.uint8)
+    steps = []
+    for i in range(len(w2c)):
+        if not np.isfinite(verts[i]).all():
+            continue
+        d_face, _ = render_mesh(verts[i], faces, focal, w, h)
+        on = d_face > 0
+        if not on.any():
+            continue
+        ring = (cv2.dilate(on.view(np.uint8), ring_k) > 0) & ~on
+        edge = on & (cv2.dilate(ring.view(np.uint8), ring_k) > 0)
+        d_ell, _ = render_prior(w2c[i], focal, w, h, centre, axes, ring)
+        if (d_ell[ring] > 0).any():
+            steps.append(float(np.median(d_ell[ring][d_ell[ring] > 0]) - np.median(d_face[edge])))
+    if not steps:
+        return centre, 0.0
+    step = float(np.median(steps))
+    return centre + np.array([0.0, 0.0, step]), step

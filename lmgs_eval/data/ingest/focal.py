@@ -59,6 +59,17 @@ def canonical_face(path: Path | None = None) -> np.ndarray:
     return np.asarray(v, np.float64) / 100.0 * np.array([1.0, -1.0, -1.0])
 
 
+def canonical_triangles(path: Path | None = None) -> np.ndarray:
+    """The canonical face's triangles ``[898, 3]`` (0-based indices of its 468 vertices, as the
+    tracked mesh numbers them): one surface from the hairline to the chin, the eyes and the mouth
+    closed over (an open mouth stretches its triangles across the gap)."""
+    from lmgs_eval.data.ingest import vendored
+
+    path = vendored.model(CANONICAL, path)
+    f = [[int(t.split("/")[0]) - 1 for t in line.split()[1:4]] for line in path.read_text().splitlines() if line.startswith("f ")]
+    return np.asarray(f, np.int64)
+
+
 def rigid_points(face: np.ndarray) -> np.ndarray:
     """Indices of the canonical vertices the fit uses: above the upper lip (y < 1.5 cm below the
     model's origin, OpenCV axes), every :data:`_STRIDE`-th."""

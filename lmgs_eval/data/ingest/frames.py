@@ -97,16 +97,29 @@ def refine(sub: Path, masks: Path, lms: np.ndarray, a: int, b: int) -> None:
         np.save(sub / "teeth_mask" / f"{i}.npy", mouth_mask(lms[i], person.shape) & parts.head)
 
 
-def geometry(sub: Path, w2c: np.ndarray, focal: float, centre: np.ndarray, axes: np.ndarray, a: int, b: int) -> None:
-    """Depth and normal priors of frames ``[a, b)`` inside their head masks.
+def geometry(sub: Path, w2c: np.ndarray, focal: float, centre: np.ndarray, axes: np.ndarray, a: int, b: int,
+             face: Path | None = None) -> None:
+    """Depth and normal priors of frames ``[a, b)`` inside their head masks: the tracked face
+    mesh where it covers the head (``face``: a ``.npy`` of its vertices in camera coordinates
+    ``[N, 468, 3]``, :func:`pose.lift_mesh`; NaN where a frame has none), the head ellipsoid and
+    the sheet through its outline elsewhere (:func:`lmgs_eval.data.geometry.render_prior`).
 
     The maps are encoded as :func:`lmgs_eval.data.images.write_depth` and ``write_normal``
     (float32) encode them, the same values, but only over the head mask: the priors are 0
     everywhere else, which both encode as 0."""
+    from lmgs_eval.data.geometry import render_mesh
+    from lmgs_eval.data.ingest.focal import canonical_triangles
+
+    verts = np.load(face, mmap_mode="r") if face is not None else None
+    tris = canonical_triangles() if face is not None else None
     for i in range(a, b):
         head = Parts.from_colour_map(_read(sub / "parsing" / f"{i}.png"), bgr=True).head
         h, w = head.shape
         depth, normal = render_prior(w2c[i], focal, w, h, centre, axes, head)
+        if verts is not None and np.isfinite(verts[i]).all():
+            d_face, n_face = render_mesh(np.asarray(verts[i]), tris, focal, w, h)
+            on = head & (d_face > 0)
+            depth[on], normal[on] = d_face[on], n_face[on]
         d16 = np.zeros((h, w), np.uint16)
         d16[head] = np.clip(np.rint(depth[head].astype(np.float64) * DEPTH_SCALE), 0, 65535).astype(np.uint16)
         _write_png(sub / "depth" / f"{i}.png", d16)

@@ -383,3 +383,24 @@ def lift_landmarks(fit: PoseFit, lms: np.ndarray, w: int, h: int) -> np.ndarray:
         c2w_cv = np.linalg.inv(fit.w2c[i])
         out[i] = cam @ c2w_cv[:3, :3].T + c2w_cv[:3, 3]
     return out.astype(np.float32)
+
+
+def lift_mesh(template: np.ndarray, w2c: np.ndarray, focal: float, mesh: np.ndarray, w: int, h: int) -> np.ndarray:
+    """Camera coordinates ``[N, 468, 3]`` (OpenCV axes) of the dense mesh ``[N, 478, 3]`` (output
+    pixels) face vertices, for the fitted ``template`` ``[68, 3]`` posed by ``w2c`` ``[N, 4, 4]``: each on
+    its camera ray, at the depth the tracker gives it relative to the face (its z, in the same
+    pixels as x and y, in metres at the head's depth: times the posed template's median depth over
+    the focal length), the whole placed so that the template's brows, nose, eyes and lips (the 68
+    points but the jaw, whose depth the template only guesses) lie at their posed depth in the
+    median. They reproject exactly onto the tracked mesh, and the face they span meets the
+    template's 3D landmarks (:func:`lift_landmarks`). NaN where a frame has no mesh."""
+    from lmgs_eval.data.ingest.lips import MESH_TO_68
+
+    m = np.asarray(mesh, np.float64)[:, :468]
+    pc = np.einsum("nij,pj->npi", w2c[:, :3, :3], template) + w2c[:, None, :3, 3]  # [N, 68, 3]: the posed template
+    zt = pc[..., 2]
+    per_px = np.median(zt, axis=1) / focal  # metres per pixel of the tracker's z at the head's depth
+    inner = np.asarray(MESH_TO_68)[17:]
+    off = np.median(zt[:, 17:] - per_px[:, None] * m[:, inner, 2], axis=1)
+    z = off[:, None] + per_px[:, None] * m[..., 2]
+    return np.stack([(m[..., 0] - w / 2) / focal * z, (m[..., 1] - h / 2) / focal * z, z], -1)

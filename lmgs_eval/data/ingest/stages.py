@@ -20,6 +20,7 @@ from lmgs_eval.data.video import write_video
 from lmgs_eval.errors import UserError
 
 SPF = 640
+MEET_FRAMES = 20  # frames the head ellipsoid is fitted to the face mesh's outline on
 
 
 def track(ctx, info: decode.VideoInfo) -> None:
@@ -235,17 +236,30 @@ def parsing(ctx, sel) -> None:
 
 
 def geometry(ctx, sel) -> None:
-    """Depth and normal priors from the posed head ellipsoid, inside each frame's head mask."""
+    """Depth and normal priors inside each frame's head mask: the tracked face mesh where it
+    covers the head, the posed head ellipsoid elsewhere."""
     from lmgs_eval.data.geometry import head_ellipsoid
 
     t0 = time.perf_counter()
-    n = len(sel["lms"])
+    n, s = len(sel["lms"]), ctx.cfg.size
     pz = np.load(ctx.work / "pose.npz")
     centre, axes = head_ellipsoid(pz["template"])
+    face = None
+    if "mesh" in sel.files:
+        from lmgs_eval.data.geometry import meet_mesh
+        from lmgs_eval.data.ingest.focal import canonical_triangles
+
+        verts = pose_mod.lift_mesh(pz["template"], pz["w2c"], float(pz["focal"]), sel["mesh"], s, s).astype(np.float32)
+        face = ctx.work / "face_mesh.npy"
+        np.save(face, verts)
+        pick = np.linspace(0, n - 1, min(n, MEET_FRAMES)).round().astype(int)
+        centre, step = meet_mesh(centre, axes, pz["w2c"][pick], verts[pick], canonical_triangles(), float(pz["focal"]), s, s)
+        ctx.log.append(f"depth priors: the tracked face mesh over the face, the head ellipsoid beyond it moved {100 * step:+.1f} cm "
+                       "along the head's axis to meet the mesh's outline")
     for d in ("depth", "normal"):
         (ctx.sub / d).mkdir(exist_ok=True)
     bar = ctx.bar(n, "depth + normal priors")
-    frames_mod.run_chunks(frames_mod.geometry, n, ((ctx.sub, pz["w2c"], float(pz["focal"]), centre, axes), ()), ctx.jobs, bar,
+    frames_mod.run_chunks(frames_mod.geometry, n, ((ctx.sub, pz["w2c"], float(pz["focal"]), centre, axes), (face,)), ctx.jobs, bar,
                           workers=ctx.workers)
     if bar is not None:
         bar.close()
