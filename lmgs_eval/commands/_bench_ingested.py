@@ -74,6 +74,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="h264: ingest the generator's raw video (CRF 18, 4:2:0) as a camera's would come; lossless: its "
                         "frames and audio re-encoded without loss, so that only the ingest's processing differs "
                         "(default h264)")
+    p.add_argument("--priors", choices=("mesh", "ellipsoid"), default=None,
+                   help="the ingest's depth / normal priors (default: the ingest's own default)")
     p.add_argument("--band", type=int, default=BAND_PX,
                    help=f"half width in pixels of the band around each head outline left out of the second PSNR (default {BAND_PX})")
 
@@ -142,7 +144,8 @@ def run(args: argparse.Namespace) -> dict:
             video = lossless_video(truth_root, tmp / "lossless" / video.name)
         t0 = time.perf_counter()
         ing_root = ingest(video, f"{spec.folder}-ingested", data_root=tmp / "data",
-                          cfg=IngestConfig(size=spec.size, crop="none"), progress=False)
+                          cfg=IngestConfig(size=spec.size, crop="none", **({"priors": args.priors} if args.priors else {})),
+                          progress=False)
         ingest_s = time.perf_counter() - t0
         man = json.loads((ing_root / "manifest.json").read_text())
         gen = pair.prepare(truth_root)
@@ -199,7 +202,8 @@ def run(args: argparse.Namespace) -> dict:
                       f"{video.name}: the generator's frames and audio re-encoded without loss (H.264 RGB, quantiser 0)"),
             **({"decoded": f"{dec_root}: the generator's folder with the video's decoded frames (the ingest's ori_imgs) as "
                            "its frames"} if "decoded" in runs else {}),
-            "ingested": f"{ing_root} (removed at the end; ingested in {ingest_s:.1f} s)",
+            "ingested": f"{ing_root} (removed at the end; ingested in {ingest_s:.1f} s, ingest version {man['ingest_version']}, "
+                        f"{man['parameters'].get('priors', 'ellipsoid')} priors)",
             **{label: f"{root}: the ingest with the generator's {SWAPS[parts[label]]}" for label, root in swapped.items()},
             "ingest accuracy": (f"landmarks {acc['landmark_px']:.2f} px, rotation {acc['rotation_deg']:.2f} deg, "
                                 f"head IoU {acc['head_iou']:.3f}, person IoU {acc['person_iou']:.3f}, plate {acc['plate_psnr']:.1f} dB, "

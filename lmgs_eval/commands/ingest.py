@@ -22,6 +22,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pose-from", choices=("mesh", "landmarks"), default=IngestConfig.pose_from,
                    help="each frame's head pose from the subject's shape fitted to the dense face mesh, or from the "
                         f"68-point template on dlib's landmarks (default {IngestConfig.pose_from})")
+    p.add_argument("--priors", choices=("mesh", "ellipsoid"), default=IngestConfig.priors,
+                   help="depth / normal priors: the tracked face mesh over the face and the head ellipsoid beyond it, "
+                        f"or the posed head ellipsoid alone (default {IngestConfig.priors})")
     p.add_argument("--pose-smooth", default=None, metavar="auto|FRAMES",
                    help="the poses' smoothing over time: auto (Whittaker's smoother, its weight chosen by generalised "
                         "cross-validation) or a Gaussian's sigma in frames (0: none); default "
@@ -40,7 +43,7 @@ def run(args: argparse.Namespace) -> int:
     from lmgs_eval.data.ingest.pipeline import pose_sigma_from
 
     smooth = {} if args.pose_smooth is None else {"pose_sigma": pose_sigma_from(args.pose_smooth)}
-    cfg = IngestConfig(size=args.size, crop=args.crop, focal=args.focal, pose_from=args.pose_from, **smooth)
+    cfg = IngestConfig(size=args.size, crop=args.crop, focal=args.focal, pose_from=args.pose_from, priors=args.priors, **smooth)
     folder = ingest(args.video, args.name, audio=args.audio, data_root=args.data_root, cfg=cfg, force=args.force,
                     progress=not args.quiet, jobs=args.jobs)
     man = json.loads((folder / "manifest.json").read_text())

@@ -40,6 +40,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the ingest's pose source (default: the ingest's own default)")
     p.add_argument("--pose-smooth", default=None, metavar="auto|FRAMES",
                    help="the ingest's pose smoothing: auto or a Gaussian's sigma in frames (default: the ingest's own)")
+    p.add_argument("--priors", choices=("mesh", "ellipsoid"), default=None,
+                   help="the ingest's depth / normal priors (default: the ingest's own default)")
     p.add_argument("--data-root", help="where bundled subjects are built (default: $LMGS_DATA or ~/.cache/lmgs/data)")
     p.add_argument("--jobs", type=int, default=None, help="processes for the per-frame stages (default: CPU count, at most 4)")
 
@@ -61,6 +63,7 @@ def run(args: argparse.Namespace) -> dict:
     from lmgs_eval.data.ingest.pipeline import pose_sigma_from
 
     cfg = IngestConfig(size=args.size, **({"pose_from": args.pose_from} if args.pose_from else {}),
+                       **({"priors": args.priors} if args.priors else {}),
                        **({"pose_sigma": pose_sigma_from(args.pose_smooth)} if args.pose_smooth is not None else {}))
     with tempfile.TemporaryDirectory(prefix="lmgs-bench-ingest-") as tmp:
         truth = None
@@ -86,6 +89,7 @@ def run(args: argparse.Namespace) -> dict:
                                                     + (": its frames and audio without loss" if args.lossless else ": its H.264 video")),
         "frames": n,
         "pose_from": cfg.pose_from,
+        "priors": cfg.priors,
         "pose_smooth": "auto" if cfg.pose_sigma is None else cfg.pose_sigma,
         "size": args.size,
         "wall_s": round(wall, 1),

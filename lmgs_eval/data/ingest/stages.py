@@ -245,7 +245,7 @@ def geometry(ctx, sel) -> None:
     pz = np.load(ctx.work / "pose.npz")
     centre, axes = head_ellipsoid(pz["template"])
     face = None
-    if "mesh" in sel.files:
+    if ctx.cfg.priors == "mesh" and "mesh" in sel.files:
         from lmgs_eval.data.geometry import meet_mesh
         from lmgs_eval.data.ingest.focal import canonical_triangles
 
