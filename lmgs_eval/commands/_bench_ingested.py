@@ -74,7 +74,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="h264: ingest the generator's raw video (CRF 18, 4:2:0) as a camera's would come; lossless: its "
                         "frames and audio re-encoded without loss, so that only the ingest's processing differs "
                         "(default h264)")
-    p.add_argument("--priors", choices=("mesh", "ellipsoid"), default=None,
+    p.add_argument("--priors", choices=("ellipsoid", "mesh"), default=None,
                    help="the ingest's depth / normal priors (default: the ingest's own default)")
     p.add_argument("--band", type=int, default=BAND_PX,
                    help=f"half width in pixels of the band around each head outline left out of the second PSNR (default {BAND_PX})")

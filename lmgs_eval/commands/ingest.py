@@ -22,9 +22,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pose-from", choices=("mesh", "landmarks"), default=IngestConfig.pose_from,
                    help="each frame's head pose from the subject's shape fitted to the dense face mesh, or from the "
                         f"68-point template on dlib's landmarks (default {IngestConfig.pose_from})")
-    p.add_argument("--priors", choices=("mesh", "ellipsoid"), default=IngestConfig.priors,
-                   help="depth / normal priors: the tracked face mesh over the face and the head ellipsoid beyond it, "
-                        f"or the posed head ellipsoid alone (default {IngestConfig.priors})")
+    p.add_argument("--priors", choices=("ellipsoid", "mesh"), default=IngestConfig.priors,
+                   help="depth / normal priors: the posed head ellipsoid, or the tracked face mesh over the face and the "
+                        f"head ellipsoid beyond it (default {IngestConfig.priors})")
     p.add_argument("--pose-smooth", default=None, metavar="auto|FRAMES",
                    help="the poses' smoothing over time: auto (Whittaker's smoother, its weight chosen by generalised "
                         "cross-validation) or a Gaussian's sigma in frames (0: none); default "

@@ -40,7 +40,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the ingest's pose source (default: the ingest's own default)")
     p.add_argument("--pose-smooth", default=None, metavar="auto|FRAMES",
                    help="the ingest's pose smoothing: auto or a Gaussian's sigma in frames (default: the ingest's own)")
-    p.add_argument("--priors", choices=("mesh", "ellipsoid"), default=None,
+    p.add_argument("--priors", choices=("ellipsoid", "mesh"), default=None,
                    help="the ingest's depth / normal priors (default: the ingest's own default)")
     p.add_argument("--data-root", help="where bundled subjects are built (default: $LMGS_DATA or ~/.cache/lmgs/data)")
     p.add_argument("--jobs", type=int, default=None, help="processes for the per-frame stages (default: CPU count, at most 4)")

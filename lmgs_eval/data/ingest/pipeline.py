@@ -46,9 +46,9 @@ class IngestConfig:
         pose_from: ``mesh`` (each frame's pose from the subject's shape fitted to the dense face
             mesh) or ``landmarks`` (from the 68-point template on dlib's landmarks).
         plate_frames: frames sampled for the background plate.
-        priors: ``mesh`` (the depth / normal priors of the tracked face mesh over the face, the head
-            ellipsoid moved to meet it beyond) or ``ellipsoid`` (the posed head ellipsoid alone, as
-            ingest version 10 wrote them).
+        priors: ``ellipsoid`` (the depth / normal priors of the posed head ellipsoid) or ``mesh``
+            (the tracked face mesh over the face, the head ellipsoid moved to meet it beyond;
+            measured in design.md, "Depth priors from the face mesh").
     """
 
     size: int = 512
@@ -59,7 +59,7 @@ class IngestConfig:
     pose_refine: bool = True
     plate_frames: int = 60
     pose_from: str = "mesh"
-    priors: str = "mesh"
+    priors: str = "ellipsoid"
 
 
 def pose_sigma_from(text: str) -> float | None:
