@@ -226,6 +226,5 @@ def config_from_dict(d: dict) -> LMGSConfig:
     )
     if not cfg.guidance.se and "select_fraction" not in d["guidance"]:
         # to_dict leaves the cap out wherever SE is off (it bounds nothing then), whatever its value
-        default = next(f.default for f in dataclasses.fields(GuidanceConfig) if f.name == "select_fraction")
-        cfg = cfg.replace(**{"guidance.select_fraction": default})
+        cfg = cfg.replace(**{"guidance.select_fraction": GuidanceConfig().select_fraction})
     return cfg

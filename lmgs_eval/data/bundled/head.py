@@ -15,7 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lmgs_eval.data.bundled import exact, raster
+from lmgs_eval.data import raster
+from lmgs_eval.data.bundled import exact
 from lmgs_eval.data.bundled.articulation import COLUMNS
 from lmgs_eval.data.bundled.photo import TEX, Portrait, portrait
 
