@@ -42,7 +42,7 @@ from baselines.common import (
     progress_bar,
     to_u8,
 )
-from baselines.lmgs_method import GR_PER_PIXEL
+from baselines.lmgs_method import GR_PER_PIXEL, derived_priors_part, weigh_derived_priors
 from baselines.protocol import MethodInfo, register
 from lmgs import losses
 from lmgs.audio import AudioNet
@@ -99,14 +99,14 @@ class LMGSConfigMethod:
     description = ""
     changes: dict = {}
 
-    def __init__(self, preset: str = "quick", device: str | None = None, **overrides):
+    def __init__(self, preset: str = "quick", device: str | None = None, priors_derived: bool = False, **overrides):
         self.preset = preset
         self.budget = configured(GSBudget, preset, overrides, self.name)
         t = self.budget
         cfg = quick()
         train = dataclasses.replace(cfg.train, static_steps=t.static_steps, dynamic_steps=t.dynamic_steps,
                                     densify_every=t.densify_every, lr_nets=t.lr_nets, budget_density=t.budget_density)
-        self.cfg = cfg.replace(train=train, **self.changes)
+        self.cfg = weigh_derived_priors(cfg.replace(train=train, **self.changes), priors_derived)
         self.device = device
         self.model = None
         self.fit_seconds: float | None = None
@@ -131,7 +131,8 @@ class LMGSConfigMethod:
         t = self.cfg.train
         return MethodInfo(
             name=self.name, display_name=self.display_name, family="3DGS",
-            description=f"{self.description} Budget '{self.preset}': {t.static_steps} static + {t.dynamic_steps} dynamic steps.",
+            description=f"{self.description} Budget '{self.preset}': {t.static_steps} static + {t.dynamic_steps} dynamic steps"
+                        + (f"; {derived_priors_part(t)}." if (t.derived_depth_weight, t.derived_normal_weight) != (1.0, 1.0) else "."),
             standins=STANDINS, config=self.cfg.to_dict(), config_hash=self.cfg.hash(),
         )
 
@@ -157,7 +158,7 @@ class TalkingGaussian(LMGSConfigMethod):
     )
 
 
-@register("degstalk", scene_budget=True)
+@register("degstalk", scene_budget=True, reads_priors=True)
 class DEGSTalk(LMGSConfigMethod):
     name = "degstalk"
     display_name = "DEGSTalk"

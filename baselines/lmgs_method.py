@@ -49,6 +49,19 @@ def standins(frontend: str) -> tuple[str, ...]:
 # collapsed astronaut seed 2 at step 913; the per-pixel form trained on every run.
 GR_PER_PIXEL = {"train.normal_reduce": "mean", "train.lambda_normal": 0.05}
 
+# The Geometry Regularizer on priors derived from the tracking (an ingest's head ellipsoid or face mesh, a
+# plain folder's ellipsoid ray-cast at load) rather than measured (the bundled subjects' rendered heads):
+# set in the config of a method built for such a subject (baselines.protocol.create_method), so a bundled
+# subject's config and hash are untouched.
+DERIVED_PRIORS = {"train.derived_normal_weight": 0.0}
+
+
+def weigh_derived_priors(cfg, derived: bool):
+    """``cfg`` with :data:`DERIVED_PRIORS` where the subject's priors are derived and the Geometry Regularizer
+    is on (a run's own ``--set`` of the weights, applied after, wins)."""
+    return cfg.replace(**DERIVED_PRIORS) if derived and cfg.gr else cfg
+
+
 # Named variants for Tables III and IV: dotted config changes on the quick preset. Every variant
 # with GR on uses the full model's form, so an ablation changes only what its name says.
 VARIANTS: dict[str, dict] = {
@@ -77,6 +90,22 @@ VARIANTS: dict[str, dict] = {
 }
 
 
+def derived_priors_part(t) -> str:
+    """How a config's Geometry Regularizer weighs derived priors, in words (its description)."""
+    return (f"on priors derived from the tracking the GR's depth term x{t.derived_depth_weight:g}, "
+            f"normal term x{t.derived_normal_weight:g}")
+
+
+def derived_priors_tag(cfg) -> str | None:
+    """The display name's word for a config that weighs derived priors apart (None where it does not)."""
+    t = cfg.train
+    if not cfg.gr or (t.derived_depth_weight, t.derived_normal_weight) == (1.0, 1.0):
+        return None
+    if (t.derived_depth_weight, t.derived_normal_weight) == (1.0, 0.0):
+        return "no normals on derived priors"
+    return f"derived priors: depth x{t.derived_depth_weight:g}, normals x{t.derived_normal_weight:g}"
+
+
 def components(cfg) -> dict:
     """The parts of an lmgs config that its variants switch, as records and Table III/IV read them.
 
@@ -98,13 +127,14 @@ class LMGSMethod:
     """Adapter of :mod:`lmgs` to the toolkit's fit / render / describe protocol."""
 
     def __init__(self, variant: str = "lmgs", preset: str = "quick", overrides: dict | None = None, device: str | None = None,
-                 budget_density: float | None = None):
+                 budget_density: float | None = None, priors_derived: bool = False):
         self.variant = variant
+        self.priors_derived = bool(priors_derived)
         # a subject's knee density (create_method); an explicit --set train.budget_density wins
         density = {} if budget_density is None else {"train.budget_density": float(budget_density)}
         try:
             self.cfg = override(make_preset(preset), {**VARIANTS[variant], **density}, what="variant")
-            self.cfg = override(self.cfg, overrides or {})
+            self.cfg = override(weigh_derived_priors(self.cfg, self.priors_derived), overrides or {})
         except InputError:
             raise
         except ValueError as exc:  # a config's own check of a value (e.g. a fraction outside [0, 1])
@@ -145,6 +175,8 @@ class LMGSMethod:
                          else "SE by theta alone (no cap on the points selected)")
         if g.mouth_state:
             parts.append("the deformations read the mouth's opening and width from the landmarks")
+        if self.cfg.gr and (t.derived_depth_weight, t.derived_normal_weight) != (1.0, 1.0):
+            parts.append(derived_priors_part(t))
         reads = g.reads_landmarks
         if reads and t.landmark_folds:
             parts.append(f"out-of-fold training landmarks ({t.landmark_folds} folds)")
@@ -153,7 +185,8 @@ class LMGSMethod:
             parts.append("mouth landmarks from the generic lip model" + (", fine-tuned on the subject"
                                                                           if t.landmark_source == "generic-tuned" else ""))
             generic = "generic mouth" + (", tuned" if t.landmark_source == "generic-tuned" else "")
-        tags = [x for x in (generic, "mouth state" if g.mouth_state else None) if x]  # in the display name
+        derived = derived_priors_tag(self.cfg)
+        tags = [x for x in (generic, "mouth state" if g.mouth_state else None, derived) if x]  # in the display name
         return MethodInfo(
             name=self.variant,
             display_name=(f"Ours ({', '.join(['lmgs', *tags])})" if self.variant == "lmgs" else f"lmgs ({', '.join(parts)})"),
@@ -188,5 +221,5 @@ class LMGSMethod:
 
 
 for _name in VARIANTS:
-    register(_name, scene_budget=True, ablation=_name != "lmgs")(lambda _v=_name, **kw: LMGSMethod(_v, **kw))
+    register(_name, scene_budget=True, ablation=_name != "lmgs", reads_priors=True)(lambda _v=_name, **kw: LMGSMethod(_v, **kw))
 

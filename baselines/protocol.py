@@ -80,15 +80,19 @@ _PREFIXED: dict[str, Callable[..., TalkingHead]] = {}  # prefix -> factory takin
 # they take a subject's own knee density, all alike, so a comparison between them stays fair.
 _SCENE_BUDGET: set[str] = set()
 _ABLATIONS: set[str] = set()  # a method's ablation rows (lmgs-no-se, ...): not methods of the field of their own
+# Methods with a geometry term on depth / normal priors: told whether a subject's priors are derived
+_PRIOR_READERS: set[str] = set()
 EXTERNAL_PREFIX = "external:"
 
 
-def register(name: str, *, scene_budget: bool = False, ablation: bool = False) -> Callable:
+def register(name: str, *, scene_budget: bool = False, ablation: bool = False, reads_priors: bool = False) -> Callable:
     """Decorator registering a method factory under ``name`` (duplicates are rejected).
 
     ``scene_budget``: the factory takes ``budget_density`` (Gaussians per face pixel), which
     :func:`create_method` sets from a subject that has its own (``subject.budget_density``).
     ``ablation``: an ablation row of another method (left out of :func:`field_methods`).
+    ``reads_priors``: the factory takes ``priors_derived``, which :func:`create_method` sets for a
+    subject whose depth / normal priors are derived from the tracking (``subject.priors_derived``).
     """
 
     def deco(factory):
@@ -99,6 +103,8 @@ def register(name: str, *, scene_budget: bool = False, ablation: bool = False) -
             _SCENE_BUDGET.add(name)
         if ablation:
             _ABLATIONS.add(name)
+        if reads_priors:
+            _PRIOR_READERS.add(name)
         return factory
 
     return deco
@@ -149,7 +155,9 @@ def create_method(name: str, subject: Any = None, hooks: dict[str, Callable] | N
     With ``subject`` (anything with a ``budget_density`` attribute, e.g. the toolkit's
     ``Subject``), a method sized by face area (``register(..., scene_budget=True)``) takes the
     subject's knee density when it has one and ``options`` set none; the density is in the
-    method's config, so its hash, and the records and model cache, follow it. ``hooks``: the
+    method's config, so its hash, and the records and model cache, follow it. A method with a
+    geometry term (``reads_priors=True``) is told when the subject's priors are derived
+    (``subject.priors_derived``) and weighs them in its config the same way. ``hooks``: the
     toolkit's callables by name; the factory gets those its ``hooks`` attribute names.
     """
     load_adapters()
@@ -161,12 +169,20 @@ def create_method(name: str, subject: Any = None, hooks: dict[str, Callable] | N
     density = getattr(subject, "budget_density", None)
     if density is not None and name in _SCENE_BUDGET:
         options.setdefault("budget_density", density)
+    if name in _PRIOR_READERS and getattr(subject, "priors_derived", False):
+        options.setdefault("priors_derived", True)
     return _REGISTRY[name](**_hooks_for(_REGISTRY[name], hooks), **options)
 
 
 def _hooks_for(factory, hooks: dict[str, Callable] | None) -> dict[str, Callable]:
     """The ``hooks`` that ``factory`` names (its ``hooks`` attribute; a hook not given is left out)."""
     return {k: hooks[k] for k in getattr(factory, "hooks", ()) if hooks and k in hooks}
+
+
+def reads_priors(name: str) -> bool:
+    """Whether a registered method has a geometry term on depth / normal priors (``register(..., reads_priors=True)``)."""
+    load_adapters()
+    return name in _PRIOR_READERS
 
 
 def scene_budget_methods() -> list[str]:

@@ -79,6 +79,12 @@ class TrainConfig:
             file's name (``lips_generic.pt``, the default; ``lips_generated.pt``, generated speech
             only) or a weights file, e.g. one adapted with a speaker held out
             (``scripts/train_lip_model.py --hold-out``). An :func:`~lmgs.config.added_option`.
+        derived_depth_weight, derived_normal_weight: multipliers of ``lambda_depth`` /
+            ``lambda_normal`` when the clip's depth and normal priors are derived rather than
+            measured (:attr:`lmgs.types.TrainingClip.priors_derived`: a head ellipsoid or a
+            tracked face mesh, not a rendered or scanned surface); measured priors keep the full
+            weights. Both :func:`~lmgs.config.added_option` (1: derived priors weighed as measured
+            ones, as before the options).
         checkpoint_every: steps between checkpoints.
     """
 
@@ -110,6 +116,8 @@ class TrainConfig:
     landmark_folds: int = added_option(0)
     landmark_source: str = added_option("subject")
     lip_weights: str = added_option("lips_generic.pt")
+    derived_depth_weight: float = added_option(1.0)
+    derived_normal_weight: float = added_option(1.0)
 
     def __post_init__(self) -> None:
         if self.normal_reduce not in ("sum", "mean"):
@@ -146,6 +154,10 @@ class LMGSConfig:
             d["train"].pop("landmark_folds", None)
             d["train"].pop("landmark_source", None)
             d["train"].pop("lip_weights", None)
+        if not self.gr:
+            # without the Geometry Regularizer its weights on derived priors change nothing
+            d["train"].pop("derived_depth_weight", None)
+            d["train"].pop("derived_normal_weight", None)
         if not self.guidance.se:
             # the cap only bounds what SE selects: without SE it changes no weight (lmgs-no-se's and
             # TalkingGaussian's hashes stay those of their records)

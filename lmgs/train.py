@@ -133,6 +133,7 @@ class _Run:
     lip_boxes: np.ndarray | None = None
     mouth_states: torch.Tensor | None = None  # [T, 2] the training frames' normalised mouth state (guidance.mouth_state)
     use_geo: bool = False
+    prior_weights: tuple[float, float] = (0.0, 0.0)  # the Geometry Regularizer's (depth, normal) weights on this clip
     data: ClipTensors | None = None
 
     @property
@@ -284,6 +285,7 @@ def _prepare(run: _Run, progress: bool) -> None:
         run.bar = tqdm(total=run.total, initial=run.start, desc="lmgs fit", unit="step", leave=False)
     run.lip_boxes = _lip_boxes(clip)
     run.use_geo = run.cfg.gr and clip.depth is not None and clip.normal is not None
+    run.prior_weights = prior_weights(run.cfg.train, clip.priors_derived)
     run.data = ClipTensors(clip, dev)
 
 
@@ -305,8 +307,9 @@ def _frame_loss(run: _Run, step: int, i: int, dynamic: bool):
         loss = loss + t.lambda_mouth * r.face_alpha[..., 0].reshape(-1)[mouth_px].mean()
     if run.use_geo and dynamic:
         ramp = gr_ramp(step - t.static_steps, t.gr_warmup)
-        loss = loss + losses.geometry(r.depth, r.normal, r.face_alpha, data.depth(i), data.normal(i), ramp * t.lambda_depth,
-                                      ramp * t.lambda_normal, t.normal_reduce, gather=on_host)
+        w_depth, w_normal = run.prior_weights
+        loss = loss + losses.geometry(r.depth, r.normal, r.face_alpha, data.depth(i), data.normal(i), ramp * w_depth,
+                                      ramp * w_normal, t.normal_reduce, gather=on_host)
     if run.lip_boxes is not None and dynamic and t.lambda_lips > 0:
         y0, y1, x0, x1 = run.lip_boxes[i]
         loss = loss + t.lambda_lips * (r.rgb[y0:y1, x0:x1] - gt[y0:y1, x0:x1]).abs().mean()
@@ -391,6 +394,15 @@ def _finish(run: _Run) -> FitReport:
 def gr_ramp(dynamic_step: int, warmup: int) -> float:
     """Weight factor of the Geometry Regularizer at step ``dynamic_step`` (0-based) of the dynamic stage."""
     return 1.0 if warmup <= 0 else min(1.0, (dynamic_step + 1) / warmup)
+
+
+def prior_weights(t, derived: bool) -> tuple[float, float]:
+    """The Geometry Regularizer's depth and normal weights for a clip's priors: ``lambda_depth`` /
+    ``lambda_normal``, times ``derived_depth_weight`` / ``derived_normal_weight`` where the priors are
+    derived from the tracking rather than measured."""
+    if not derived:
+        return float(t.lambda_depth), float(t.lambda_normal)
+    return float(t.lambda_depth * t.derived_depth_weight), float(t.lambda_normal * t.derived_normal_weight)
 
 
 def _lip_boxes(clip: TrainingClip, grow: float = 0.6) -> np.ndarray | None:

@@ -94,6 +94,9 @@ class TrainingClip:
         head_masks: ``[T, H, W]`` bool head masks (face parsing), or None.
         depth: ``[T, H, W]`` float16 camera-z depth (0 = none), or None.
         normal: ``[T, H, W, 3]`` int8 camera-space normals x127, or None.
+        priors_derived: True when ``depth`` / ``normal`` are priors derived from the tracking (a
+            head ellipsoid, a fitted face mesh) rather than a measured surface: the Geometry
+            Regularizer weighs them by ``train.derived_depth_weight`` / ``derived_normal_weight``.
     """
 
     frames: np.ndarray
@@ -111,6 +114,7 @@ class TrainingClip:
     head_masks: np.ndarray | None = None
     depth: np.ndarray | None = None
     normal: np.ndarray | None = None
+    priors_derived: bool = False
     fps: int = 25
     sample_rate: int = 16000
 

@@ -122,6 +122,7 @@ def test_swapped_copy_takes_the_generators_cameras_and_moves_the_depth(tmp_path)
         for name in CAMERA_FILES:
             (root / name).write_bytes(bytes([val]))
     (ing / "ing.mp4").write_bytes(b"video")
+    (ing / "meta.json").write_text(json.dumps({"ingested": True, "depth": "prior"}))
     cams = swapped_copy(truth, ing, tmp_path / "cams", "cameras")
     for name in CAMERA_FILES:
         assert (cams / name).read_bytes() == bytes([1])  # the generator's cameras and 3D landmarks
@@ -136,6 +137,9 @@ def test_swapped_copy_takes_the_generators_cameras_and_moves_the_depth(tmp_path)
         assert (geo / "depth" / f"{i}.png").read_bytes() == (truth / "depth" / f"{i}.png").read_bytes()
         assert (geo / "normal" / f"{i}.png").read_bytes() == bytes([1, i])
     assert (geo / "parsing" / "0.png").read_bytes() == bytes([2])  # the ingest's own masks
+    # the generator's maps are measured ones (Subject.priors_derived); the cameras' copy keeps derived maps
+    assert json.loads((geo / "meta.json").read_text())["priors_derived"] is False
+    assert "priors_derived" not in json.loads((cams / "meta.json").read_text())
 
 
 def test_decoded_copy_is_the_generators_folder_with_the_videos_frames(tmp_path):

@@ -90,6 +90,8 @@ def test_face_mesh_priors_carry_the_faces_relief(truth, ingested, tmp_path):
     g = geometry_error(t, mesh)
     assert g["depth_rel"] < 0.035 and g["normal_deg"] < 24.0 and g["geometry_cover"] > 0.9
     assert np.array_equal(mesh.landmarks, ell.landmarks) and np.array_equal(mesh.c2w, ell.c2w)
+    # both are priors derived from the tracking; the generator's maps are its rendered head
+    assert ell.priors_derived and mesh.priors_derived and not t.priors_derived
 
 
 def test_tracked_texture_refines_the_landmark_pose(truth, ingested):

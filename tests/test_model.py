@@ -280,6 +280,32 @@ def test_gr_warmup_ramps_the_geometry_weights_in_and_leaves_the_hash_when_off(cl
     assert {n for _, n in seen} == {lam}  # off: full weight from the first dynamic step, as before
 
 
+def test_derived_priors_are_weighed_by_their_own_weights_and_measured_ones_are_not(clip, monkeypatch):
+    import lmgs.train as tr
+
+    base = _tiny_cfg(**{"train.gr_warmup": 0})
+    weighed = base.replace(**{"train.derived_depth_weight": 0.5, "train.derived_normal_weight": 0.0})
+    # at 1 (before the options) the hash is as before; without the regularizer the weights change nothing
+    assert "derived_normal_weight" not in base.to_dict()["train"] and weighed.hash() != base.hash()
+    assert weighed.replace(gr=False).hash() == base.replace(gr=False).hash()
+    assert config_from_dict(weighed.to_dict()) == weighed
+    seen = []
+    real = tr.losses.geometry
+
+    def spy(depth, normal, alpha, ref_d, ref_n, lambda_d, lambda_n, reduce, **kw):
+        seen.append((lambda_d, lambda_n))
+        return real(depth, normal, alpha, ref_d, ref_n, lambda_d, lambda_n, reduce, **kw)
+
+    monkeypatch.setattr(tr.losses, "geometry", spy)
+    lam_d, lam_n = base.train.lambda_depth, base.train.lambda_normal
+    assert not clip.priors_derived
+    fit(clip, weighed, seed=0, progress=False)  # measured priors: the full weights
+    assert set(seen) == {(lam_d, lam_n)}
+    seen.clear()
+    fit(dataclasses.replace(clip, priors_derived=True), weighed, seed=0, progress=False)
+    assert seen and all(d == pytest.approx(lam_d / 2) and n == 0.0 for d, n in seen)
+
+
 def test_training_landmarks_are_out_of_fold_and_the_folds_hash(clip, monkeypatch):
     import lmgs.landmarks as lm
     import lmgs.train as tr

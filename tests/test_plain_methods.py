@@ -120,6 +120,34 @@ def test_the_plain_folder_is_read_with_derived_geometry(plain):
         assert np.degrees(np.arccos(np.clip(cos, -1, 1))).mean() < 20.0, i
 
 
+def test_a_geometry_term_weighs_the_plain_folders_derived_priors_as_derived(plain):
+    """The ellipsoid ray-cast for a plain folder is a derived prior; the bundled folder's maps are the
+    rendered head. lmgs and DEGSTalk (the methods with a geometry term) weigh the first by their
+    derived-prior weights; on the bundled folder their configs, and hashes, are those built without a
+    subject; TalkingGaussian (no geometry term) is the same on both; a run's own ``--set`` wins."""
+    from baselines.lmgs_method import DERIVED_PRIORS
+    from lmgs_eval.convert import subject_to_clip
+    from lmgs_eval.data.layout import read_subject
+    from lmgs_eval.runner import RunConfig, build_method
+
+    full = read_subject(plain["full"])
+    assert plain["subject"].priors_derived and plain["train"].priors_derived
+    assert not full.priors_derived and not subject_to_clip(full, full.train_ids[:2]).priors_derived
+    want = {k.removeprefix("train."): v for k, v in DERIVED_PRIORS.items()}
+    for name in ("lmgs", "degstalk"):
+        alone, on_full, on_plain = (build_method(RunConfig(), name, s) for s in (None, full, plain["subject"]))
+        assert on_full.describe().config_hash == alone.describe().config_hash
+        got = on_plain.describe().config["train"]
+        assert {k: got.get(k) for k in want} == want, name
+        assert on_plain.describe().config_hash != on_full.describe().config_hash
+        assert "derived priors" not in on_full.describe().description
+        assert "priors derived from the tracking" in on_plain.describe().description
+    tg = {build_method(RunConfig(), "talkinggaussian", s).describe().config_hash for s in (full, plain["subject"])}
+    assert len(tg) == 1
+    mine = build_method(RunConfig(method_options={"overrides": {"train.derived_normal_weight": 1.0}}), "lmgs", plain["subject"])
+    assert "derived_normal_weight" not in mine.describe().config["train"]
+
+
 @pytest.mark.parametrize("name", METHODS)
 def test_every_method_trains_and_renders_on_a_plain_folder(name, plain, tmp_path):
     from lmgs.errors import InputError
@@ -182,7 +210,12 @@ def test_bench_stripped_prints_the_full_and_the_stripped_run_side_by_side(tmp_pa
 
     recs = sorted(load_records(tmp_path / "res")[0], key=lambda r: r.subject.name)
     assert [r.subject.name for r in recs] == [SUBJECT, f"{SUBJECT}-plain"]
-    assert recs[0].config_hash == recs[1].config_hash and recs[0].seed == recs[1].seed == 0
+    # one config, but for the derived priors of the stripped copy, which lmgs's geometry term weighs as such
+    assert recs[0].config_hash != recs[1].config_hash and recs[0].seed == recs[1].seed == 0
+    full_train, plain_train = (dict(r.config["train"]) for r in recs)
+    assert "derived_normal_weight" not in full_train and plain_train.pop("derived_normal_weight") == 0.0
+    assert full_train == plain_train
+    assert f"{recs[0].config_hash} (full)" in got["method"] and f"{recs[1].config_hash} (stripped)" in got["method"]
     assert not any("derived" in n for n in recs[0].notes) and any("derived 3D landmarks" in n for n in recs[1].notes)
     assert recs[1].metrics["psnr"].value == pytest.approx(psnr["stripped"])
     assert not _in_all("stripped") and _in_all("raster")  # `bench all` stays a speed benchmark

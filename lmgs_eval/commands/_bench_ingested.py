@@ -114,6 +114,11 @@ def swapped_copy(truth_root: Path, ing_root: Path, out: Path, part: str) -> Path
         for d in ("depth", "normal"):
             shutil.rmtree(out / d)
             shutil.copytree(truth_root / d, out / d)
+        # the generator's maps are its rendered head: measured, not derived (Subject.priors_derived)
+        meta = json.loads((out / "meta.json").read_text())
+        meta.update(priors_derived=False, depth=f"the generator's depth maps ({truth_root.name})",
+                    normal=f"the generator's normal maps ({truth_root.name})")
+        (out / "meta.json").write_text(json.dumps(meta, indent=1))
         return out
     for path in sorted((out / "depth").glob("*.png")):
         mine, theirs = read_depth(path, DEPTH_SCALE), read_depth(truth_root / "depth" / path.name, DEPTH_SCALE)

@@ -94,7 +94,10 @@ def diff(a, b):
 def train_both(args: argparse.Namespace, runs: dict[str, dict], tmp: Path, results: Path, tag: str) -> tuple[object, str]:
     """Fit, render and score ``args.method`` on each prepared folder of ``runs`` (``{label: prepare(...)}``,
     the bundled one first); fills in each run's ``record``, ``method``, ``train_cpu_s`` and ``folder_mb``.
-    Returns the run config and the one config hash."""
+    Returns the run config and its config hash: one, or one per folder (``HASH (label), ...``) where a
+    folder's derived depth / normal priors are weighed as such (the configs otherwise the same)."""
+    from baselines.protocol import reads_priors
+    from lmgs.config import config_hash
     from lmgs_eval.commands._common import check_seeds, parse_overrides
     from lmgs_eval.commands._sync import suite
     from lmgs_eval.results.records import RunId
@@ -105,23 +108,37 @@ def train_both(args: argparse.Namespace, runs: dict[str, dict], tmp: Path, resul
     cfg = RunConfig(subject=str(first["subject"].root), methods=(args.method,), preset=args.preset, seeds=(args.seed,),
                     results=results, device=args.device, progress=False, method_options=parse_overrides(args.overrides),
                     suite=suite(args))
-    hashes = set()
+    hashes, shared = {}, set()
     for label, r in runs.items():
-        # one config for both: the bundled subject's (its Gaussian budget, where it has its own)
-        method = build_method(cfg, args.method, first["subject"])
-        hashes.add(method.describe().config_hash)
+        # one config for every folder: the bundled subject's (its Gaussian budget, where it has its own); a
+        # method with a geometry term weighs a folder's derived priors as it would on that folder alone
+        derived = {"priors_derived": True} if reads_priors(args.method) and r["subject"].priors_derived else {}
+        method = build_method(cfg, args.method, first["subject"], **derived)
+        info = method.describe()
+        hashes[label] = info.config_hash
+        shared.add(config_hash(_without_prior_weights(info.config)))
         log(f"bench {tag}: {args.method} on the {label} folder ({r['subject'].root})")
         c0 = cpu_seconds()
-        run = RunId(r["subject"], method.describe(), args.seed)
+        run = RunId(r["subject"], info, args.seed)
         r["record"] = fit_render_score(cfg, method, run, r["train"], r["driving"], r["test"].frames,
                                        f"renders/bench-{tag}/{label}-{args.method}-seed{args.seed}.mp4",
                                        workdir=tmp / "models" / label)
         r["method"] = method
         r["train_cpu_s"] = cpu_seconds() - c0
         r["folder_mb"] = folder_mb(r["subject"].root)
-    if len(hashes) != 1:
-        raise RuntimeError(f"{args.method}: two configs ({', '.join(sorted(hashes))}) where one was built twice")
-    return cfg, hashes.pop()
+    if len(shared) != 1:
+        raise RuntimeError(f"{args.method}: two configs ({', '.join(sorted(set(hashes.values())))}) where one was built twice")
+    if len(set(hashes.values())) == 1:
+        return cfg, next(iter(hashes.values()))
+    return cfg, ", ".join(f"{h} ({label})" for label, h in hashes.items())
+
+
+def _without_prior_weights(config: dict) -> dict:
+    """A config dict without the Geometry Regularizer's weights on derived priors (what differs between folders)."""
+    train = config.get("train")
+    if not isinstance(train, dict):
+        return config
+    return {**config, "train": {k: v for k, v in train.items() if k not in ("derived_depth_weight", "derived_normal_weight")}}
 
 
 def rows(a: dict, b: dict, names: tuple[str, str]) -> list[dict]:

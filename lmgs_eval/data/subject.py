@@ -159,6 +159,17 @@ class Subject:
     def has_geometry(self) -> bool:
         return ((self.root / "depth").is_dir() and (self.root / "normal").is_dir()) or self.head_prior is not None
 
+    @property
+    def priors_derived(self) -> bool:
+        """Whether the depth / normal priors are derived from the tracking rather than measured: the
+        head ellipsoid ray-cast at load (:attr:`head_prior`) or an ingest's ellipsoid / face-mesh maps
+        (``meta.json`` says ``ingested``). A bundled subject's maps are its rendered head; a folder's own
+        maps from elsewhere count as measured, and ``meta.json``'s ``priors_derived`` says so where it is
+        given. False without priors."""
+        if not self.has_geometry:
+            return False
+        return self.head_prior is not None or bool(self.meta.get("priors_derived", self.meta.get("ingested", False)))
+
     def camera(self, i: int):
         """The :class:`lmgs.types.Camera` of frame ``i``."""
         return Camera.from_nerf_c2w(self.c2w[i], self.focal, self.width, self.height, self.cx, self.cy)
@@ -178,7 +189,7 @@ class Subject:
             "audio_features": sorted(self.audio_features),
             "landmarks3d": self.landmarks3d is not None,
             "geometry": self.has_geometry,
-            "geometry_derived": self.head_prior is not None,
+            "geometry_derived": self.priors_derived,
             "bundled": self.bundled,
             "standin": self.meta.get("standin") if self.bundled else None,
             "budget_density": self.budget_density,
