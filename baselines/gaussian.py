@@ -128,11 +128,11 @@ class LMGSConfigMethod:
         return self.model.render(driving)
 
     def describe(self) -> MethodInfo:
-        t = self.cfg.train
+        t, derived = self.cfg.train, derived_priors_part(self.cfg)
         return MethodInfo(
             name=self.name, display_name=self.display_name, family="3DGS",
             description=f"{self.description} Budget '{self.preset}': {t.static_steps} static + {t.dynamic_steps} dynamic steps"
-                        + (f"; {derived_priors_part(t)}." if (t.derived_depth_weight, t.derived_normal_weight) != (1.0, 1.0) else "."),
+                        + (f"; {derived}." if derived else "."),
             standins=STANDINS, config=self.cfg.to_dict(), config_hash=self.cfg.hash(),
         )
 

@@ -90,17 +90,21 @@ VARIANTS: dict[str, dict] = {
 }
 
 
-def derived_priors_part(t) -> str:
-    """How a config's Geometry Regularizer weighs derived priors, in words (its description)."""
+def derived_priors_part(cfg) -> str | None:
+    """How a config's Geometry Regularizer weighs derived priors, in words (its description); None where it
+    weighs them as measured ones, or has no regularizer."""
+    t = cfg.train
+    if not cfg.gr or (t.derived_depth_weight, t.derived_normal_weight) == (1.0, 1.0):
+        return None
     return (f"on priors derived from the tracking the GR's depth term x{t.derived_depth_weight:g}, "
             f"normal term x{t.derived_normal_weight:g}")
 
 
 def derived_priors_tag(cfg) -> str | None:
     """The display name's word for a config that weighs derived priors apart (None where it does not)."""
-    t = cfg.train
-    if not cfg.gr or (t.derived_depth_weight, t.derived_normal_weight) == (1.0, 1.0):
+    if derived_priors_part(cfg) is None:
         return None
+    t = cfg.train
     if (t.derived_depth_weight, t.derived_normal_weight) == (1.0, 0.0):
         return "no normals on derived priors"
     return f"derived priors: depth x{t.derived_depth_weight:g}, normals x{t.derived_normal_weight:g}"
@@ -175,8 +179,8 @@ class LMGSMethod:
                          else "SE by theta alone (no cap on the points selected)")
         if g.mouth_state:
             parts.append("the deformations read the mouth's opening and width from the landmarks")
-        if self.cfg.gr and (t.derived_depth_weight, t.derived_normal_weight) != (1.0, 1.0):
-            parts.append(derived_priors_part(t))
+        if derived_priors_part(self.cfg):
+            parts.append(derived_priors_part(self.cfg))
         reads = g.reads_landmarks
         if reads and t.landmark_folds:
             parts.append(f"out-of-fold training landmarks ({t.landmark_folds} folds)")
