@@ -2,10 +2,11 @@
 
 Shared by ``bench stripped`` (the second folder is the subject stripped to a plain processed
 folder) and ``bench ingested`` (the second folder is the ingest of the subject's raw video).
-The method is built once from the bundled subject (preset, ``--set`` changes, seed and
-Gaussian budget: one config hash), trained afresh on each folder's training split in a
-temporary folder, rendered from the test split's audio and scored by the run's metric suite,
-as ``lmgs-eval self`` runs it, each against its own folder's ground truth.
+The method is built from the bundled subject (preset, ``--set`` changes, seed and Gaussian
+budget: one config; a method with a geometry term weighs a folder's derived depth / normal priors
+as it would on that folder alone, and then each folder has its own hash), trained afresh on each
+folder's training split in a temporary folder, rendered from the test split's audio and scored by
+the run's metric suite, as ``lmgs-eval self`` runs it, each against its own folder's ground truth.
 """
 
 from __future__ import annotations
