@@ -254,14 +254,10 @@ def test_without_audio_encoder_the_window_is_averaged(clip):
     assert out.shape == clip.frames.shape and _psnr_u8(out, clip.frames) > 26
 
 
-def test_gr_warmup_ramps_the_geometry_weights_in_and_leaves_the_hash_when_off(clip, monkeypatch):
+def _spy_on_geometry_weights(monkeypatch) -> list:
+    """A list that gathers the Geometry Regularizer's ``(lambda_d, lambda_n)`` of every training step."""
     import lmgs.train as tr
 
-    assert clip.depth is not None and clip.normal is not None
-    assert quick().train.gr_warmup == 400 and quick().to_dict()["train"]["gr_warmup"] == 400  # the default ramps
-    base = _tiny_cfg(**{"train.gr_warmup": 0})
-    warm = base.replace(train=dataclasses.replace(base.train, gr_warmup=4))
-    assert "gr_warmup" not in base.to_dict()["train"] and warm.hash() != base.hash()  # 0 hashes as before the option
     seen = []
     real = tr.losses.geometry
 
@@ -270,6 +266,16 @@ def test_gr_warmup_ramps_the_geometry_weights_in_and_leaves_the_hash_when_off(cl
         return real(depth, normal, alpha, ref_d, ref_n, lambda_d, lambda_n, reduce, **kw)
 
     monkeypatch.setattr(tr.losses, "geometry", spy)
+    return seen
+
+
+def test_gr_warmup_ramps_the_geometry_weights_in_and_leaves_the_hash_when_off(clip, monkeypatch):
+    assert clip.depth is not None and clip.normal is not None
+    assert quick().train.gr_warmup == 400 and quick().to_dict()["train"]["gr_warmup"] == 400  # the default ramps
+    base = _tiny_cfg(**{"train.gr_warmup": 0})
+    warm = base.replace(train=dataclasses.replace(base.train, gr_warmup=4))
+    assert "gr_warmup" not in base.to_dict()["train"] and warm.hash() != base.hash()  # 0 hashes as before the option
+    seen = _spy_on_geometry_weights(monkeypatch)
     fit(clip, warm, seed=0, progress=False)
     lam = base.train.lambda_normal
     assert len(seen) == base.train.dynamic_steps  # only in the dynamic stage
@@ -281,22 +287,13 @@ def test_gr_warmup_ramps_the_geometry_weights_in_and_leaves_the_hash_when_off(cl
 
 
 def test_derived_priors_are_weighed_by_their_own_weights_and_measured_ones_are_not(clip, monkeypatch):
-    import lmgs.train as tr
-
     base = _tiny_cfg(**{"train.gr_warmup": 0})
     weighed = base.replace(**{"train.derived_depth_weight": 0.5, "train.derived_normal_weight": 0.0})
     # at 1 (before the options) the hash is as before; without the regularizer the weights change nothing
     assert "derived_normal_weight" not in base.to_dict()["train"] and weighed.hash() != base.hash()
     assert weighed.replace(gr=False).hash() == base.replace(gr=False).hash()
     assert config_from_dict(weighed.to_dict()) == weighed
-    seen = []
-    real = tr.losses.geometry
-
-    def spy(depth, normal, alpha, ref_d, ref_n, lambda_d, lambda_n, reduce, **kw):
-        seen.append((lambda_d, lambda_n))
-        return real(depth, normal, alpha, ref_d, ref_n, lambda_d, lambda_n, reduce, **kw)
-
-    monkeypatch.setattr(tr.losses, "geometry", spy)
+    seen = _spy_on_geometry_weights(monkeypatch)
     lam_d, lam_n = base.train.lambda_depth, base.train.lambda_normal
     assert not clip.priors_derived
     fit(clip, weighed, seed=0, progress=False)  # measured priors: the full weights
