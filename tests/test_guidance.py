@@ -226,6 +226,7 @@ def test_added_options_leave_the_config_hash_as_it_was():
         del plain[part]["zero_init"], plain[part]["bound_audio"]
     del plain["train"]["normal_reduce"], plain["train"]["landmark_folds"], plain["train"]["landmark_source"]
     del plain["train"]["lip_weights"], plain["guidance"]["mouth_state"]
+    del plain["train"]["derived_depth_weight"], plain["train"]["derived_normal_weight"]
     assert d == plain and d["train"]["gr_warmup"] == 400  # a new default unlike the neutral 0: in the dict
     assert d["guidance"]["select_fraction"] == 0.2  # likewise
     assert "gr_warmup" not in cfg.replace(**{"train.gr_warmup": 0}).to_dict()["train"]  # at neutral: left out
