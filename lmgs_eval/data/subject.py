@@ -163,9 +163,9 @@ class Subject:
     def priors_derived(self) -> bool:
         """Whether the depth / normal priors are derived from the tracking rather than measured: the
         head ellipsoid ray-cast at load (:attr:`head_prior`) or an ingest's ellipsoid / face-mesh maps
-        (``meta.json`` says ``ingested``). A bundled subject's maps are its rendered head; a folder's own
-        maps from elsewhere count as measured, and ``meta.json``'s ``priors_derived`` says so where it is
-        given. False without priors."""
+        (``meta.json`` says ``ingested``). A bundled subject's maps are its rendered head and a folder's own
+        maps from elsewhere count as measured; ``meta.json``'s ``priors_derived``, where given, decides
+        (a copy of an ingest holding the generator's maps says False). False without priors."""
         if not self.has_geometry:
             return False
         return self.head_prior is not None or bool(self.meta.get("priors_derived", self.meta.get("ingested", False)))
