@@ -133,12 +133,11 @@ class LMGSMethod:
     def __init__(self, variant: str = "lmgs", preset: str = "quick", overrides: dict | None = None, device: str | None = None,
                  budget_density: float | None = None, priors_derived: bool = False):
         self.variant = variant
-        self.priors_derived = bool(priors_derived)
         # a subject's knee density (create_method); an explicit --set train.budget_density wins
         density = {} if budget_density is None else {"train.budget_density": float(budget_density)}
         try:
             self.cfg = override(make_preset(preset), {**VARIANTS[variant], **density}, what="variant")
-            self.cfg = override(weigh_derived_priors(self.cfg, self.priors_derived), overrides or {})
+            self.cfg = override(weigh_derived_priors(self.cfg, priors_derived), overrides or {})
         except InputError:
             raise
         except ValueError as exc:  # a config's own check of a value (e.g. a fraction outside [0, 1])

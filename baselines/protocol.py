@@ -149,7 +149,8 @@ def field_methods() -> list[str]:
     return sorted(n for n in _REGISTRY if n not in _ABLATIONS)
 
 
-def create_method(name: str, subject: Any = None, hooks: dict[str, Callable] | None = None, **options) -> TalkingHead:
+def create_method(name: str, subject: Any = None, hooks: dict[str, Callable] | None = None, priors_from: Any = None,
+                  **options) -> TalkingHead:
     """Build a method by name; ``external:NAME`` scores renders made by any other code.
 
     With ``subject`` (anything with a ``budget_density`` attribute, e.g. the toolkit's
@@ -157,7 +158,8 @@ def create_method(name: str, subject: Any = None, hooks: dict[str, Callable] | N
     subject's knee density when it has one and ``options`` set none; the density is in the
     method's config, so its hash, and the records and model cache, follow it. A method with a
     geometry term (``reads_priors=True``) is told when the subject's priors are derived
-    (``subject.priors_derived``) and weighs them in its config the same way. ``hooks``: the
+    (``subject.priors_derived``, or ``priors_from``'s where the method trains on another folder of the
+    same footage) and weighs them in its config the same way. ``hooks``: the
     toolkit's callables by name; the factory gets those its ``hooks`` attribute names.
     """
     load_adapters()
@@ -169,7 +171,7 @@ def create_method(name: str, subject: Any = None, hooks: dict[str, Callable] | N
     density = getattr(subject, "budget_density", None)
     if density is not None and name in _SCENE_BUDGET:
         options.setdefault("budget_density", density)
-    if name in _PRIOR_READERS and getattr(subject, "priors_derived", False):
+    if name in _PRIOR_READERS and getattr(subject if priors_from is None else priors_from, "priors_derived", False):
         options.setdefault("priors_derived", True)
     return _REGISTRY[name](**_hooks_for(_REGISTRY[name], hooks), **options)
 
@@ -177,12 +179,6 @@ def create_method(name: str, subject: Any = None, hooks: dict[str, Callable] | N
 def _hooks_for(factory, hooks: dict[str, Callable] | None) -> dict[str, Callable]:
     """The ``hooks`` that ``factory`` names (its ``hooks`` attribute; a hook not given is left out)."""
     return {k: hooks[k] for k in getattr(factory, "hooks", ()) if hooks and k in hooks}
-
-
-def reads_priors(name: str) -> bool:
-    """Whether a registered method has a geometry term on depth / normal priors (``register(..., reads_priors=True)``)."""
-    load_adapters()
-    return name in _PRIOR_READERS
 
 
 def scene_budget_methods() -> list[str]:

@@ -132,6 +132,10 @@ class TrainConfig:
             raise ValueError(f"train.lip_weights must name a lip model (a shipped file or a path), not {self.lip_weights!r}")
 
 
+# TrainConfig's weights on derived priors: what a subject's priors change in a config (baselines build it per subject)
+DERIVED_PRIOR_KEYS = ("derived_depth_weight", "derived_normal_weight")
+
+
 @dataclass(frozen=True)
 class LMGSConfig:
     """Everything that defines a trained ``lmgs`` model; its hash names the checkpoint."""
@@ -156,8 +160,8 @@ class LMGSConfig:
             d["train"].pop("lip_weights", None)
         if not self.gr:
             # without the Geometry Regularizer its weights on derived priors change nothing
-            d["train"].pop("derived_depth_weight", None)
-            d["train"].pop("derived_normal_weight", None)
+            for key in DERIVED_PRIOR_KEYS:
+                d["train"].pop(key, None)
         if not self.guidance.se:
             # the cap only bounds what SE selects: without SE it changes no weight (lmgs-no-se's and
             # TalkingGaussian's hashes stay those of their records)

@@ -74,7 +74,7 @@ def subject_to_clip(subject: Subject, ids: np.ndarray, *, progress: bool = False
         head_masks=head if have_head else None,
         depth=depth,
         normal=normal,
-        priors_derived=depth is not None and subject.priors_derived,
+        priors_derived=subject.priors_derived,
     )
 
 

@@ -97,8 +97,8 @@ def train_both(args: argparse.Namespace, runs: dict[str, dict], tmp: Path, resul
     the bundled one first); fills in each run's ``record``, ``method``, ``train_cpu_s`` and ``folder_mb``.
     Returns the run config and its config hash: one, or one per folder (``HASH (label), ...``) where a
     folder's derived depth / normal priors are weighed as such (the configs otherwise the same)."""
-    from baselines.protocol import reads_priors
     from lmgs.config import config_hash
+    from lmgs.presets import DERIVED_PRIOR_KEYS
     from lmgs_eval.commands._common import check_seeds, parse_overrides
     from lmgs_eval.commands._sync import suite
     from lmgs_eval.results.records import RunId
@@ -113,11 +113,12 @@ def train_both(args: argparse.Namespace, runs: dict[str, dict], tmp: Path, resul
     for label, r in runs.items():
         # one config for every folder: the bundled subject's (its Gaussian budget, where it has its own); a
         # method with a geometry term weighs a folder's derived priors as it would on that folder alone
-        derived = {"priors_derived": True} if reads_priors(args.method) and r["subject"].priors_derived else {}
-        method = build_method(cfg, args.method, first["subject"], **derived)
+        method = build_method(cfg, args.method, first["subject"], priors_from=r["subject"])
         info = method.describe()
         hashes[label] = info.config_hash
-        shared.add(config_hash(_without_prior_weights(info.config)))
+        train = info.config.get("train")  # what may differ between folders: the weights on derived priors
+        shared.add(config_hash({**info.config, "train": {k: v for k, v in train.items() if k not in DERIVED_PRIOR_KEYS}}
+                               if isinstance(train, dict) else info.config))
         log(f"bench {tag}: {args.method} on the {label} folder ({r['subject'].root})")
         c0 = cpu_seconds()
         run = RunId(r["subject"], info, args.seed)
@@ -132,14 +133,6 @@ def train_both(args: argparse.Namespace, runs: dict[str, dict], tmp: Path, resul
     if len(set(hashes.values())) == 1:
         return cfg, next(iter(hashes.values()))
     return cfg, ", ".join(f"{h} ({label})" for label, h in hashes.items())
-
-
-def _without_prior_weights(config: dict) -> dict:
-    """A config dict without the Geometry Regularizer's weights on derived priors (what differs between folders)."""
-    train = config.get("train")
-    if not isinstance(train, dict):
-        return config
-    return {**config, "train": {k: v for k, v in train.items() if k not in ("derived_depth_weight", "derived_normal_weight")}}
 
 
 def rows(a: dict, b: dict, names: tuple[str, str]) -> list[dict]:
