@@ -12,6 +12,7 @@ from lmgs.checkpoint import load_model, save_model
 from lmgs.config import override
 from lmgs.device import choose_device
 from lmgs.errors import InputError
+from lmgs.presets import components
 from lmgs.presets import preset as make_preset
 from lmgs.train import fit
 
@@ -108,23 +109,6 @@ def derived_priors_tag(cfg) -> str | None:
     if (t.derived_depth_weight, t.derived_normal_weight) == (1.0, 0.0):
         return "no normals on derived priors"
     return f"derived priors: depth x{t.derived_depth_weight:g}, normals x{t.derived_normal_weight:g}"
-
-
-def components(cfg) -> dict:
-    """The parts of an lmgs config that its variants switch, as records and Table III/IV read them.
-
-    A part switched off reports its neutral setting (no cap without SE, no folds without SE, LC or the
-    mouth state), as the config hash leaves those settings out; ``mouth_state`` is there only when on.
-    """
-    g, t, a = cfg.guidance, cfg.train, cfg.audio
-    return {
-        "se": bool(g.se), "lc": bool(g.lc), "gr": bool(cfg.gr), "theta": float(g.theta),
-        "se_cap": float(g.select_fraction) if g.se else 0.0,
-        "landmark_folds": int(t.landmark_folds) if g.reads_landmarks else 0,
-        "gr_reduce": str(t.normal_reduce), "gr_weight": float(t.lambda_normal),
-        "audio_frontend": a.frontend, "audio_encoder": bool(a.use_encoder),
-        **({"mouth_state": True} if g.mouth_state else {}),
-    }
 
 
 class LMGSMethod:

@@ -218,7 +218,7 @@ def config_from_dict(d: dict) -> LMGSConfig:
     A field the dict leaves out that :func:`lmgs.config.added_option` made takes its neutral value,
     which is what leaving it out means (the dict of a config with ``guidance.select_fraction = 0``,
     made before the cap, rebuilds uncapped, not at the cap's default); any other field left out
-    takes its default."""
+    takes its default, and so does a section left out."""
     def make(cls, v):
         out = {}
         for f in dataclasses.fields(cls):
@@ -231,16 +231,33 @@ def config_from_dict(d: dict) -> LMGSConfig:
 
     cfg = LMGSConfig(
         preset=d.get("preset", "quick"),
-        audio=make(AudioConfig, d["audio"]),
-        triplane=make(TriplaneConfig, d["triplane"]),
-        guidance=make(GuidanceConfig, d["guidance"]),
-        deform_face=make(DeformConfig, d["deform_face"]),
-        deform_mouth=make(DeformConfig, d["deform_mouth"]),
-        train=make(TrainConfig, d["train"]),
+        audio=make(AudioConfig, d.get("audio") or {}),
+        triplane=make(TriplaneConfig, d.get("triplane") or {}),
+        guidance=make(GuidanceConfig, d.get("guidance") or {}),
+        deform_face=make(DeformConfig, d.get("deform_face") or {}),
+        deform_mouth=make(DeformConfig, d.get("deform_mouth") or {}),
+        train=make(TrainConfig, d.get("train") or {}),
         gr=d.get("gr", True),
         size=d.get("size", 256),
     )
-    if not cfg.guidance.se and "select_fraction" not in d["guidance"]:
+    if not cfg.guidance.se and "select_fraction" not in (d.get("guidance") or {}):
         # to_dict leaves the cap out wherever SE is off (it bounds nothing then), whatever its value
         cfg = cfg.replace(**{"guidance.select_fraction": GuidanceConfig().select_fraction})
     return cfg
+
+
+def components(cfg: LMGSConfig) -> dict:
+    """The parts of an lmgs config that its variants switch, as records and Tables III / IV read them.
+
+    A part switched off reports its neutral setting (no cap without SE, no folds without SE, LC or the
+    mouth state), as the config hash leaves those settings out; ``mouth_state`` is there only when on.
+    """
+    g, t, a = cfg.guidance, cfg.train, cfg.audio
+    return {
+        "se": bool(g.se), "lc": bool(g.lc), "gr": bool(cfg.gr), "theta": float(g.theta),
+        "se_cap": float(g.select_fraction) if g.se else 0.0,
+        "landmark_folds": int(t.landmark_folds) if g.reads_landmarks else 0,
+        "gr_reduce": str(t.normal_reduce), "gr_weight": float(t.lambda_normal),
+        "audio_frontend": a.frontend, "audio_encoder": bool(a.use_encoder),
+        **({"mouth_state": True} if g.mouth_state else {}),
+    }

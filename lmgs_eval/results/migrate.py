@@ -3,8 +3,9 @@
 Version 1 kept two facts in prose notes (the share of points Spatial Enhancement selected, and a
 subject's own Gaussian budget) and had no ``method.components``: tables read the parts of the
 reference model (SE, LC, GR and their settings) out of its config. :func:`migrate` derives both
-from the record itself, the one place that knows version 1's config layout, so every record the
-store hands out has the current form. A migrated record is not rewritten on disk until it is
+from the record itself (the parts from its config, rebuilt as a checkpoint's is and read by the
+same function the lmgs adapter declares them with), so every record the store hands out has the
+current form. A migrated record is not rewritten on disk until it is
 written again (``snapshot_records``, ``copy_records``).
 """
 
@@ -14,6 +15,7 @@ import copy
 import re
 from typing import Any
 
+from lmgs.presets import components, config_from_dict
 from lmgs_eval.results.notes import BUDGET_NOTE, SE_NOTE
 from lmgs_eval.results.schema import SCHEMA_VERSION
 
@@ -22,21 +24,12 @@ _BUDGET_RE = re.compile(re.escape(BUDGET_NOTE) + r"([0-9.e+-]+) per pixel of fac
 
 
 def lmgs_components(config: dict[str, Any]) -> dict[str, Any] | None:
-    """The reference model's parts as a version-1 record's config states them (None for other configs)."""
+    """The reference model's parts as a version-1 record's config states them, as the lmgs adapter declares
+    them for that config (:func:`lmgs.presets.components`); None for a config that is not lmgs's."""
     g = config.get("guidance")
     if not isinstance(g, dict) or "theta" not in g:
         return None
-    train, audio = config.get("train") or {}, config.get("audio") or {}
-    se, lc, mouth = bool(g.get("se", True)), bool(g.get("lc", True)), bool(g.get("mouth_state", False))
-    return {
-        "se": se, "lc": lc, "gr": bool(config.get("gr", True)), "theta": float(g["theta"]),
-        # the config leaves out what a switched-off part would use (its hash stays that of before)
-        "se_cap": float(g.get("select_fraction", 0.0)) if se else 0.0,
-        "landmark_folds": int(train.get("landmark_folds", 0)) if (se or lc or mouth) else 0,
-        "gr_reduce": str(train.get("normal_reduce", "sum")), "gr_weight": float(train.get("lambda_normal", 1e-4)),
-        "audio_frontend": audio.get("frontend"), "audio_encoder": bool(audio.get("use_encoder", True)),
-        **({"mouth_state": True} if mouth else {}),  # as baselines.lmgs_method.components declares it
-    }
+    return components(config_from_dict(config))
 
 
 def _is_lmgs(name: str) -> bool:
