@@ -4,8 +4,8 @@ landmarks', :mod:`pose`) refined by tracked texture.
 A detector's 68 points jitter by about a pixel from frame to frame, and the pose fitted to
 them (:mod:`pose`) jitters with them: a degree of rotation moves the top of the hair by a
 pixel or two at 256 px, enough to blur what a method learns of the hair and to misplace it at
-test time. The skull's upper part (forehead, temples, nose, upper cheeks; not the eyes, whose lids
-blink, nor the brows, which rise) moves rigidly and carries far more texture than 68 points. So corners are picked there in one reference
+test time. The skull's upper part (forehead, brows, eyes, nose, upper cheeks) moves rigidly
+and carries far more texture than 68 points. So corners are picked there in one reference
 frame (the frame nearest the mean pose), placed in 3D on the head ellipsoid the depth priors
 use (:mod:`geometry`) as that frame's pose sees it, and followed into every other frame by
 pyramidal Lucas-Kanade flow (OpenCV), started where the frame's landmark pose projects them
@@ -37,10 +37,10 @@ ellipsoid the corners sit on), and every frame keeps its own pose.
 What it gives up: the corners' depth is the ellipsoid's, not the face's. A wrong relief is not an
 error the same in every frame: the rotation that moves corners of the wrong depth as far as the
 image moved them is too large or too small by the relief's ratio, so the pose's error grows with the
-turn (a gain), and it is largest where the head is furthest from the face's centre (the hair's top
-and outline), where a method sees the texture misplaced. On the generator's head the refined poses
-turn 0.84 times as far as the truth in pitch before the eyes and brows were left out, 0.91 after
-(yaw 1.05 / 1.09); with the corners on the truth's own depth it was 0.93. The region is drawn from
+turn (a gain), largest where the head is furthest from the face's centre (the hair's top and
+outline), where a method sees the texture misplaced. On the generator's head the refined poses turn
+0.84 times as far as the truth in pitch and 1.05 times in yaw; with the corners on the truth's own
+depth, 0.93 and 1.09 (design.md, "Where the end-to-end gap lies"). The region is drawn from
 landmarks, so a fringe over the forehead or a hand over the face enters it.
 """
 
@@ -59,8 +59,6 @@ MIN_SHARE = 0.25  # the share of the frames that must be refined for the rest to
 MAX_ROUGHER = 1.0  # the refined poses' roughness over the input's: above it, none is kept
 FB_PX = 0.5  # forward-backward flow disagreement allowed, pixels
 OUTLIER_PX = 1.0  # a corner further than this (at 256 px) from the solved pose's projection is dropped
-EYE_GROW = (1.6, 2.6)  # each eye's hull grown this much (across, down) about its centre is left out: lids and lashes
-BROW_HALF = 0.06  # face heights either side of each brow's points left out
 
 
 @dataclass
@@ -85,10 +83,7 @@ class Refined:
 
 def upper_head_mask(lms: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """The skull's rigid upper part in one frame, bool ``[H, W]``: the hull of the brows raised
-    by 0.3 face heights, the jaw's upper ends (0-2, 14-16) and the nose's base (31-35), less what
-    moves on the skull: each eye (its six points' hull grown :data:`EYE_GROW` times about its
-    centre: the lids blink) and each brow (a band :data:`BROW_HALF` face heights either side of its
-    five points: brows rise)."""
+    by 0.3 face heights, the jaw's upper ends (0-2, 14-16) and the nose's base (31-35)."""
     import cv2
 
     fh = lms[8, 1] - lms[17:27, 1].mean()
@@ -97,13 +92,6 @@ def upper_head_mask(lms: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     m = np.zeros(shape, np.uint8)
     hull = np.round(cv2.convexHull(pts)[:, 0] * 16).astype(np.int32)
     cv2.fillConvexPoly(m, hull, 1, cv2.LINE_8, 4)
-    for eye in (lms[36:42], lms[42:48]):
-        c = eye.mean(0)
-        grown = (c + (eye - c) * EYE_GROW).astype(np.float32)
-        cv2.fillConvexPoly(m, np.round(cv2.convexHull(grown)[:, 0] * 16).astype(np.int32), 0, cv2.LINE_8, 4)
-    for brow in (lms[17:22], lms[22:27]):
-        band = np.concatenate([brow - [0.0, BROW_HALF * fh], brow[::-1] + [0.0, BROW_HALF * fh]])
-        cv2.fillPoly(m, [np.round(band * 16).astype(np.int32)], 0, cv2.LINE_8, 4)
     return m.astype(bool)
 
 
