@@ -31,6 +31,11 @@ LOGMEL = AudioConfig()  # the project's audio front end (log-mel, 16 x 80 window
 
 
 BASELINE_PRESETS = ("tiny", "quick")
+# Where a baseline that predicts landmarks (GeneFace, IP_LAP) takes their mouth from on recorded footage: the
+# generic lip model fine-tuned on the subject's training split, as their originals read pretrained
+# audio-to-landmark models (lmgs likewise: baselines.lmgs_method.ON_FOOTAGE). On the bundled subjects, the
+# per-subject predictor (the generic model learned the generator's own articulation).
+ON_FOOTAGE_SOURCE = "generic-tuned"
 
 
 class Budget:
@@ -285,7 +290,9 @@ class Adapter:
 
     reads_landmarks = False  # whether the method reads audio-predicted landmarks (a budget's landmark_source)
 
-    def __init__(self, preset: str = "quick", device: str | None = None, **overrides):
+    def __init__(self, preset: str = "quick", device: str | None = None, footage: bool = False, **overrides):
+        if footage and self.reads_landmarks:  # recorded footage: the generic lip model's mouth (a --set wins)
+            overrides = {"landmark_source": ON_FOOTAGE_SOURCE, **overrides}
         self.cfg = configured(self.budget_cls, preset, overrides, self.name)
         check_landmark_source(self.cfg, self.name, self.reads_landmarks)
         self.preset = preset

@@ -63,6 +63,23 @@ def weigh_derived_priors(cfg, derived: bool):
     return cfg.replace(**DERIVED_PRIORS) if derived and cfg.gr else cfg
 
 
+# On recorded footage (any subject the bundled generator did not make: an ingested video, a processed folder
+# from elsewhere), the landmarks guiding SE and LC take their mouth from the generic lip model (lmgs.lips),
+# fine-tuned on the subject's training split, as the paper takes them from GeneFace's pretrained model; the
+# deformations read the mouth's state from those landmarks, and the landmarks guiding training are out of fold
+# (as wrong as at test time). Set in the config of a method built for such a subject
+# (baselines.protocol.create_method); a run's own --set wins (train.landmark_source=subject is the per-subject
+# predictor). The bundled subjects keep the per-subject predictor: the generic model was pretrained on the
+# generator's own articulation, so they test nothing of it, and their tables were made without it.
+ON_FOOTAGE = {"guidance.mouth_state": True, "train.landmark_source": "generic-tuned", "train.landmark_folds": 5}
+
+
+def on_footage(cfg, footage: bool):
+    """``cfg`` with :data:`ON_FOOTAGE` where the subject is recorded footage and SE or LC reads the landmarks
+    (a variant without both, e.g. ``lmgs-base``, stays as its name says)."""
+    return cfg.replace(**ON_FOOTAGE) if footage and (cfg.guidance.se or cfg.guidance.lc) else cfg
+
+
 # Named variants for Tables III and IV: dotted config changes on the quick preset. Every variant
 # with GR on uses the full model's form, so an ablation changes only what its name says.
 VARIANTS: dict[str, dict] = {
@@ -115,13 +132,14 @@ class LMGSMethod:
     """Adapter of :mod:`lmgs` to the toolkit's fit / render / describe protocol."""
 
     def __init__(self, variant: str = "lmgs", preset: str = "quick", overrides: dict | None = None, device: str | None = None,
-                 budget_density: float | None = None, priors_derived: bool = False):
+                 budget_density: float | None = None, priors_derived: bool = False, footage: bool = False):
         self.variant = variant
         # a subject's knee density (create_method); an explicit --set train.budget_density wins
         density = {} if budget_density is None else {"train.budget_density": float(budget_density)}
         try:
             self.cfg = override(make_preset(preset), {**VARIANTS[variant], **density}, what="variant")
-            self.cfg = override(weigh_derived_priors(self.cfg, priors_derived), overrides or {})
+            self.cfg = on_footage(weigh_derived_priors(self.cfg, priors_derived), footage)
+            self.cfg = override(self.cfg, overrides or {})
         except InputError:
             raise
         except ValueError as exc:  # a config's own check of a value (e.g. a fraction outside [0, 1])
@@ -208,5 +226,5 @@ class LMGSMethod:
 
 
 for _name in VARIANTS:
-    register(_name, scene_budget=True, ablation=_name != "lmgs", reads_priors=True)(lambda _v=_name, **kw: LMGSMethod(_v, **kw))
+    register(_name, scene_budget=True, ablation=_name != "lmgs", reads_priors=True, lip_model=True)(lambda _v=_name, **kw: LMGSMethod(_v, **kw))
 

@@ -82,10 +82,12 @@ _SCENE_BUDGET: set[str] = set()
 _ABLATIONS: set[str] = set()  # a method's ablation rows (lmgs-no-se, ...): not methods of the field of their own
 # Methods with a geometry term on depth / normal priors: told whether a subject's priors are derived
 _PRIOR_READERS: set[str] = set()
+_LIP_READERS: set[str] = set()  # methods reading audio-predicted landmarks: told whether a subject is recorded footage
 EXTERNAL_PREFIX = "external:"
 
 
-def register(name: str, *, scene_budget: bool = False, ablation: bool = False, reads_priors: bool = False) -> Callable:
+def register(name: str, *, scene_budget: bool = False, ablation: bool = False, reads_priors: bool = False,
+             lip_model: bool = False) -> Callable:
     """Decorator registering a method factory under ``name`` (duplicates are rejected).
 
     ``scene_budget``: the factory takes ``budget_density`` (Gaussians per face pixel), which
@@ -93,6 +95,9 @@ def register(name: str, *, scene_budget: bool = False, ablation: bool = False, r
     ``ablation``: an ablation row of another method (left out of :func:`field_methods`).
     ``reads_priors``: the factory takes ``priors_derived``, which :func:`create_method` sets for a
     subject whose depth / normal priors are derived from the tracking (``subject.priors_derived``).
+    ``lip_model``: the factory takes ``footage``, which :func:`create_method` sets for a subject of
+    recorded footage (one the bundled generator did not make: ``subject.bundled`` false); such a method
+    reads the generic lip model's mouth there by default.
     """
 
     def deco(factory):
@@ -105,6 +110,8 @@ def register(name: str, *, scene_budget: bool = False, ablation: bool = False, r
             _ABLATIONS.add(name)
         if reads_priors:
             _PRIOR_READERS.add(name)
+        if lip_model:
+            _LIP_READERS.add(name)
         return factory
 
     return deco
@@ -159,7 +166,9 @@ def create_method(name: str, subject: Any = None, hooks: dict[str, Callable] | N
     method's config, so its hash, and the records and model cache, follow it. A method with a
     geometry term (``reads_priors=True``) is told when the subject's priors are derived
     (``subject.priors_derived``, or ``priors_from``'s where the method trains on another folder of the
-    same footage) and weighs them in its config the same way. ``hooks``: the
+    same footage) and weighs them in its config the same way. A method that reads audio-predicted landmarks
+    (``lip_model=True``) is told when ``subject`` is recorded footage (``subject.bundled`` false; a folder
+    trained on in its place, ``priors_from``, does not change it). ``hooks``: the
     toolkit's callables by name; the factory gets those its ``hooks`` attribute names.
     """
     load_adapters()
@@ -173,6 +182,8 @@ def create_method(name: str, subject: Any = None, hooks: dict[str, Callable] | N
         options.setdefault("budget_density", density)
     if name in _PRIOR_READERS and getattr(subject if priors_from is None else priors_from, "priors_derived", False):
         options.setdefault("priors_derived", True)
+    if name in _LIP_READERS and subject is not None and not getattr(subject, "bundled", True):
+        options.setdefault("footage", True)
     return _REGISTRY[name](**_hooks_for(_REGISTRY[name], hooks), **options)
 
 

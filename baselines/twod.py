@@ -376,7 +376,7 @@ class Wav2Lip(TwoDMethod):
         return model(c, c, audio[t : t + 1])[0]
 
 
-@register("ip_lap")
+@register("ip_lap", lip_model=True)
 class IPLAP(TwoDMethod):
     name = "ip_lap"
     display_name = "IP_LAP"

@@ -103,7 +103,8 @@ def check_lips_held_out(method, subject) -> None:
         raise UserError(f"subject {subject.name}: the lip model {weights} was adapted on this very clip ({clip}), so its "
                         f"test split is not held out; make weights without it (python scripts/train_lip_model.py "
                         f"--hold-out {clip} --out DIR) and pass --set train.lip_weights=DIR/lips_generic.pt "
-                        "(lip_weights= for geneface and ip_lap)")
+                        "(lip_weights= for geneface and ip_lap), or read the per-subject predictor "
+                        "(--set train.landmark_source=subject; landmark_source=subject for geneface and ip_lap)")
 
 
 def log(msg: str) -> None:

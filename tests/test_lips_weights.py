@@ -154,6 +154,26 @@ def test_a_clip_the_lip_model_was_adapted_on_is_not_scored(tmp_path, method, opt
             check_lips_held_out(build(lips_weights.DEFAULT), _ingested(tmp_path / "a", sha256_file(FOOTAGE / "anchor_de_20s.mp4")))
 
 
+@pytest.mark.parametrize("method,key,preset", [("lmgs", "train.landmark_source", "quick"),
+                                               ("geneface", "landmark_source", "tiny")])
+def test_footage_the_shipped_lip_model_saw_stops_by_default(tmp_path, method, key, preset):
+    """On recorded footage the shipped lip model is read by default, so a subject ingested from a clip it was
+    adapted on stops as the run is built, in one line naming both ways out; the per-subject predictor runs."""
+    from lmgs.lips_weights import DEFAULT, adapted_on
+    from lmgs_eval.errors import UserError
+    from lmgs_eval.runner import RunConfig, build_method
+
+    seen = adapted_on(DEFAULT)[0]
+    subject = _ingested(tmp_path, seen["sha256"])
+    subject.bundled = False
+    with pytest.raises(UserError, match=rf"\({seen['clip']}\).*--hold-out.*landmark_source=subject"):
+        build_method(RunConfig(preset=preset), method, subject)
+    mine = build_method(RunConfig(preset=preset, method_options={"overrides": {key: "subject"}}), method, subject)
+    assert mine.lip_weights() is None
+    subject.bundled = True  # a bundled subject reads its per-subject predictor: nothing to refuse
+    assert build_method(RunConfig(preset=preset), method, subject).lip_weights() is None
+
+
 def test_shipped_provenance_is_what_the_script_writes(tmp_path):
     """The committed ``provenance.json`` is byte for byte what ``scripts/train_lip_model.py`` writes for the clips it
     lists (so a re-run can be compared with ``cmp``)."""

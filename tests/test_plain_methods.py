@@ -15,6 +15,7 @@ garbage scores: the torso on the plate without a head 15.8 (head 9.3), a grey he
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -146,6 +147,71 @@ def test_a_geometry_term_weighs_the_plain_folders_derived_priors_as_derived(plai
     assert len(tg) == 1
     mine = build_method(RunConfig(method_options={"overrides": {"train.derived_normal_weight": 1.0}}), "lmgs", plain["subject"])
     assert "derived_normal_weight" not in mine.describe().config["train"]
+
+
+def test_recorded_footage_reads_the_generic_mouth_and_the_bundled_subjects_their_own(plain):
+    """A plain folder is recorded footage: lmgs (and its variants with SE or LC) read the generic lip model's
+    mouth, fine-tuned, with the mouth state and out-of-fold training landmarks; GeneFace and IP_LAP the same
+    mouth. On the bundled folder, or built without a subject, every config is the per-subject predictor's,
+    hash included; a variant without SE and LC, and methods that read no predicted landmarks, are the same on
+    both; a run's own --set wins; a bundled subject trained on in a folder's place stays bundled."""
+    from baselines.lmgs_method import ON_FOOTAGE
+    from lmgs_eval.data.layout import read_subject
+    from lmgs_eval.runner import RunConfig, build_method
+
+    full = read_subject(plain["full"])
+    assert full.bundled and not plain["subject"].bundled
+
+    def config(name, subject, **opts):
+        return build_method(RunConfig(**opts), name, subject).describe()
+
+    want = {"mouth_state": True, "landmark_source": "generic-tuned", "landmark_folds": 5}
+    assert {k.split(".")[1]: v for k, v in ON_FOOTAGE.items()} == want
+    for name in ("lmgs", "lmgs-no-se", "lmgs-no-lc"):
+        alone, on_full, on_plain = config(name, None), config(name, full), config(name, plain["subject"])
+        assert on_full.config_hash == alone.config_hash
+        got = on_plain.config
+        assert (got["guidance"]["mouth_state"], got["train"]["landmark_source"], got["train"]["landmark_folds"]) == (
+            True, "generic-tuned", 5), name
+        assert on_full.config["train"].get("landmark_source", "subject") == "subject"
+        assert not on_full.config["guidance"].get("mouth_state", False)
+        assert on_plain.components["mouth_state"] and "generic lip model" in " ".join(on_plain.standins), name
+    assert "generic mouth, tuned, mouth state" in config("lmgs", plain["subject"]).display_name
+    for name in ("lmgs-base", "talkinggaussian", "wav2lip", "ernerf"):  # nothing reads a predicted mouth
+        assert config(name, full).config == config(name, plain["subject"]).config, name
+    for name in ("geneface", "ip_lap"):
+        assert config(name, full).config.get("landmark_source", "subject") == "subject"
+        assert config(name, plain["subject"]).config["landmark_source"] == "generic-tuned"
+    mine = config("lmgs", plain["subject"], method_options={"overrides": {"train.landmark_source": "subject"}})
+    assert mine.config["train"].get("landmark_source", "subject") == "subject" and mine.config["guidance"]["mouth_state"]
+    ours = config("geneface", plain["subject"], method_options={"overrides": {"landmark_source": "subject"}})
+    assert ours.config.get("landmark_source", "subject") == "subject"
+    # the end-to-end benches build every folder's method from the bundled subject, the folder's priors aside
+    from baselines.protocol import create_method
+
+    on_bundled = create_method("lmgs", subject=full, priors_from=plain["subject"]).describe()
+    assert on_bundled.config["train"].get("landmark_source", "subject") == "subject"
+
+
+def test_methods_lists_the_configs_a_subject_gets(plain):
+    """``lmgs-eval methods --subject`` gives each method's hash as the protocols build it for that subject."""
+    from conftest import run_cli
+    from lmgs_eval.data.layout import read_subject
+    from lmgs_eval.runner import RunConfig, build_method
+
+    got = {}
+    for folder in (plain["root"], plain["full"]):
+        rc, out, err = run_cli("methods", "--subject", str(folder), "--json")
+        assert rc == 0, err
+        got[folder] = {m["name"]: m["config_hash"] for m in json.loads(out)["methods"]}
+    for name in ("lmgs", "geneface", "degstalk", "talkinggaussian"):
+        for folder, s in ((plain["root"], plain["subject"]), (plain["full"], read_subject(plain["full"]))):
+            assert got[folder][name] == build_method(RunConfig(), name, s).describe().config_hash, (name, folder)
+    assert got[plain["root"]]["lmgs"] != got[plain["full"]]["lmgs"]
+    assert got[plain["root"]]["talkinggaussian"] == got[plain["full"]]["talkinggaussian"]
+    rc, out, err = run_cli("methods", "--subject", str(plain["root"] / "nowhere"))
+    assert rc == 2 and "nowhere" in err and "Traceback" not in err
+
 
 
 @pytest.mark.parametrize("name", METHODS)

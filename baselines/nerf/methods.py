@@ -253,7 +253,7 @@ class ERNeRF(NeRFMethod):
     )
 
 
-@register("geneface")
+@register("geneface", lip_model=True)
 class GeneFace(NeRFMethod):
     name = "geneface"
     reads_landmarks = True
