@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from baselines.common import check_lip_weights, cost_of
+from baselines.common import ON_FOOTAGE_SOURCE, check_lip_weights, cost_of
 from baselines.protocol import MethodInfo, register
 from lmgs.checkpoint import load_model, save_model
 from lmgs.config import override
@@ -71,7 +71,7 @@ def weigh_derived_priors(cfg, derived: bool):
 # (baselines.protocol.create_method); a run's own --set wins (train.landmark_source=subject is the per-subject
 # predictor). The bundled subjects keep the per-subject predictor: the generic model was pretrained on the
 # generator's own articulation, so they test nothing of it, and their tables were made without it.
-ON_FOOTAGE = {"guidance.mouth_state": True, "train.landmark_source": "generic-tuned", "train.landmark_folds": 5}
+ON_FOOTAGE = {"guidance.mouth_state": True, "train.landmark_source": ON_FOOTAGE_SOURCE, "train.landmark_folds": 5}
 
 
 def on_footage(cfg, footage: bool):
