@@ -4,7 +4,8 @@ LMD says how far the rendered mouth lies from the truth's; it does not say wheth
 moves. A model that renders one neutral, half-open mouth scores a moderate LMD on every clip and
 follows none of the speech. This renders a method (trained as ``lmgs-eval self`` trains it, or
 loaded from the model cache when it already was) on two blocks of its own training frames and on
-the test frames, and gives for each block LMD and the inner lips' opening (dlib's points 62 and 66,
+the test frames, and gives for each block PSNR (the toolkit's: a model that reproduces its training
+frames far better than its test frames has learnt them, not the person), LMD and the inner lips' opening (dlib's points 62 and 66,
 in pixels) of the render and of the truth: their mean and spread over the frames, and the
 correlation of the two over time. A mouth that moves with the truth has a spread near the truth's
 and a correlation near 1; one fitted as a still average has a small spread on training frames too.
@@ -28,8 +29,9 @@ import numpy as np
 
 
 def motion_row(name: str, rendered: np.ndarray, truth: np.ndarray) -> dict:
-    """LMD and the inner-lip opening of ``rendered`` against ``truth`` (both ``[T, H, W, 3]`` uint8)."""
+    """PSNR, LMD and the inner-lip opening of ``rendered`` against ``truth`` (both ``[T, H, W, 3]`` uint8)."""
     from lmgs.lips import lip_gap
+    from lmgs_eval.metrics.image import psnr
     from lmgs_eval.metrics.landmarks import create_backend, lmd_per_frame
 
     backend = create_backend("dlib")
@@ -37,7 +39,8 @@ def motion_row(name: str, rendered: np.ndarray, truth: np.ndarray) -> dict:
     ok = np.isfinite(lp).all(axis=(1, 2)) & np.isfinite(lt).all(axis=(1, 2))
     gp, gt = lip_gap(lp[ok]), lip_gap(lt[ok])  # points 62 and 66, in pixels
     r = float(np.corrcoef(gp, gt)[0, 1]) if ok.sum() > 2 and gp.std() > 0 and gt.std() > 0 else float("nan")
-    return {"frames": name, "n": int(ok.sum()), "lmd": float(np.mean(lmd_per_frame(lp[ok], lt[ok]))),
+    return {"frames": name, "n": int(ok.sum()), "psnr": psnr(rendered / 255.0, truth / 255.0).value,
+            "lmd": float(np.mean(lmd_per_frame(lp[ok], lt[ok]))),
             "opening_render": [float(gp.mean()), float(gp.std())], "opening_truth": [float(gt.mean()), float(gt.std())],
             "opening_r": r}
 
@@ -95,10 +98,10 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(out))
         return 0
     print(f"{out['method']} ({out['config_hash']}, seed {args.seed}) on {args.subject}; inner-lip opening in px")
-    print(f"{'frames':30s} {'n':>3s} {'LMD':>6s} {'render':>12s} {'truth':>12s} {'r':>6s} {'SE':>6s}")
+    print(f"{'frames':30s} {'n':>3s} {'PSNR':>6s} {'LMD':>6s} {'render':>12s} {'truth':>12s} {'r':>6s} {'SE':>6s}")
     for r in rows:
         se = "" if r["se_share"] is None else f"{100 * r['se_share']:5.1f}%"
-        print(f"{r['frames']:30s} {r['n']:3d} {r['lmd']:6.2f} {r['opening_render'][0]:6.2f}+-{r['opening_render'][1]:<4.2f} "
+        print(f"{r['frames']:30s} {r['n']:3d} {r['psnr']:6.2f} {r['lmd']:6.2f} {r['opening_render'][0]:6.2f}+-{r['opening_render'][1]:<4.2f} "
               f"{r['opening_truth'][0]:6.2f}+-{r['opening_truth'][1]:<4.2f} {r['opening_r']:6.2f} {se:>6s}")
     return 0
 

@@ -30,7 +30,7 @@ def frames():
 
 def test_a_render_equal_to_the_truth_moves_with_it(bench, frames):
     row = bench.motion_row("same", frames, frames)
-    assert row["n"] == len(frames) and row["lmd"] == 0.0
+    assert row["n"] == len(frames) and row["lmd"] == 0.0 and row["psnr"] == 100.0  # identical frames: the metric's cap
     assert row["opening_render"] == row["opening_truth"] and row["opening_r"] > 0.999
     assert row["opening_truth"][1] > 0.2 * row["opening_truth"][0]  # the clip's mouth does move
 
@@ -39,5 +39,7 @@ def test_a_still_mouth_does_not_follow_the_truth(bench, frames):
     # the first frame held: a mouth that does not move scores a moderate LMD and follows none of the speech
     row = bench.motion_row("frozen", np.repeat(frames[:1], len(frames), axis=0), frames)
     assert row["lmd"] > 0.3
+    want = np.mean([-10 * np.log10(np.mean((frames[0] / 255.0 - f / 255.0) ** 2)) for f in frames[1:]] + [100.0])
+    assert row["psnr"] == pytest.approx(want, rel=1e-9)  # per frame, the held first one capped, then the mean
     assert abs(row["opening_r"]) < 0.3
     assert row["opening_render"][1] < row["opening_truth"][1]
