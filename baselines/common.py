@@ -363,7 +363,8 @@ class Adapter:
             standins = standins + (
                 f"mouth landmarks (48-67): lmgs's generic lip model ({describe_weights(self.lip_weights())}), retargeted "
                 "to the subject" + (", fine-tuned on its training split" if source == "generic-tuned" else ""),)
-        return MethodInfo(name=self.name, display_name=self.display_name, family=self.family,
+        tag = "" if source == "subject" else " (generic mouth" + (", tuned)" if source == "generic-tuned" else ")")
+        return MethodInfo(name=self.name, display_name=self.display_name + tag, family=self.family,
                           description=f"{self.description} Budget '{self.preset}': {self.budget_text()}.",
                           standins=standins, config=self.config(), config_hash=self.config_hash())
 

@@ -182,6 +182,8 @@ def test_recorded_footage_reads_the_generic_mouth_and_the_bundled_subjects_their
     for name in ("geneface", "ip_lap"):
         assert config(name, full).config.get("landmark_source", "subject") == "subject"
         assert config(name, plain["subject"]).config["landmark_source"] == "generic-tuned"
+        assert config(name, plain["subject"]).display_name.endswith("(generic mouth, tuned)")
+        assert "generic" not in config(name, full).display_name
     mine = config("lmgs", plain["subject"], method_options={"overrides": {"train.landmark_source": "subject"}})
     assert mine.config["train"].get("landmark_source", "subject") == "subject" and mine.config["guidance"]["mouth_state"]
     ours = config("geneface", plain["subject"], method_options={"overrides": {"landmark_source": "subject"}})
