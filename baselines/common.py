@@ -31,7 +31,7 @@ LOGMEL = AudioConfig()  # the project's audio front end (log-mel, 16 x 80 window
 
 
 BASELINE_PRESETS = ("tiny", "quick")
-# Where a method that predicts landmarks from audio (GeneFace, IP_LAP, lmgs) takes their mouth from on recorded
+# Where a method that predicts landmarks from audio (GeneFace, IP_LAP, lmgs) takes their mouth from, on recorded
 # footage: the generic lip model fine-tuned on the subject's training split, as their originals read pretrained
 # audio-to-landmark models (lmgs's other settings there: baselines.lmgs_method.ON_FOOTAGE). On the bundled
 # subjects, the per-subject predictor (the generic model learned the generator's own articulation).
