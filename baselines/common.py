@@ -38,6 +38,11 @@ BASELINE_PRESETS = ("tiny", "quick")
 ON_FOOTAGE_SOURCE = "generic-tuned"
 
 
+def generic_mouth_tag(source: str) -> str | None:
+    """A display name's words for a landmark source other than the per-subject predictor (None for ``subject``)."""
+    return None if source == "subject" else "generic mouth" + (", tuned" if source == "generic-tuned" else "")
+
+
 class Budget:
     """Base of the adapters' budgets (frozen dataclasses): each preset of :data:`BASELINE_PRESETS`
     is a classmethod of its name. ``quick`` (the benchmark's) is the defaults; ``tiny`` (tests)
@@ -363,8 +368,8 @@ class Adapter:
             standins = standins + (
                 f"mouth landmarks (48-67): lmgs's generic lip model ({describe_weights(self.lip_weights())}), retargeted "
                 "to the subject" + (", fine-tuned on its training split" if source == "generic-tuned" else ""),)
-        tag = "" if source == "subject" else " (generic mouth" + (", tuned)" if source == "generic-tuned" else ")")
-        return MethodInfo(name=self.name, display_name=self.display_name + tag, family=self.family,
+        tag = generic_mouth_tag(source)
+        return MethodInfo(name=self.name, display_name=self.display_name + (f" ({tag})" if tag else ""), family=self.family,
                           description=f"{self.description} Budget '{self.preset}': {self.budget_text()}.",
                           standins=standins, config=self.config(), config_hash=self.config_hash())
 

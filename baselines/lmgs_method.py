@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from baselines.common import ON_FOOTAGE_SOURCE, check_lip_weights, cost_of
+from baselines.common import ON_FOOTAGE_SOURCE, check_lip_weights, cost_of, generic_mouth_tag
 from baselines.protocol import MethodInfo, register
 from lmgs.checkpoint import load_model, save_model
 from lmgs.config import override
@@ -71,7 +71,10 @@ def weigh_derived_priors(cfg, derived: bool):
 # (baselines.protocol.create_method); a run's own --set wins (train.landmark_source=subject is the per-subject
 # predictor). The bundled subjects keep the per-subject predictor: the generic model was pretrained on the
 # generator's own articulation, so they test nothing of it, and their tables were made without it.
-ON_FOOTAGE = {"guidance.mouth_state": True, "train.landmark_source": ON_FOOTAGE_SOURCE, "train.landmark_folds": 5}
+# The landmarks guiding training as wrong as at test time: out-of-fold predictions (5 folds) instead of the
+# in-sample ones (lmgs.landmarks.cross_fit_landmarks); the variant lmgs-oof, and lmgs on recorded footage.
+OUT_OF_FOLD = {"train.landmark_folds": 5}
+ON_FOOTAGE = {"guidance.mouth_state": True, "train.landmark_source": ON_FOOTAGE_SOURCE, **OUT_OF_FOLD}
 
 
 def on_footage(cfg, footage: bool):
@@ -98,9 +101,8 @@ VARIANTS: dict[str, dict] = {
     # real ER-NeRF / TalkingGaussian subjects have them, the bundled ones do not).
     "lmgs-no-ae": {"audio.use_encoder": False, **GR_PER_PIXEL},
     "lmgs-ds": {"audio.frontend": "ds", **GR_PER_PIXEL},
-    # The landmarks guiding training as wrong as at test time: out-of-fold predictions of the per-subject
-    # predictor (5 folds) instead of its in-sample ones (lmgs.landmarks.cross_fit_landmarks).
-    "lmgs-oof": {"train.landmark_folds": 5, **GR_PER_PIXEL},
+    # The per-subject predictor's out-of-fold predictions guiding training (OUT_OF_FOLD).
+    "lmgs-oof": {**OUT_OF_FOLD, **GR_PER_PIXEL},
     # SE by θ alone, as the paper writes it, without the cap at the share the paper reports (the default
     # guidance.select_fraction = 0.2): at θ = 0.6 it selected 61-79 % of astronaut's face points, where lmgs
     # did worse than without SE; the records of lmgs before the cap.
@@ -189,7 +191,7 @@ class LMGSMethod:
         if reads and t.landmark_source != "subject":
             parts.append("mouth landmarks from the generic lip model" + (", fine-tuned on the subject"
                                                                           if t.landmark_source == "generic-tuned" else ""))
-            generic = "generic mouth" + (", tuned" if t.landmark_source == "generic-tuned" else "")
+            generic = generic_mouth_tag(t.landmark_source)
         derived = derived_priors_tag(self.cfg)
         tags = [x for x in (generic, "mouth state" if g.mouth_state else None, derived) if x]  # in the display name
         return MethodInfo(

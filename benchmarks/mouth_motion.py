@@ -31,7 +31,7 @@ import numpy as np
 def motion_row(name: str, rendered: np.ndarray, truth: np.ndarray) -> dict:
     """PSNR, LMD and the inner-lip opening of ``rendered`` against ``truth`` (both ``[T, H, W, 3]`` uint8)."""
     from lmgs.lips import lip_gap
-    from lmgs_eval.metrics.image import psnr
+    from lmgs_eval.metrics.image import PSNR
     from lmgs_eval.metrics.landmarks import create_backend, lmd_per_frame
 
     backend = create_backend("dlib")
@@ -39,7 +39,8 @@ def motion_row(name: str, rendered: np.ndarray, truth: np.ndarray) -> dict:
     ok = np.isfinite(lp).all(axis=(1, 2)) & np.isfinite(lt).all(axis=(1, 2))
     gp, gt = lip_gap(lp[ok]), lip_gap(lt[ok])  # points 62 and 66, in pixels
     r = float(np.corrcoef(gp, gt)[0, 1]) if ok.sum() > 2 and gp.std() > 0 and gt.std() > 0 else float("nan")
-    return {"frames": name, "n": int(ok.sum()), "psnr": psnr(rendered / 255.0, truth / 255.0).value,
+    scorer = PSNR()  # as the metric suite scores a run: uint8 chunks, each made float where it is computed
+    return {"frames": name, "n": int(ok.sum()), "psnr": scorer.compute(scorer.stream()(rendered, truth)).value,
             "lmd": float(np.mean(lmd_per_frame(lp[ok], lt[ok]))),
             "opening_render": [float(gp.mean()), float(gp.std())], "opening_truth": [float(gt.mean()), float(gt.std())],
             "opening_r": r}
