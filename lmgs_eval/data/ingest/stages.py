@@ -316,10 +316,10 @@ def finish(ctx, info: decode.VideoInfo, sel, audio: np.ndarray, source: str, key
     runs = [(int(src[g.start]), int(src[g.stop - 1]) + 1) for g in track_mod.segments(src)]  # [a, b) source frames
     aud = np.concatenate([audio[a * SPF : b * SPF] for a, b in runs])
     write_wav(ctx.sub / "aud.wav", aud)
-    from lmgs_eval.data.ingest.blink import above_baseline, au45
+    from lmgs_eval.data.ingest.blink import au45
 
     aus = writer.action_units(sel["lms"])
-    blink = above_baseline(au45(sel["mesh"]), track_mod.segments(src)) if "mesh" in sel.files else np.full(n, np.nan)
+    blink = au45(sel["mesh"]) if "mesh" in sel.files else np.full(n, np.nan)
     seen = np.isfinite(blink)  # frames without a mesh keep the eye aspect ratio's value
     aus["AU45_r"] = np.where(seen, blink, aus["AU45_r"])
     write_au_csv(ctx.sub / "au.csv", aus, sel["found"], writer.AU_COLUMNS)
@@ -332,8 +332,7 @@ def finish(ctx, info: decode.VideoInfo, sel, audio: np.ndarray, source: str, key
         "ingested": True,
         "ingest_version": INGEST_VERSION,
         "source": str(ctx.video),
-        "au_csv": "AU45_r (blink): 5 x the mean of MediaPipe's eyeBlinkLeft / eyeBlinkRight blendshapes on the tracked face mesh, "
-                  "less the open eyes' level (the lower of its running medians over 1 s and 3 s), clipped at 0 and smoothed over 3 frames "
+        "au_csv": "AU45_r (blink): 5 x the mean of MediaPipe's eyeBlinkLeft / eyeBlinkRight blendshapes on the tracked face mesh "
                   "(the eye aspect ratio where no mesh was found); AU25_r / AU26_r from the lip gap and jaw drop: stand-ins for "
                   "OpenFace's intensities, not OpenFace's",
         "track_params": "euler = (pitch, yaw, roll) of the head in radians relative to facing the camera; trans = head position in the camera frame (OpenGL axes, metres); focal in pixels; no 3DMM id/exp",
