@@ -11,9 +11,10 @@ use (:mod:`geometry`) as that frame's pose sees it, and followed into every othe
 pyramidal Lucas-Kanade flow (OpenCV), started where the frame's landmark pose projects them
 and kept only where the flow back to the reference returns within half a pixel. The pose is
 then solved again from those 2D-3D pairs (least squares from the landmark pose, twice, the
-worst-fitting corners dropped in between). The result depends on the reference frame: on the generator's 60 s head, forced to each of six
-frames, the refined poses' error spans 0.29-0.44 deg, and neither re-anchoring the reference pose
-nor averaging references takes that out (design.md, "Against the goals").
+worst-fitting corners dropped in between). The result depends on the reference frame: on the
+generator's 60 s head, forced to each of six frames, the refined poses' error spans 0.29-0.44 deg,
+and neither re-anchoring the reference pose nor averaging references takes that out (design.md,
+"Against the goals").
 
 A frame cannot be refined when it is turned more than :data:`MAX_TURN_DEG` from the reference
 (its texture no longer looks like the reference's), when too few corners survive, or when the
@@ -43,8 +44,8 @@ turn (a gain), largest where the head is furthest from the face's centre (the ha
 outline), where a method sees the texture misplaced. On the generator's head the refined poses turn
 0.84 times as far as the truth in pitch and 1.05 times in yaw; with the corners on the truth's own
 depth, 0.93 and 1.09; on the tracked face mesh's depth, 0.49 and 0.53, as its relief over the upper
-head slopes against the truth's (design.md, "Where the end-to-end gap lies"). The region is drawn from
-landmarks, so a fringe over the forehead or a hand over the face enters it.
+head slopes against the truth's (design.md, "Where the end-to-end gap lies"). The region is drawn
+from landmarks, so a fringe over the forehead or a hand over the face enters it.
 """
 
 from __future__ import annotations
