@@ -142,6 +142,29 @@ def test_texture_refinement_that_roughens_the_poses_is_not_kept(ingested, monkey
     assert np.allclose(refused.c2w, plain.c2w)
 
 
+def test_texture_refinement_that_reads_the_turn_short_is_not_kept(ingested, monkeypatch):
+    """The refinement is kept only where its poses turn about as far as the poses it started from
+    (``align.MIN_FOLLOW``). On this generated head they turn 0.82 times as far as the landmark poses (0.85
+    times the dense mesh's, in the ingest) and are kept; asked to turn ten times as far, the refinement is
+    refused and every frame keeps its own pose."""
+    from lmgs_eval.data.ingest import align, pose
+    from lmgs_eval.data.layout import read_subject
+
+    folder, _ = ingested
+    e = read_subject(folder)
+    frames = [folder / "ori_imgs" / f"{i}.jpg" for i in range(e.n_frames)]
+    plain = pose.fit_poses(e.landmarks, SIZE, SIZE, focal=e.focal)
+    kept = pose.fit_poses(e.landmarks, SIZE, SIZE, focal=e.focal, frames=frames)
+    assert kept.texture.follows > align.MIN_FOLLOW and not kept.texture.refused, kept.texture.follows
+    man = json.loads((folder / "manifest.json").read_text())  # the ingest's own, from the dense mesh's poses
+    assert man["pose"]["texture_refinement"]["follows"] > align.MIN_FOLLOW
+    monkeypatch.setattr(align, "MIN_FOLLOW", 10.0)
+    refused = pose.fit_poses(e.landmarks, SIZE, SIZE, focal=e.focal, frames=frames)
+    assert refused.texture.refused == "flat" and not refused.aligned.any()
+    assert refused.texture.follows == kept.texture.follows
+    assert np.allclose(refused.c2w, plain.c2w)
+
+
 def test_ingested_subject_reads_and_is_complete(ingested):
     from lmgs_eval.data.layout import read_subject
 

@@ -150,3 +150,32 @@ def test_roughness_reads_pose_noise_not_smooth_motion():
     assert abs(roughness(half, first) - roughness(noisy[: n // 2], np.ones(n // 2, bool))) < 0.05 * want
     assert roughness(half, ~first) < 0.1
     assert np.isnan(roughness(turn, np.arange(n) % 2 == 0))  # no three in a row
+
+
+def test_follows_reads_how_far_the_refined_poses_turn():
+    """The second gate on the texture refinement: the refined poses' turn against the input's. A copy that
+    turns half as far reads 0.5 however noisy the input is (both are smoothed before the regression); the
+    input itself reads 1; an input that only jitters about a still pose turns too little to tell (NaN)."""
+    from scipy.spatial.transform import Rotation
+
+    from lmgs_eval.data.ingest.align import MIN_SPAN_DEG, follows
+
+    n = 250
+    t = np.arange(n) / 25.0
+    turn = np.column_stack([4 * np.sin(2 * np.pi * 0.2 * t), 6 * np.sin(2 * np.pi * 0.13 * t + 1), np.zeros(n)])
+    smooth = Rotation.from_euler("xyz", turn, degrees=True)
+    half = Rotation.from_euler("xyz", turn / 2, degrees=True).as_rotvec()
+    noise = Rotation.from_rotvec(np.random.default_rng(2).normal(0, np.radians(0.5), (n, 3)))
+    noisy = (noise * smooth).as_rotvec()
+    every = np.ones(n, bool)
+    assert abs(follows(noisy, noisy, every) - 1) < 1e-9
+    assert abs(follows(noisy, half, every) - 0.5) < 0.05, follows(noisy, half, every)
+    assert abs(follows(smooth.as_rotvec(), half, every) - 0.5) < 0.01
+    # over a subset of the frames (the refined ones)
+    some = np.arange(n) % 3 != 0
+    assert abs(follows(noisy, half, some) - 0.5) < 0.05
+    # a still head's jitter: its smoothed turn is below MIN_SPAN_DEG
+    still = noise.as_rotvec()
+    assert np.isnan(follows(still, 0.5 * still, every))
+    assert np.degrees(np.linalg.norm(still, axis=1)).mean() > MIN_SPAN_DEG / 2  # jitter of a visible size all the same
+    assert np.isnan(follows(noisy, half, np.arange(n) < 2))

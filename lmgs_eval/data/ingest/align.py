@@ -37,6 +37,14 @@ it is smoother (0.86-0.95 and 0.87 times the dense mesh's); on a hand-held phone
 turns +-20 deg it was 1.66 times rougher (the camera moves the head's texture against the
 ellipsoid the corners sit on), and every frame keeps its own pose.
 
+Nor is it kept where its poses turn less far than the poses it started from (:func:`follows`, the
+slope of the one's smoothed rotation on the other's, under :data:`MIN_FOLLOW`): the tracked
+texture then reads the head's turn short. On generated heads the refined poses turn 0.85-1.22 times
+as far as the dense mesh's (which reads a photographed head's turn short); on five real clips,
+1.15 and 1.21 on two where lmgs trained on the refined poses gained 2.1 and 0.6 dB over the dense
+mesh's, 0.77 on one (+0.5), and 0.62 and 0.63 on two where it lost 3.4 and 0.5 dB (design.md,
+"Refined poses that read the turn short").
+
 What it gives up: the corners' depth is the ellipsoid's, not the face's. A wrong relief is not an
 error the same in every frame: the rotation that moves corners of the wrong depth as far as the
 image moved them is too large or too small by the relief's ratio, so the pose's error grows with the
@@ -61,6 +69,9 @@ MAX_TURN_DEG = 12.0  # a frame turned further than this from the reference keeps
 MAX_SHIFT = 0.05  # the new pose's rigid landmarks further than this share of the face height from the detections: rejected
 MIN_SHARE = 0.25  # the share of the frames that must be refined for the rest to carry their correction, or none is
 MAX_ROUGHER = 1.0  # the refined poses' roughness over the input's: above it, none is kept
+MIN_FOLLOW = 0.7  # the refined poses turn less than this share of the input's turn (:func:`follows`): none is kept
+FOLLOW_SIGMA = 2.0  # frames: the Gaussian both rotations are smoothed by before :func:`follows` compares them
+MIN_SPAN_DEG = 1.0  # the input's smoothed rotation about its mean, RMS: below it the input turns too little to compare
 FB_PX = 0.5  # forward-backward flow disagreement allowed, pixels
 OUTLIER_PX = 1.0  # a corner further than this (at 256 px) from the solved pose's projection is dropped
 
@@ -71,8 +82,10 @@ class Refined:
     many corners did; the reference frame, how many frames could be refined (none is when fewer
     than :data:`MIN_SHARE` could, or when the refined poses are rougher than the input's), how many
     carry their refined neighbours' correction, the roughness (:func:`roughness`) of the
-    input's and of the refined poses, and why none was kept where none was (``"few"``: under
-    :data:`MIN_SHARE` refinable; ``"rough"``: rougher than the input; ``""`` otherwise)."""
+    input's and of the refined poses, how far the refined poses turn where the input's do
+    (:func:`follows`; NaN where the input turns too little to tell), and why none was kept where
+    none was (``"few"``: under :data:`MIN_SHARE` refinable; ``"rough"``: rougher than the input;
+    ``"flat"``: turning less than :data:`MIN_FOLLOW` times as far as the input; ``""`` otherwise)."""
 
     rv: np.ndarray
     tv: np.ndarray
@@ -82,6 +95,7 @@ class Refined:
     refinable: int = 0
     carried: int = 0
     roughness: tuple[float, float] = (float("nan"), float("nan"))
+    follows: float = float("nan")
     refused: str = ""
 
 
@@ -169,8 +183,10 @@ def refine(frame_paths: list[Path], lms: np.ndarray, rv: np.ndarray, tv: np.ndar
         out.rv[i], out.tv[i], out.used[i], out.tracked[i] = r.ravel(), t.ravel(), True, int(keep.sum())
     out.refinable = int(out.used.sum())
     out.roughness = (roughness(rv, out.used), roughness(out.rv, out.used))
+    out.follows = follows(rv, out.rv, out.used)
     out.refused = ("few" if out.refinable < MIN_SHARE * n else
-                   "rough" if out.roughness[1] > MAX_ROUGHER * out.roughness[0] else "")
+                   "rough" if out.roughness[1] > MAX_ROUGHER * out.roughness[0] else
+                   "flat" if out.follows < MIN_FOLLOW else "")
     if out.refused:
         out.rv, out.tv, out.used[:] = rv.copy(), tv.copy(), False
     elif out.refinable < n:
@@ -192,6 +208,27 @@ def roughness(rv: np.ndarray, sel: np.ndarray) -> float:
     if not triple.any():
         return float("nan")
     return float(np.degrees(np.linalg.norm(v[2:] - 2 * v[1:-1] + v[:-2], axis=1))[triple].mean())
+
+
+def follows(rv: np.ndarray, rv_new: np.ndarray, sel: np.ndarray) -> float:
+    """How far the rotations ``rv_new`` turn where ``rv`` turn (``[N, 3]`` vectors), over the frames
+    ``sel``: the slope of ``rv_new``'s rotation about its mean regressed on ``rv``'s, the three axes
+    pooled, both smoothed over time by a Gaussian of :data:`FOLLOW_SIGMA` frames first (jitter in
+    the regressor would flatten the slope). 1 where the two turn alike; NaN where ``rv``'s smoothed
+    rotation spans less than :data:`MIN_SPAN_DEG` (RMS about its mean), since its turn is then
+    mostly its jitter, or where fewer than three frames are selected."""
+    from scipy.ndimage import gaussian_filter1d
+    from scipy.spatial.transform import Rotation
+
+    if sel.sum() < 3:
+        return float("nan")
+    a, b = Rotation.from_rotvec(rv[sel]), Rotation.from_rotvec(rv_new[sel])
+    x = gaussian_filter1d((a.mean().inv() * a).as_rotvec(), FOLLOW_SIGMA, axis=0, mode="nearest")
+    y = gaussian_filter1d((b.mean().inv() * b).as_rotvec(), FOLLOW_SIGMA, axis=0, mode="nearest")
+    x, y = x - x.mean(0), y - y.mean(0)
+    if np.degrees(np.sqrt((x ** 2).sum(1).mean())) < MIN_SPAN_DEG:
+        return float("nan")
+    return float((x * y).sum() / (x * x).sum())
 
 
 def carry(rv: np.ndarray, tv: np.ndarray, rv_ref: np.ndarray, tv_ref: np.ndarray,

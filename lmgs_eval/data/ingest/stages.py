@@ -11,7 +11,7 @@ from lmgs_eval.data.audio import write_wav
 from lmgs_eval.data.images import read_rgb_u8, write_rgb
 from lmgs_eval.data.ingest import decode, pose as pose_mod, track as track_mod, writer, zoom as zoom_mod
 from lmgs_eval.data.ingest import frames as frames_mod
-from lmgs_eval.data.ingest.align import MIN_SHARE
+from lmgs_eval.data.ingest.align import MIN_FOLLOW, MIN_SHARE
 from lmgs_eval.data.ingest.checks import INGEST_VERSION, MIN_FACE_PX, MOVING_SHARE, STATIC_LEVELS, check_frames
 from lmgs_eval.data.ingest.crop import choose_window
 from lmgs_eval.data.ingest.parsing import PlateBuilder
@@ -172,6 +172,11 @@ def pose(ctx, sel) -> None:
         ctx.log.append(f"pose: the {kind} poses are kept: the upper head's texture could refine {tex.refinable} of {len(lms)} "
                        f"frames, but its poses turn less smoothly than the {kind} poses (second differences "
                        f"{tex.roughness[1]:.2f} deg against {tex.roughness[0]:.2f}): it would add noise, not take it out")
+    elif tex is not None and tex.refused == "flat":
+        ctx.log.append(f"pose: the {kind} poses are kept: the upper head's texture could refine {tex.refinable} of {len(lms)} "
+                       f"frames, but its poses turn {tex.follows:.2f} times as far as the {kind} poses (less than "
+                       f"{MIN_FOLLOW:.2f}): the tracked texture reads the head's turn short (corners on hair or glasses, a relief "
+                       "the head ellipsoid lacks), which misplaces a turned head")
     elif tex is not None:
         ctx.log.append(f"pose: the {kind} poses are kept: the upper head's texture could refine {tex.refinable} of {len(lms)} "
                        f"frames, fewer than {100 * MIN_SHARE:.0f} % (the head turns too far from frame {ref}, or too little "
@@ -196,7 +201,8 @@ def pose(ctx, sel) -> None:
              mesh_reproj=fit.mesh_reproj_px if fit.mesh_reproj_px is not None else np.full(len(lms), np.nan),
              texture=json.dumps({} if tex is None else
                                 {"reference_frame": ref, "refinable": tex.refinable, "refined": int(tex.used.sum()),
-                                 "carried": tex.carried, "roughness_deg": [round(x, 4) if np.isfinite(x) else None for x in tex.roughness]}))
+                                 "carried": tex.carried, "roughness_deg": [round(x, 4) if np.isfinite(x) else None for x in tex.roughness],
+                                 "follows": round(tex.follows, 4) if np.isfinite(tex.follows) else None}))
     ctx.timed("pose", t0, len(lms))
 
 
