@@ -63,3 +63,20 @@ def test_a_frame_without_a_face_is_nan_and_detected_again(face_mesh, photo):
     assert np.isnan(pts[0]).all() and np.isnan(pts[2]).all() and np.isfinite(pts[[1, 3]]).all()
     assert presence[0] == -np.inf and presence[1] > 10
     assert detected.tolist() == [True, True, True, True]  # the frame after a lost face is detected afresh
+
+
+def test_the_detector_finds_the_face_on_a_decoders_padded_frame_at_its_first_call():
+    """A video decoder hands frames out as views whose rows are padded (not C-contiguous). dlib's
+    detector, given such a view as its first image in a process, found no face where every later call
+    finds one, so the mesh's first frame (and the track seeded from it) changed from run to run: the
+    box must be the contiguous image's, on the first call of a fresh process."""
+    import subprocess
+    import sys
+
+    code = ("import numpy as np; from skimage import data; from lmgs_eval.data.ingest.mesh import dlib_box\n"
+            "img = data.astronaut(); wide = np.zeros((img.shape[0], img.shape[1] + 40, 3), np.uint8)\n"
+            "wide[:, :img.shape[1]] = img; view = wide[:, :img.shape[1]]\n"
+            "assert not view.flags['C_CONTIGUOUS']\n"
+            "print(dlib_box(view)); print(dlib_box(np.ascontiguousarray(img)))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split("\n")
+    assert out[0] != "None" and out[0] == out[1], out

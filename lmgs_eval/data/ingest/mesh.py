@@ -132,13 +132,17 @@ class FaceMesh:
 
 def dlib_box(frame: np.ndarray, max_side: int = 640) -> Box | None:
     """The largest face dlib's HOG detector (the ingest's, loaded once) finds on the frame shrunk to
-    ``max_side``, or None."""
+    ``max_side``, or None.
+
+    The frame goes to dlib C-contiguous: a decoder's frames are views with padded rows, and dlib
+    20's detector, on the first such view of a process, found no face where it finds one on every later
+    call (so an ingest's first mesh frame, and the whole track seeded from it, changed from run to run)."""
     import cv2
 
     from lmgs_eval.data.ingest.track import _models
 
     k = min(1.0, max_side / max(frame.shape[:2]))
-    small = cv2.resize(frame, None, fx=k, fy=k, interpolation=cv2.INTER_AREA) if k < 1 else frame
+    small = cv2.resize(frame, None, fx=k, fy=k, interpolation=cv2.INTER_AREA) if k < 1 else np.ascontiguousarray(frame)
     found = _models()[0](small, 1)
     if not found:
         return None
