@@ -80,7 +80,8 @@ OUTLIER_PX = 1.0  # a corner further than this (at 256 px) from the solved pose'
 class Refined:
     """Per frame: rotation and translation vectors (OpenCV), whether the images set them, how
     many corners did; the reference frame, how many frames could be refined (none is when fewer
-    than :data:`MIN_SHARE` could, or when the refined poses are rougher than the input's), how many
+    than :data:`MIN_SHARE` could, or when the refined poses are rougher than the input's or turn
+    short of it), how many
     carry their refined neighbours' correction, the roughness (:func:`roughness`) of the
     input's and of the refined poses, how far the refined poses turn where the input's do
     (:func:`follows`; NaN where the input turns too little to tell), and why none was kept where
@@ -195,15 +196,20 @@ def refine(frame_paths: list[Path], lms: np.ndarray, rv: np.ndarray, tv: np.ndar
     return out
 
 
+def about_mean(rv: np.ndarray) -> np.ndarray:
+    """Rotations ``rv`` (``[N, 3]`` vectors) as rotation vectors about their mean rotation."""
+    from scipy.spatial.transform import Rotation
+
+    r = Rotation.from_rotvec(rv)
+    return (r.mean().inv() * r).as_rotvec()
+
+
 def roughness(rv: np.ndarray, sel: np.ndarray) -> float:
     """How rough a sequence of rotations (``[N, 3]`` vectors) is where ``sel`` holds three frames in a
     row: the mean norm of the second difference of the rotations (about their mean), degrees; NaN
     without such a triple. A head turns smoothly at 25 frames a second: what is rough is mostly
     the pose's noise."""
-    from scipy.spatial.transform import Rotation
-
-    r = Rotation.from_rotvec(rv)
-    v = (r.mean().inv() * r).as_rotvec()
+    v = about_mean(rv)
     triple = sel[2:] & sel[1:-1] & sel[:-2]
     if not triple.any():
         return float("nan")
@@ -218,13 +224,11 @@ def follows(rv: np.ndarray, rv_new: np.ndarray, sel: np.ndarray) -> float:
     rotation spans less than :data:`MIN_SPAN_DEG` (RMS about its mean), since its turn is then
     mostly its jitter, or where fewer than three frames are selected."""
     from scipy.ndimage import gaussian_filter1d
-    from scipy.spatial.transform import Rotation
 
     if sel.sum() < 3:
         return float("nan")
-    a, b = Rotation.from_rotvec(rv[sel]), Rotation.from_rotvec(rv_new[sel])
-    x = gaussian_filter1d((a.mean().inv() * a).as_rotvec(), FOLLOW_SIGMA, axis=0, mode="nearest")
-    y = gaussian_filter1d((b.mean().inv() * b).as_rotvec(), FOLLOW_SIGMA, axis=0, mode="nearest")
+    x = gaussian_filter1d(about_mean(rv[sel]), FOLLOW_SIGMA, axis=0, mode="nearest")
+    y = gaussian_filter1d(about_mean(rv_new[sel]), FOLLOW_SIGMA, axis=0, mode="nearest")
     x, y = x - x.mean(0), y - y.mean(0)
     if np.degrees(np.sqrt((x ** 2).sum(1).mean())) < MIN_SPAN_DEG:
         return float("nan")
