@@ -7,8 +7,9 @@ loaded from the model cache when it already was) on two blocks of its own traini
 the test frames, and gives for each block PSNR (the toolkit's: a model that reproduces its training
 frames far better than its test frames has learnt them, not the person), LMD and the inner lips'
 opening (dlib's points 62 and 66, in pixels) of the render and of the truth: their mean and spread
-over the frames, and the correlation of the two over time. A mouth that moves with the truth has a spread near the truth's
-and a correlation near 1; one fitted as a still average has a small spread on training frames too.
+over the frames, and the correlation of the two over time. A mouth that moves with the truth has a
+spread near the truth's and a correlation near 1; one fitted as a still average has a small spread
+on training frames too.
 For lmgs it also gives the share of face points Spatial Enhancement selected on each block (the
 paper reports about 20 %).
 

@@ -81,9 +81,8 @@ class Refined:
     """Per frame: rotation and translation vectors (OpenCV), whether the images set them, how
     many corners did; the reference frame, how many frames could be refined (none is when fewer
     than :data:`MIN_SHARE` could, or when the refined poses are rougher than the input's or turn
-    short of it), how many
-    carry their refined neighbours' correction, the roughness (:func:`roughness`) of the
-    input's and of the refined poses, how far the refined poses turn where the input's do
+    short of it), how many carry their refined neighbours' correction, the roughness
+    (:func:`roughness`) of the input's and of the refined poses, how far the refined poses turn where the input's do
     (:func:`follows`; NaN where the input turns too little to tell), and why none was kept where
     none was (``"few"``: under :data:`MIN_SHARE` refinable; ``"rough"``: rougher than the input;
     ``"flat"``: turning less than :data:`MIN_FOLLOW` times as far as the input; ``""`` otherwise)."""
@@ -134,7 +133,7 @@ def refine(frame_paths: list[Path], lms: np.ndarray, rv: np.ndarray, tv: np.ndar
 
     n = len(frame_paths)
     rots = Rotation.from_rotvec(rv)
-    ref = int(np.argmin((rots.mean().inv() * rots).magnitude()))
+    ref = int(np.argmin(np.linalg.norm(about_mean(rv), axis=1)))
     turn = np.degrees((rots[ref].inv() * rots).magnitude())
     K = np.array([[focal, 0, w / 2], [0, focal, h / 2], [0, 0, 1]], np.float64)
     w2c_ref = np.eye(4)

@@ -175,8 +175,8 @@ def pose(ctx, sel) -> None:
     elif tex is not None and tex.refused == "flat":
         ctx.log.append(f"pose: the {kind} poses are kept: the upper head's texture could refine {tex.refinable} of {len(lms)} "
                        f"frames, but its poses turn {tex.follows:.2f} times as far as the {kind} poses (less than "
-                       f"{MIN_FOLLOW:.2f}): the tracked texture reads the head's turn short (corners on hair or glasses, a relief "
-                       "the head ellipsoid lacks), which misplaces a turned head")
+                       f"{MIN_FOLLOW:.2f}): the tracked texture reads the head's turn short (on real clips seen with glasses and a "
+                       "fringe in the tracked region), which misplaces a turned head")
     elif tex is not None:
         ctx.log.append(f"pose: the {kind} poses are kept: the upper head's texture could refine {tex.refinable} of {len(lms)} "
                        f"frames, fewer than {100 * MIN_SHARE:.0f} % (the head turns too far from frame {ref}, or too little "
