@@ -300,6 +300,7 @@ class GaussianTalker(Adapter):
         order = rng.integers(0, n, size=total)
         bar = progress_bar(total, "gaussiantalker fit", progress)
         data = ClipTensors(clip, dev)
+        image_loss = losses.CoveredPhotometric(lt.lambda_dssim)
         for step in range(total):
             i = int(order[step])
             dynamic = step >= b.static_steps
@@ -307,7 +308,7 @@ class GaussianTalker(Adapter):
             bg = data.background(i)
             audio = model.audio_net(feats, index=data.index(i))[0] if dynamic else None
             res = model.render_frame(model.train_w2c[i], bg, audio, data.blink(i))
-            loss = losses.photometric(_composite(res, bg), gt, lt.lambda_dssim)
+            loss = image_loss(_composite(res, bg), gt, bg, res.alpha[..., 0] > 0, i)
             optimise(loss, g_opt, n_opt, dynamic, (model.gs,))
             densify([(strategy, model.gs, state, res.means2d, res.visible)], g_opt, step + 1, extent, clip.width, clip.height)
             if bar is not None:

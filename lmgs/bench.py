@@ -12,6 +12,12 @@ repeated runs, measured in this run, never compared with stored figures.
 ``frames`` rows follow one whole frame as ``LMGSModel.render`` makes it, at each image size:
 audio (audio net), network (both branches' deformation), raster (both branches rasterized,
 colour only) and compositing (face over mouth over the background, then to uint8).
+
+``loss`` rows time a training step's image loss, L1 + D-SSIM and its backward, on a head
+rendered over a background at each image size: as 3DGS's code computes it
+(:func:`lmgs.losses.ssim_autograd`), with the closed-form gradient over the whole frame
+(:func:`lmgs.losses.photometric`), and over the box around the head as training runs it
+(:class:`lmgs.losses.CoveredPhotometric`).
 """
 
 from __future__ import annotations
@@ -108,8 +114,14 @@ def run(args: argparse.Namespace) -> dict:
         )
     frames = [frame_breakdown(n, res, audio, feats, idx, dcfg, tcfg, gcfg, args.repeats)
               for res in args.sizes for n in args.points]
+    loss = [loss_breakdown(max(args.points), res, args.repeats) for res in args.sizes]
     return {
         "frames": frames,
+        "loss": loss,
+        "loss_note": "a training step's L1 + D-SSIM with its backward on a rendered head over a background: as 3DGS's "
+                     "code computes it (autograd through padded depthwise convolutions), with the SSIM's gradient in "
+                     "closed form over the whole frame, and over the box around the head as training runs it (the "
+                     "same value and gradient); ms, medians of this run",
         "frames_note": "one frame as LMGSModel.render makes it: audio, network (face + mouth deformation), raster "
                        "(both branches, colour only), compositing (over the background, to uint8); the mouth branch "
                        "has a fifth of the face's Gaussians; untrained weights, a head-sized Gaussian blob",
@@ -172,3 +184,36 @@ def frame_breakdown(n: int, res: int, audio, feats, idx, dcfg, tcfg, gcfg, repea
     total = round(sum(ms.values()), 3)  # the printed total; the rate is of it
     return {"res": f"{res}x{res}", "points": n, **{k: round(v, 3) for k, v in ms.items()},
             "total_ms": total, "frames_per_s": round(1e3 / total, 1)}
+
+
+def loss_breakdown(n: int, res: int, repeats: int) -> dict:
+    """Median ms of the image loss and its backward for ``n`` Gaussians rendered at ``res x res``."""
+    from lmgs import losses
+    from lmgs.render import rasterize
+    from lmgs.render.bench_scene import head_scene
+
+    params, cam = head_scene(n, res, seed=0, requires_grad=False)
+    g = torch.Generator().manual_seed(2)
+    bg = torch.rand(res, res, 3, generator=g)
+    with torch.no_grad():
+        out = rasterize(*params, cam, None, render_mode="RGB")
+    cover = out.alpha[..., 0] > 0
+    img = (out.rgb + (1 - out.alpha) * bg).requires_grad_()
+    frame = (bg * 0.8 + 0.2 * torch.rand(res, res, 3, generator=g)).clamp(0, 1)
+    box = losses.CoveredPhotometric()
+
+    def timed(loss_fn) -> float:
+        def step():
+            img.grad = None
+            loss_fn().backward()
+
+        return _median_ms(step, repeats)
+
+    ms = {
+        "autograd_ms": timed(lambda: losses.photometric(img, frame, ssim_fn=losses.ssim_autograd)),
+        "closed_form_ms": timed(lambda: losses.photometric(img, frame)),
+        "box_ms": timed(lambda: box(img, frame, bg, cover, key=0)),
+    }
+    return {"res": f"{res}x{res}", "cover": round(float(cover.float().mean()), 3), **{k: round(v, 2) for k, v in ms.items()},
+            "closed_form_speedup": round(ms["autograd_ms"] / ms["closed_form_ms"], 2),
+            "box_speedup": round(ms["autograd_ms"] / ms["box_ms"], 2)}

@@ -135,6 +135,7 @@ class _Run:
     use_geo: bool = False
     prior_weights: tuple[float, float] = (0.0, 0.0)  # the Geometry Regularizer's (depth, normal) weights on this clip
     data: ClipTensors | None = None
+    image_loss: losses.CoveredPhotometric | None = None
 
     @property
     def total(self) -> int:
@@ -287,6 +288,7 @@ def _prepare(run: _Run, progress: bool) -> None:
     run.use_geo = run.cfg.gr and clip.depth is not None and clip.normal is not None
     run.prior_weights = prior_weights(run.cfg.train, clip.priors_derived)
     run.data = ClipTensors(clip, dev)
+    run.image_loss = losses.CoveredPhotometric(t.lambda_dssim)
 
 
 def _frame_loss(run: _Run, step: int, i: int, dynamic: bool):
@@ -301,7 +303,7 @@ def _frame_loss(run: _Run, step: int, i: int, dynamic: bool):
     state = run.mouth_states[i] if (dynamic and run.mouth_states is not None) else None
     r = model.render_frame(model.train_w2c[i], bg, dynamic=dynamic, audio=audio, landmarks=lm, blink=data.blink(i), mouth=state,
                            check_values=on_host)
-    loss = losses.photometric(r.rgb, gt, t.lambda_dssim)
+    loss = run.image_loss(r.rgb, gt, bg, r.head_alpha[..., 0] > 0, i)  # L1 + D-SSIM, over the box around the head
     mouth_px = data.mouth_pixels(i) if dynamic else None
     if mouth_px is not None:
         loss = loss + t.lambda_mouth * r.face_alpha[..., 0].reshape(-1)[mouth_px].mean()

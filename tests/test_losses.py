@@ -84,3 +84,104 @@ def test_geometry_as_masked_sums_equals_the_gathered_terms(reduce, case):
         assert float(la) > 0 and float(da.abs().max()) > 0
     else:
         assert float(da.abs().max()) == 0.0  # fewer than two pixels: no depth term
+
+
+def _ssim_3dgs(img, ref):
+    """3DGS's ``ssim`` as its training code writes it: each statistic a padded depthwise
+    convolution with the 11-tap Gaussian (sigma 1.5), differentiated by autograd."""
+    import torch.nn.functional as F
+
+    x, y = img.permute(2, 0, 1)[None], ref.permute(2, 0, 1)[None]
+    g = torch.exp(-((torch.arange(11, dtype=x.dtype) - 5) ** 2) / (2 * 1.5**2))
+    w = (g[:, None] * g[None, :] / g.sum() ** 2).expand(3, 1, 11, 11)
+
+    def blur(t):
+        return F.conv2d(t, w, padding=5, groups=3)
+
+    mx, my = blur(x), blur(y)
+    sxx, syy, sxy = blur(x * x) - mx**2, blur(y * y) - my**2, blur(x * y) - mx * my
+    c1, c2 = 0.01**2, 0.03**2
+    return (((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx**2 + my**2 + c1) * (sxx + syy + c2))).mean()
+
+
+@pytest.mark.parametrize("path", ["numba", "torch"])  # the CPU's kernels; the torch ops a GPU runs
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_ssim_and_its_closed_form_gradient_are_the_3dgs_loss(dtype, path, monkeypatch):
+    if path == "torch":
+        monkeypatch.setattr(losses, "_on_numba", lambda t: False)
+    g = torch.Generator().manual_seed(0)
+    img = torch.rand(37, 29, 3, generator=g, dtype=dtype, requires_grad=True)
+    ref = (img.detach() * 0.7 + 0.3 * torch.rand(37, 29, 3, generator=g, dtype=dtype)).requires_grad_()
+    ours, theirs = losses.ssim(img, ref), _ssim_3dgs(img, ref)
+    tol = dict(rtol=1e-10, atol=1e-12) if dtype == torch.float64 else dict(rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(ours, theirs, **tol)
+    got = torch.autograd.grad(ours, (img, ref))
+    want = torch.autograd.grad(theirs, (img, ref))
+    for a, b in zip(got, want):
+        torch.testing.assert_close(a, b, **tol)
+    if dtype == torch.float64:  # and against finite differences, on windows that need no padding
+        x = torch.rand(1, 3, 19, 23, generator=g, dtype=dtype, requires_grad=True)
+        y = torch.rand(1, 3, 19, 23, generator=g, dtype=dtype, requires_grad=True)
+        assert torch.autograd.gradcheck(losses._SSIMMap.apply, (x, y))
+
+
+def _head_over_background(h, w, shift=(0.0, 0.0)):
+    """A blob of Gaussians rendered by the CPU rasterizer over a background, as a training step
+    composites a head: ``(params, render function, background, frame)``."""
+    from lmgs.render import rasterize
+    from lmgs.types import Camera
+
+    g = torch.Generator().manual_seed(1)
+    n = 150
+    means = torch.randn(n, 3, generator=g) * 0.12 + torch.tensor([shift[0], shift[1], 3.0])
+    params = [means, torch.randn(n, 4, generator=g), torch.randn(n, 3, generator=g) * 0.3 - 3.3,
+              torch.randn(n, generator=g), torch.rand(n, 3, generator=g)]
+    params = [p.requires_grad_() for p in params]
+    cam = Camera(torch.eye(4), 120.0, 120.0, w / 2, h / 2, w, h)
+    bg = torch.rand(h, w, 3, generator=g)
+    frame = (bg * 0.8 + 0.2 * torch.rand(h, w, 3, generator=g)).clamp(0, 1)
+
+    def render():
+        out = rasterize(*params, cam, None, backend="numba", render_mode="RGB")
+        return out.rgb + (1 - out.alpha) * bg, out.alpha[..., 0] > 0
+
+    return params, render, bg, frame
+
+
+@pytest.mark.parametrize("shift", [(0.0, 0.0), (-0.9, 0.6)])  # a head in the middle; one cut by the frame's corner
+def test_the_loss_over_the_box_around_the_head_is_the_full_frame_loss(shift):
+    params, render, bg, frame = _head_over_background(96, 120, shift)
+    img, cover = render()
+    assert 0.05 < cover.float().mean() < 0.5  # the head covers part of the frame, so the box is a crop
+    assert torch.equal(img[~cover], bg[~cover])  # the render is its background where nothing covers it
+    full = losses.photometric(img, frame, 0.2)
+    want = torch.autograd.grad(full, params)
+    box = losses.CoveredPhotometric(0.2)
+    for _ in range(2):  # the background's terms from the tables made on the first call, then kept
+        img, cover = render()
+        value = box(img, frame, bg, cover, key=7)
+        torch.testing.assert_close(value, full, rtol=1e-6, atol=0)
+        for a, b in zip(torch.autograd.grad(value, params), want):
+            torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-7 * float(b.abs().max()))
+    nothing = torch.zeros(96, 120, dtype=torch.bool)  # a frame nothing covers: the full-frame loss
+    torch.testing.assert_close(box(bg.clone().requires_grad_(), frame, bg, nothing, key=8), losses.photometric(bg, frame, 0.2))
+
+
+def test_the_cpu_ssim_kernels_give_the_same_bits_on_any_thread_count():
+    import numba
+
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("one thread on this host")
+    g = torch.Generator().manual_seed(3)
+    img = torch.rand(40, 33, 3, generator=g, requires_grad=True)
+    ref = torch.rand(40, 33, 3, generator=g)
+    runs = []
+    for threads in (1, numba.config.NUMBA_NUM_THREADS):
+        before = numba.get_num_threads()
+        numba.set_num_threads(threads)
+        try:
+            value = losses.ssim(img, ref)
+            runs.append((value.detach(), torch.autograd.grad(value, img)[0]))
+        finally:
+            numba.set_num_threads(before)
+    assert all(torch.equal(a, b) for a, b in zip(*runs))

@@ -118,15 +118,15 @@ def _alter_loss_after(monkeypatch, n: int, change):
     """From the (n+1)-th training step on, the photometric loss goes through ``change``."""
     import lmgs.train as tr
 
-    real = tr.losses.photometric
+    real = tr.losses.CoveredPhotometric.__call__
     calls = {"n": 0}
 
-    def altered(a, b, lam):
+    def altered(self, *args):
         calls["n"] += 1
-        out = real(a, b, lam)
+        out = real(self, *args)
         return change(out) if calls["n"] > n else out
 
-    monkeypatch.setattr(tr.losses, "photometric", altered)
+    monkeypatch.setattr(tr.losses.CoveredPhotometric, "__call__", altered)
 
 
 def test_non_finite_loss_stops_with_message(clip, monkeypatch, tmp_path):
@@ -165,19 +165,19 @@ def test_collapse_stops_with_message(clip, monkeypatch, tmp_path):
 def test_resume_after_interruption(clip, monkeypatch, tmp_path):
     import lmgs.train as tr
 
-    real = tr.losses.photometric
+    real = tr.losses.CoveredPhotometric.__call__
     calls = {"n": 0}
 
-    def interrupt(a, b, lam):
+    def interrupt(self, *args):
         calls["n"] += 1
         if calls["n"] == 50:
             raise KeyboardInterrupt
-        return real(a, b, lam)
+        return real(self, *args)
 
-    monkeypatch.setattr(tr.losses, "photometric", interrupt)
+    monkeypatch.setattr(tr.losses.CoveredPhotometric, "__call__", interrupt)
     with pytest.raises(KeyboardInterrupt):
         fit(clip, _tiny_cfg(), seed=0, progress=False, workdir=tmp_path)
-    monkeypatch.setattr(tr.losses, "photometric", real)
+    monkeypatch.setattr(tr.losses.CoveredPhotometric, "__call__", real)
     model, report = fit(clip, _tiny_cfg(), seed=0, progress=False, workdir=tmp_path)
     assert report.resumed_from == 30 and report.steps == 70
     # the time is the whole training's: the interrupted run's up to its checkpoint, then this one's
