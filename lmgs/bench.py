@@ -214,6 +214,9 @@ def loss_breakdown(n: int, res: int, repeats: int) -> dict:
         "closed_form_ms": timed(lambda: losses.photometric(img, frame)),
         "box_ms": timed(lambda: box(img, frame, bg, cover, key=0)),
     }
+    def ratio(a: float, b: float) -> float | None:
+        return round(a / b, 2) if b > 0 else None
+
     return {"res": f"{res}x{res}", "cover": round(float(cover.float().mean()), 3), **{k: round(v, 2) for k, v in ms.items()},
-            "closed_form_speedup": round(ms["autograd_ms"] / ms["closed_form_ms"], 2),
-            "box_speedup": round(ms["autograd_ms"] / ms["box_ms"], 2)}
+            "closed_form_speedup": ratio(ms["autograd_ms"], ms["closed_form_ms"]),
+            "box_speedup": ratio(ms["autograd_ms"], ms["box_ms"])}

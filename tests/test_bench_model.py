@@ -2,8 +2,9 @@
 
 The stages run for real, but the clock is a fake one that only the stages move, each by a fixed
 cost per call (audio net 2 ms, the training forward 11 ms, the prepared deformation 3 ms, one
-rasterization 5 ms, compositing 1 ms): every reported figure then has a value worked out by hand
-from which calls a stage makes, independent of how fast this machine happens to be.
+rasterization 5 ms, compositing 1 ms; of the image loss, 3DGS's SSIM 8 ms, the closed form's 2 ms,
+the loss over the box 1 ms): every reported figure then has a value worked out by hand from which
+calls a stage makes, independent of how fast this machine happens to be.
 """
 
 from __future__ import annotations
@@ -15,13 +16,15 @@ import pytest
 
 from lmgs import bench
 
-COST_MS = {"audio": 2.0, "forward": 11.0, "prepared": 3.0, "raster": 5.0, "composite": 1.0}
+COST_MS = {"audio": 2.0, "forward": 11.0, "prepared": 3.0, "raster": 5.0, "composite": 1.0, "ssim_autograd": 8.0,
+           "ssim": 2.0, "box": 1.0}
 
 
 @pytest.fixture(scope="module")
 def bench_out():
     import lmgs.model
     import lmgs.render
+    from lmgs import losses
     from lmgs.audio import AudioNet
     from lmgs.deform import DeformNet
 
@@ -41,6 +44,9 @@ def bench_out():
         mp.setattr(DeformNet, "forward_prepared", costing(DeformNet.forward_prepared, "prepared"))
         mp.setattr(lmgs.render, "rasterize", costing(lmgs.render.rasterize, "raster"))
         mp.setattr(lmgs.model, "composite", costing(lmgs.model.composite, "composite"))
+        mp.setattr(losses, "ssim_autograd", costing(losses.ssim_autograd, "ssim_autograd"))
+        mp.setattr(losses, "ssim", costing(losses.ssim, "ssim"))
+        mp.setattr(losses.CoveredPhotometric, "__call__", costing(losses.CoveredPhotometric.__call__, "box"))
         args = argparse.Namespace(points=[300], repeats=1, preset="quick", threads=0, sizes=[32, 48])
         return bench.run(args)
 
@@ -67,3 +73,14 @@ def test_rows_time_the_prepared_deformation_beside_the_forward(bench_out):
     tri = rows["triplane fwd+bwd"]
     assert tri["deform_ms"] == 0.0  # the encoder's step calls none of the stages above
     assert tri["forward_ms"] is None and tri["total_ms"] is None and tri["frames_per_s"] is None
+
+
+def test_loss_rows_time_the_three_forms_of_the_image_loss(bench_out):
+    loss = bench_out["loss"]
+    assert [r["res"] for r in loss] == ["32x32", "48x48"]
+    for r in loss:
+        # each form's loss and backward: 3DGS's SSIM 8 ms, the closed form 2, the box 1 (its SSIM is
+        # not :func:`ssim`: the box computes its own), so 4x and 8x
+        assert (r["autograd_ms"], r["closed_form_ms"], r["box_ms"]) == (8.0, 2.0, 1.0)
+        assert (r["closed_form_speedup"], r["box_speedup"]) == (4.0, 8.0)
+        assert 0 < r["cover"] < 1  # the head covers part of the frame
