@@ -34,8 +34,7 @@ TILE = 16  # pixels: the grid the box of :class:`CoveredPhotometric` is drawn on
 
 def _blur(t: torch.Tensor) -> torch.Tensor:
     """The SSIM window's Gaussian over each channel of ``[1, C, h + 10, w + 10]``, without padding:
-    ``[1, C, h, w]`` (one separable depthwise convolution for all the channels; not differentiable:
-    :class:`_SSIMMap` has its own backward)."""
+    ``[1, C, h, w]``: one separable depthwise convolution (torch's) for all the channels."""
     g = _gauss_window(device=t.device, dtype=t.dtype)
     c = t.shape[1]
     wx = g.view(1, 1, 1, -1).expand(c, 1, 1, -1)
@@ -136,19 +135,13 @@ def ssim(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
 
 
 def ssim_autograd(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
-    """:func:`ssim` as 3DGS's training code computes it: padded depthwise convolutions (torch's),
-    differentiated by autograd. The form :func:`ssim` replaces, timed beside it by ``lmgs-eval
-    bench model``."""
-    x, y = img.permute(2, 0, 1)[None], ref.permute(2, 0, 1)[None]
-    g = _gauss_window(device=img.device, dtype=img.dtype)
-    c = x.shape[1]
-    wx, wy = g.view(1, 1, 1, -1).repeat(c, 1, 1, 1), g.view(1, 1, -1, 1).repeat(c, 1, 1, 1)
-
-    def blur(t):
-        return F.conv2d(F.conv2d(t, wx, padding=(0, SSIM_RADIUS), groups=c), wy, padding=(SSIM_RADIUS, 0), groups=c)
-
-    mx, my = blur(x), blur(y)
-    sxx, syy, sxy = blur(x * x) - mx * mx, blur(y * y) - my * my, blur(x * y) - mx * my
+    """:func:`ssim` as 3DGS's training code computes it: each statistic a depthwise convolution
+    (torch's) of the zero-padded images, differentiated by autograd. The form :func:`ssim`
+    replaces, timed beside it by ``lmgs-eval bench model``."""
+    h, w = img.shape[:2]
+    x, y = _window(img, 0, h, 0, w), _window(ref, 0, h, 0, w)
+    mx, my = _blur(x), _blur(y)
+    sxx, syy, sxy = _blur(x * x) - mx * mx, _blur(y * y) - my * my, _blur(x * y) - mx * my
     return (((2 * mx * my + _C1) * (2 * sxy + _C2)) / ((mx * mx + my * my + _C1) * (sxx + syy + _C2))).mean()
 
 

@@ -115,6 +115,7 @@ def test_ssim_and_its_closed_form_gradient_are_the_3dgs_loss(dtype, path, monkey
     ours, theirs = losses.ssim(img, ref), _ssim_3dgs(img, ref)
     tol = dict(rtol=1e-10, atol=1e-12) if dtype == torch.float64 else dict(rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(ours, theirs, **tol)
+    torch.testing.assert_close(losses.ssim_autograd(img, ref), theirs, **tol)  # the form the benchmark times
     got = torch.autograd.grad(ours, (img, ref))
     want = torch.autograd.grad(theirs, (img, ref))
     for a, b in zip(got, want):
