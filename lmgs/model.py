@@ -194,17 +194,15 @@ class LMGSModel(nn.Module):
 
     def render_frame(
         self, w2c: torch.Tensor, background: torch.Tensor, *, dynamic: bool = True, audio=None, landmarks=None, blink=None,
-        face_features=None, mouth_features=None, check_values: bool = True, mouth=None, geometry: bool = True,
+        face_features=None, mouth_features=None, check_values: bool = True, mouth=None,
     ) -> FrameRender:
         """One frame, differentiable (training). ``mouth``: the frame's normalised mouth state
         ``[2]`` (:meth:`mouth_states`) when the model reads it. ``check_values=False`` leaves out the
         rasterizer's finiteness check, a read-back from the device per branch (the training step's
-        own loss check catches parameters gone non-finite). ``geometry=False``: no depth and normal
-        maps (a step that does not read them: the rasterizer composites three features instead of
-        seven; the colour and alpha are the same)."""
+        own loss check catches parameters gone non-finite)."""
         face_p, frac = self.branch_params(self.face, self.face_deform, dynamic, audio, landmarks, blink, face_features, mouth)
         mouth_p, _ = self.branch_params(self.mouth, self.mouth_deform, dynamic, audio, None, None, mouth_features, mouth)
-        r = render_branches(face_p, mouth_p, self.camera(w2c), background, geometry=geometry, check_values=check_values)
+        r = render_branches(face_p, mouth_p, self.camera(w2c), background, check_values=check_values)
         r.se_fraction = float("nan") if frac is None else frac
         return r
 

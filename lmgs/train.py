@@ -301,14 +301,13 @@ def _frame_loss(run: _Run, step: int, i: int, dynamic: bool):
     lm = run.lms_pred[i] if (dynamic and run.lms_pred is not None) else None
     on_host = run.dev.type == "cpu"  # on a GPU nothing in the step reads a value back (see lmgs.clipdata)
     state = run.mouth_states[i] if (dynamic and run.mouth_states is not None) else None
-    geo = run.use_geo and dynamic  # the Geometry Regularizer's step: the face's depth and normals rendered too
     r = model.render_frame(model.train_w2c[i], bg, dynamic=dynamic, audio=audio, landmarks=lm, blink=data.blink(i), mouth=state,
-                           check_values=on_host, geometry=geo)
+                           check_values=on_host)
     loss = run.image_loss(r.rgb, gt, bg, r.head_alpha[..., 0] > 0, i)  # L1 + D-SSIM, over the box around the head
     mouth_px = data.mouth_pixels(i) if dynamic else None
     if mouth_px is not None:
         loss = loss + t.lambda_mouth * r.face_alpha[..., 0].reshape(-1)[mouth_px].mean()
-    if geo:
+    if run.use_geo and dynamic:
         ramp = gr_ramp(step - t.static_steps, t.gr_warmup)
         w_depth, w_normal = run.prior_weights
         loss = loss + losses.geometry(r.depth, r.normal, r.face_alpha, data.depth(i), data.normal(i), ramp * w_depth,

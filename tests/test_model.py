@@ -356,24 +356,3 @@ def test_training_landmarks_are_out_of_fold_and_the_folds_hash(clip, monkeypatch
     said.clear()
     fit(synthetic_clip(n=12), _tiny_cfg(), seed=0, progress=False, log=said.append)  # the default: in-sample
     assert calls == [] and any("training landmarks in-sample" in s and "too few" not in s for s in said)
-
-
-def test_a_frame_without_depth_and_normals_has_the_same_colour_and_gradients(trained, clip):
-    # a training step that does not read the face's depth and normals renders without them
-    model = trained[0]
-    w2c = model.train_w2c[3]
-    bg = torch.from_numpy(clip.backgrounds[0].astype(np.float32) / 255.0)
-    audio = model.audio_net(model.audio_windows(clip.audio, len(clip)), index=torch.tensor([3]))[0]
-    outs = []
-    for geometry in (True, False):
-        model.zero_grad(set_to_none=True)
-        lm = torch.as_tensor(np.asarray(clip.landmarks3d[3]), dtype=torch.float32)
-        r = model.render_frame(w2c, bg, dynamic=True, audio=audio.detach(), landmarks=lm, blink=torch.tensor(0.2), geometry=geometry)
-        (r.rgb.square().mean() + r.face_alpha.mean()).backward()
-        grads = {k: p.grad.clone() for k, p in model.named_parameters() if p.grad is not None}
-        outs.append((r, grads))
-    (full, g_full), (lean, g_lean) = outs
-    assert full.depth is not None and full.normal is not None and lean.depth is None and lean.normal is None
-    assert torch.equal(full.rgb, lean.rgb) and torch.equal(full.head_alpha, lean.head_alpha)
-    assert g_full.keys() == g_lean.keys() and len(g_full) > 5
-    assert all(torch.equal(g_full[k], g_lean[k]) for k in g_full)
