@@ -214,6 +214,7 @@ def loss_breakdown(n: int, res: int, repeats: int) -> dict:
         "closed_form_ms": timed(lambda: losses.photometric(img, frame)),
         "box_ms": timed(lambda: box(img, frame, bg, cover, key=0)),
     }
+
     def ratio(a: float, b: float) -> float | None:
         return round(a / b, 2) if b > 0 else None
 

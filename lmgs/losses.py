@@ -45,6 +45,13 @@ def _blur(t: torch.Tensor) -> torch.Tensor:
 _C1, _C2 = 0.01**2, 0.03**2
 
 
+def _ssim_factors(mx, my, exx, eyy, exy):
+    """SSIM's ``A1 = 2 mx my + c1``, ``A2 = 2 sxy + c2``, ``B1 = mx^2 + my^2 + c1``, ``B2 = sxx + syy + c2``
+    (``s = A1 A2 / (B1 B2)``) from the window's means of x, y, x^2, y^2 and xy."""
+    return (2 * mx * my + _C1, 2 * (exy - mx * my) + _C2, mx * mx + my * my + _C1,
+            (exx - mx * mx) + (eyy - my * my) + _C2)
+
+
 def _on_numba(t: torch.Tensor) -> bool:
     return t.device.type == "cpu" and t.dtype in (torch.float32, torch.float64)
 
@@ -73,11 +80,8 @@ class _SSIMMap(torch.autograd.Function):
             ctx.numba = (xn, yn, g, terms)
             return torch.from_numpy(s)[None]
         ctx.numba = None
-        c = x.shape[1]
-        m = _blur(torch.cat([x, y, x * x, y * y, x * y], 1))
-        mx, my, exx, eyy, exy = m.split(c, 1)
-        a1, a2 = 2 * mx * my + _C1, 2 * (exy - mx * my) + _C2
-        b1, b2 = mx * mx + my * my + _C1, (exx - mx * mx) + (eyy - my * my) + _C2
+        mx, my, exx, eyy, exy = _blur(torch.cat([x, y, x * x, y * y, x * y], 1)).split(x.shape[1], 1)
+        a1, a2, b1, b2 = _ssim_factors(mx, my, exx, eyy, exy)
         s = (a1 * a2) / (b1 * b2)
         ctx.save_for_backward(x, y, mx, my, a1, a2, b1, b2, s)
         return s
@@ -140,9 +144,8 @@ def ssim_autograd(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
     replaces, timed beside it by ``lmgs-eval bench model``."""
     h, w = img.shape[:2]
     x, y = _window(img, 0, h, 0, w), _window(ref, 0, h, 0, w)
-    mx, my = _blur(x), _blur(y)
-    sxx, syy, sxy = _blur(x * x) - mx * mx, _blur(y * y) - my * my, _blur(x * y) - mx * my
-    return (((2 * mx * my + _C1) * (2 * sxy + _C2)) / ((mx * mx + my * my + _C1) * (sxx + syy + _C2))).mean()
+    a1, a2, b1, b2 = _ssim_factors(_blur(x), _blur(y), _blur(x * x), _blur(y * y), _blur(x * y))
+    return ((a1 * a2) / (b1 * b2)).mean()
 
 
 def photometric(img: torch.Tensor, ref: torch.Tensor, lambda_dssim: float = 0.2, *, ssim_fn=None) -> torch.Tensor:
