@@ -165,3 +165,23 @@ def test_a_subject_knee_density_is_the_default_of_capacity_and_of_the_other_prot
     self_rec = next(r for r in load_records(tmp_path / "self")[0] if r.method.name == "lmgs")
     assert self_rec.config_hash == knee_rec.config_hash
     assert self_rec.cost.n_gaussians == knee_rec.cost.n_gaussians  # the capacity run's model, reloaded
+
+
+def test_capacity_on_footage_takes_the_runs_lip_weights(ernerf_folder):
+    """On recorded footage lmgs reads the generic lip model, so `--set train.lip_weights=...` is a setting
+    of the run; the preset's budget is worked out with the subject's method (not a subject-less one,
+    which refuses the weights), and every budget's config carries the weights."""
+    from lmgs_eval.data import registry
+    from lmgs_eval.protocols.capacity import budget_overrides
+    from lmgs_eval.runner import RunConfig, build_method
+
+    root, _ = ernerf_folder
+    subject = registry.find_subject(str(root), progress=False)
+    assert not subject.bundled
+    cfg = RunConfig(method_options={"overrides": {"train.lip_weights": "lips_generated.pt"}})
+    points = budget_overrides(cfg, subject, 3000.0, [500])
+    assert sorted(points) == [500, 1075]  # 0.358438 x 3000 px, the preset's default
+    for n, over in points.items():
+        method = build_method(cfg, "lmgs", subject, overrides=over)
+        assert method.cfg.train.lip_weights == "lips_generated.pt"
+        assert method.cfg.train.landmark_source == "generic-tuned"

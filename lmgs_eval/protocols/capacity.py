@@ -61,7 +61,9 @@ def budget_overrides(cfg: RunConfig, subject, area: float, budgets: Sequence[int
     """The budgets a capacity run trains (those asked for, the default's, the preset's), each with its overrides."""
     base = dict(cfg.method_options.get("overrides", {}))
     density = build_method(cfg, "lmgs", subject).cfg.train.budget_density
-    preset_density = build_method(cfg, "lmgs", None).cfg.train.budget_density
+    # the preset's (or the run's --set) density: the subject's method without its knee, so that every other
+    # setting (recorded footage's, the lip weights it reads) is the subject's
+    preset_density = build_method(cfg, "lmgs", subject, budget_density=None).cfg.train.budget_density
     default = budget_from_face_area(area, density)
     # Budgets that are a density of their own (the preset's, the subject's knee) are trained at
     # exactly that density, so their configs, and trained models, are those of the other protocols.
