@@ -270,8 +270,12 @@ def geometry(
 
     ``depth`` is the alpha-normalised expected depth ``[H, W, 1]``; ``normal`` ``[H, W, 3]``.
     ``gather=False`` computes both terms as masked sums (:func:`scale_invariant_depth`): equal up to
-    float rounding, and no read-back on a GPU.
+    float rounding, and no read-back on a GPU. A term of weight 0 is not computed (its normals,
+    ``normal`` and ``ref_normal``, may then be None): it would add exactly zero to the loss and to
+    every gradient, at the cost of its forward and backward passes over the frame.
     """
     mask = (alpha[..., 0] > 0.5) & (ref_depth > 0)
-    return (lambda_d * scale_invariant_depth(depth[..., 0], ref_depth, mask, gather)
-            + lambda_n * normal_loss(normal, ref_normal, mask, normal_reduce, gather))
+    loss = depth.sum() * 0.0 if lambda_d == 0 else lambda_d * scale_invariant_depth(depth[..., 0], ref_depth, mask, gather)
+    if lambda_n != 0:
+        loss = loss + lambda_n * normal_loss(normal, ref_normal, mask, normal_reduce, gather)
+    return loss

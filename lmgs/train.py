@@ -310,8 +310,8 @@ def _frame_loss(run: _Run, step: int, i: int, dynamic: bool):
     if run.use_geo and dynamic:
         ramp = gr_ramp(step - t.static_steps, t.gr_warmup)
         w_depth, w_normal = run.prior_weights
-        loss = loss + losses.geometry(r.depth, r.normal, r.face_alpha, data.depth(i), data.normal(i), ramp * w_depth,
-                                      ramp * w_normal, t.normal_reduce, gather=on_host)
+        loss = loss + losses.geometry(r.depth, r.normal, r.face_alpha, data.depth(i), data.normal(i) if w_normal else None,
+                                      ramp * w_depth, ramp * w_normal, t.normal_reduce, gather=on_host)
     if run.lip_boxes is not None and dynamic and t.lambda_lips > 0:
         y0, y1, x0, x1 = run.lip_boxes[i]
         loss = loss + t.lambda_lips * (r.rgb[y0:y1, x0:x1] - gt[y0:y1, x0:x1]).abs().mean()

@@ -86,6 +86,38 @@ def test_geometry_as_masked_sums_equals_the_gathered_terms(reduce, case):
         assert float(da.abs().max()) == 0.0  # fewer than two pixels: no depth term
 
 
+@pytest.mark.parametrize("gather", [True, False])
+def test_a_term_of_weight_zero_adds_exactly_nothing(gather):
+    """A zero weight (the normal term on derived priors, ``train.derived_normal_weight = 0``) leaves the
+    term out: the value and the depth's gradient are the bits of computing it times zero, the normals
+    get none, and they may be absent."""
+    g = torch.Generator().manual_seed(5)
+    h, w = 24, 20
+    ref_d = 0.5 + torch.rand(h, w, generator=g)
+    ref_n = torch.nn.functional.normalize(torch.randn(h, w, 3, generator=g), dim=-1)
+    alpha = torch.rand(h, w, 1, generator=g)
+    depth0 = (ref_d * (1 + 0.2 * torch.rand(h, w, generator=g)))[..., None]
+    normal0 = torch.randn(h, w, 3, generator=g)
+    depth = depth0.clone().requires_grad_()
+    mask = (alpha[..., 0] > 0.5) & (ref_d > 0)
+    want = (0.3 * losses.scale_invariant_depth(depth[..., 0], ref_d, mask, gather)
+            + 0.0 * losses.normal_loss(normal0, ref_n, mask, "mean", gather))
+    want.backward()
+    want_grad = depth.grad.clone()
+    depth.grad = None
+    normal = normal0.clone().requires_grad_()
+    got = losses.geometry(depth, normal, alpha, ref_d, ref_n, 0.3, 0.0, "mean", gather=gather)
+    got.backward()
+    assert float(got.detach()) > 0 and torch.equal(got.detach(), want.detach())
+    assert torch.equal(depth.grad, want_grad) and normal.grad is None
+    depth.grad = None
+    alone = losses.geometry(depth, None, alpha, ref_d, None, 0.3, 0.0, "mean", gather=gather)
+    alone.backward()
+    assert torch.equal(alone.detach(), want.detach()) and torch.equal(depth.grad, want_grad)
+    # both weights zero: a zero that still reaches the depth (so a caller's backward has a graph)
+    nothing = losses.geometry(depth, None, alpha, ref_d, None, 0.0, 0.0, gather=gather)
+    assert float(nothing.detach()) == 0.0 and nothing.requires_grad
+
 def _ssim_3dgs(img, ref):
     """3DGS's ``ssim`` as its training code writes it: each statistic a padded depthwise
     convolution with the 11-tap Gaussian (sigma 1.5), differentiated by autograd."""
