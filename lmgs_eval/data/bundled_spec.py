@@ -63,7 +63,9 @@ class BundledSpec:
 # better (PSNR 37.23 against 37.81, ST-LPIPS 0.0066 against 0.0063, LMD 1.65 against 1.58), and
 # 3,000 fell outside the tolerance on LPIPS (0.0099). The budget a face needs does not grow with
 # the frame's pixels the way its area in pixels does (6,000 at 512 px is the 256 px knee's 5,000
-# and change).
+# and change). That holds for the generated head only: on two real 512 px clips the knee sat at 10,000
+# and at the preset's density (docs/benchmark.md, "The model's size on real footage at 512 px"), so
+# no rule of the frame's size replaces a measured knee.
 KNEE_DENSITY = {BundledSpec("hopper"): 0.548559, BundledSpec("astronaut", 512, 60.0): 0.107531}
 
 
