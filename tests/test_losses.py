@@ -118,6 +118,7 @@ def test_a_term_of_weight_zero_adds_exactly_nothing(gather):
     nothing = losses.geometry(depth, None, alpha, ref_d, None, 0.0, 0.0, gather=gather)
     assert float(nothing.detach()) == 0.0 and nothing.requires_grad
 
+
 def _ssim_3dgs(img, ref):
     """3DGS's ``ssim`` as its training code writes it: each statistic a padded depthwise
     convolution with the 11-tap Gaussian (sigma 1.5), differentiated by autograd."""
