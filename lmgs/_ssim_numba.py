@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-C1, C2 = 0.01**2, 0.03**2
+from lmgs.losses import SSIM_C1 as C1, SSIM_C2 as C2
 
 
 @njit(cache=True)
