@@ -42,14 +42,14 @@ def _blur(t: torch.Tensor) -> torch.Tensor:
     return F.conv2d(F.conv2d(t, wx, groups=c), wy, groups=c)
 
 
-SSIM_C1, SSIM_C2 = 0.01**2, 0.03**2  # SSIM's stabilising constants for images in [0, 1]
+_C1, _C2 = 0.01**2, 0.03**2  # also lmgs._ssim_numba.C1, C2 (the numba kernels)
 
 
 def _ssim_factors(mx, my, exx, eyy, exy):
     """SSIM's ``A1 = 2 mx my + c1``, ``A2 = 2 sxy + c2``, ``B1 = mx^2 + my^2 + c1``, ``B2 = sxx + syy + c2``
     (``s = A1 A2 / (B1 B2)``) from the window's means of x, y, x^2, y^2 and xy."""
-    return (2 * mx * my + SSIM_C1, 2 * (exy - mx * my) + SSIM_C2, mx * mx + my * my + SSIM_C1,
-            (exx - mx * mx) + (eyy - my * my) + SSIM_C2)
+    return (2 * mx * my + _C1, 2 * (exy - mx * my) + _C2, mx * mx + my * my + _C1,
+            (exx - mx * mx) + (eyy - my * my) + _C2)
 
 
 def _on_numba(t: torch.Tensor) -> bool:
