@@ -142,6 +142,45 @@ def test_swapped_copy_takes_the_generators_cameras_and_moves_the_depth(tmp_path)
     assert "priors_derived" not in json.loads((cams / "meta.json").read_text())
 
 
+def test_swapped_landmarks_move_as_the_generators_in_the_ingests_frame(tmp_path):
+    """``--swap landmarks``: the generator's 3D landmarks, laid on the ingest's by one similarity for
+    the clip, so the ingest's world frame is kept and the motion is the generator's; the rest of the
+    folder, cameras included, is the ingest's."""
+    from lmgs_eval.commands._bench_ingested import CAMERA_FILES, landmarks_in_frame_of, swapped_copy
+
+    rng = np.random.default_rng(0)
+    theirs = np.repeat(rng.normal(size=(1, 68, 3)) * 0.05, 5, axis=0)
+    theirs[:, 48:, 1] += np.linspace(0, 0.01, 5)[:, None]  # the mouth opens over the clip
+    c, s = np.cos(0.3), np.sin(0.3)
+    rot = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    frame = 1.7 * theirs @ rot.T + np.array([0.1, -0.2, 2.0])  # the same landmarks in another world frame
+    mine = frame.copy()
+    mine[:, 48:, 1] = frame[:, 48:, 1].mean(0)  # whose own mouth does not move
+    got = landmarks_in_frame_of(theirs, mine)
+    # the clip's similarity is found from every point (the still mouth pulls it only a little) ...
+    assert np.abs(got - frame).max() < 2e-3
+    # ... and exactly where the two sets differ by a similarity alone
+    np.testing.assert_allclose(landmarks_in_frame_of(theirs, frame), frame, atol=1e-9)
+    # the frame-to-frame motion is the generator's, scaled into the ingest's units
+    np.testing.assert_allclose(np.diff(got, axis=0), 1.7 * np.diff(theirs, axis=0) @ rot.T, atol=1e-4)
+    with pytest.raises(ValueError, match="not the same frames"):
+        landmarks_in_frame_of(theirs, mine[:4])
+
+    truth, ing = tmp_path / "truth", tmp_path / "ing"
+    for root, lms, val in ((truth, theirs, 1), (ing, mine, 2)):
+        (root / "depth").mkdir(parents=True)
+        (root / "depth" / "0.png").write_bytes(bytes([val]))
+        for name in CAMERA_FILES:
+            (root / name).write_bytes(bytes([val]))
+        np.save(root / "lms3d.npy", lms.astype(np.float32))
+    out = swapped_copy(truth, ing, tmp_path / "lms", "landmarks")
+    np.testing.assert_allclose(np.load(out / "lms3d.npy"), got.astype(np.float32), atol=1e-6)
+    for name in CAMERA_FILES:
+        if name != "lms3d.npy":
+            assert (out / name).read_bytes() == bytes([2])  # the ingest's cameras
+    assert (out / "depth" / "0.png").read_bytes() == bytes([2])
+
+
 def test_decoded_copy_is_the_generators_folder_with_the_videos_frames(tmp_path):
     from lmgs_eval.commands._bench_ingested import decoded_copy
 

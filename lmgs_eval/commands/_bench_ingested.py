@@ -27,7 +27,11 @@ shows); the figure says how much of the full-frame difference lives there
 ``--swap cameras`` / ``--swap geometry`` add a folder each: the ingest with the generator's
 cameras and 3D landmarks (its depth maps moved to the generator's camera distance, their shape
 kept), or with those and the generator's depth and normal maps as well. They say how much of
-the gap the ingest's geometry leaves, and which part of it.
+the gap the ingest's geometry leaves, and which part of it. The cameras and the 3D landmarks
+share a world frame, so ``cameras`` swaps both; ``--swap landmarks`` takes the generator's 3D
+landmarks alone, carried into the ingest's world frame by the one similarity (scale, rotation,
+shift over every frame and point) that best lays them on the ingest's own, and keeps the
+ingest's cameras: what the landmarks' motion carries, apart from the cameras.
 
 ``--video lossless`` ingests, instead of the raw video, the generator's frames (``ori_imgs``)
 and audio encoded without loss (x264's RGB encoder at quantiser 0): the ingest then starts from
@@ -55,6 +59,7 @@ BAND_PX = 4
 SWAPS = {  # what each --swap folder takes from the generator
     "cameras": "cameras and 3D landmarks, its depth maps moved to the generator's camera distance",
     "geometry": "cameras, 3D landmarks, depth and normal maps",
+    "landmarks": "3D landmarks, carried into the ingest's world frame by one similarity (its cameras kept)",
 }
 CAMERA_FILES = ("transforms_train.json", "transforms_val.json", "track_params.pt", "lms3d.npy")  # one world frame
 
@@ -68,8 +73,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "generator's parsing calls torso; head: a copy built (in the temporary folder) with all the hair "
                         "moving with the head, as on a camera (default layer)")
     p.add_argument("--swap", action="append", choices=SWAPS, default=[],
-                   help="also train on the ingest with the generator's cameras and 3D landmarks (cameras), or with those "
-                        "and its depth and normal maps (geometry); repeatable")
+                   help="also train on the ingest with the generator's cameras and 3D landmarks (cameras), with those "
+                        "and its depth and normal maps (geometry), or with its 3D landmarks alone in the ingest's world "
+                        "frame (landmarks); repeatable")
     p.add_argument("--video", choices=("h264", "lossless"), default="h264",
                    help="h264: ingest the generator's raw video (CRF 18, 4:2:0) as a camera's would come; lossless: its "
                         "frames and audio re-encoded without loss, so that only the ingest's processing differs "
@@ -99,7 +105,8 @@ def swapped_copy(truth_root: Path, ing_root: Path, out: Path, part: str) -> Path
     """The ingest's folder with the generator's geometry: ``cameras``: its cameras and 3D landmarks
     (which share its world frame), the ingest's depth maps shifted per frame so that their median
     is the generator's (the two cameras stand at different distances); ``geometry``: its depth and
-    normal maps as well."""
+    normal maps as well; ``landmarks``: its 3D landmarks alone, in the ingest's world frame
+    (:func:`landmarks_in_frame_of`)."""
     import shutil
 
     from lmgs_eval.data.geometry import DEPTH_SCALE
@@ -108,6 +115,10 @@ def swapped_copy(truth_root: Path, ing_root: Path, out: Path, part: str) -> Path
     if part not in SWAPS:
         raise ValueError(f"part {part!r}: one of {tuple(SWAPS)}")
     shutil.copytree(ing_root, out, ignore=shutil.ignore_patterns("*.mp4"))
+    if part == "landmarks":
+        theirs, mine = np.load(truth_root / "lms3d.npy"), np.load(ing_root / "lms3d.npy")
+        np.save(out / "lms3d.npy", landmarks_in_frame_of(theirs, mine).astype(np.float32))
+        return out
     for name in CAMERA_FILES:
         shutil.copy2(truth_root / name, out / name)
     if part == "geometry":
@@ -126,6 +137,19 @@ def swapped_copy(truth_root: Path, ing_root: Path, out: Path, part: str) -> Path
             shift = np.median(theirs[theirs > 0]) - np.median(mine[mine > 0])
             write_depth(path, np.where(mine > 0, np.maximum(mine + shift, 1.0 / DEPTH_SCALE), 0.0), DEPTH_SCALE)
     return out
+
+
+def landmarks_in_frame_of(theirs: np.ndarray, mine: np.ndarray) -> np.ndarray:
+    """3D landmarks ``theirs`` ``[N, 68, 3]`` carried into the world frame of ``mine`` (the same
+    frames) by the least-squares similarity over every frame and point: one scale, rotation and
+    shift for the clip, so their motion from frame to frame is theirs alone."""
+    from lmgs.lips import similarity
+
+    theirs, mine = np.asarray(theirs, np.float64), np.asarray(mine, np.float64)
+    if theirs.shape != mine.shape:
+        raise ValueError(f"3D landmarks of shapes {theirs.shape} and {mine.shape}: not the same frames")
+    s, rot, t = similarity(theirs.reshape(-1, 3), mine.reshape(-1, 3))
+    return s * theirs @ rot.T + t
 
 
 def run(args: argparse.Namespace) -> dict:
